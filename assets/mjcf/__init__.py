@@ -1,0 +1,1 @@
+"""MJCF models of the domains, installed as the package data ``tasks.mjcf``."""

@@ -1,0 +1,9 @@
+"""hipmdp: Hidden Parameter MDPs with an IBP-GP model (Doshi-Velez & Konidaris).
+
+Pure numpy/scipy: nothing in this package imports MuJoCo, so it fits transitions from
+any simulator.
+"""
+
+from hipmdp.data import Transitions
+
+__all__ = ["Transitions"]

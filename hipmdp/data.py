@@ -1,0 +1,365 @@
+"""Transitions: batches of (s, a, s', r) from many instances, as plain arrays.
+
+Symbols: ``N`` transitions, ``D`` state dimensions, ``b`` instance id, ``a`` discrete
+action index. The state convention is the simulator's physics state ``s`` (for MuJoCo
+``(qpos, qvel)``) with angle dimensions wrapped to (-π, π]; the model predicts
+``Δs = s' - s`` with angle differences wrapped the same way.
+
+Files are ``.npz`` archives read with ``allow_pickle=False`` and written atomically
+(temporary name in the same folder, then rename), so a crash never leaves a
+half-written dataset behind. A per-instance parameter table (e.g. masses and lengths)
+can travel in the same file.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+Array = np.ndarray
+
+FORMAT_VERSION = 1
+
+
+def wrap_angle(x: Array | float) -> Array:
+    """Wrap angles to (-π, π]."""
+    x = np.asarray(x, dtype=float)
+    y = np.mod(x + np.pi, 2.0 * np.pi) - np.pi  # in [-π, π)
+    return np.where(y == -np.pi, np.pi, y)
+
+
+def atomic_write(path: str | os.PathLike, write) -> Path:
+    """Call ``write(file_object)`` on a temporary file beside ``path``, then rename.
+
+    A crash or kill mid-write leaves at most a stray ``.tmp`` file, never a truncated
+    ``path``.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            write(fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def _finite_float(name: str, x, shape_desc: str, ndim: int) -> Array:
+    arr = np.asarray(x)
+    if arr.dtype == object or not (
+        np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
+    ):
+        raise ValueError(f"{name}: expected a numeric array, got dtype {arr.dtype}")
+    if arr.ndim != ndim:
+        raise ValueError(f"{name}: expected shape {shape_desc}, got {arr.shape}")
+    arr = arr.astype(float)
+    if not np.all(np.isfinite(arr)):
+        bad = np.argwhere(~np.isfinite(arr))[0]
+        raise ValueError(
+            f"{name}: non-finite value at index {tuple(int(i) for i in bad)}"
+        )
+    return arr
+
+
+def _int_array(name: str, x, n: int) -> Array:
+    arr = np.asarray(x)
+    if arr.ndim != 1 or arr.shape[0] != n:
+        raise ValueError(f"{name}: expected shape ({n},), got {arr.shape}")
+    if np.issubdtype(arr.dtype, np.floating):
+        if not np.all(np.isfinite(arr)) or np.any(arr != np.round(arr)):
+            raise ValueError(f"{name}: expected integers, got non-integer values")
+    elif not np.issubdtype(arr.dtype, np.integer) or arr.dtype == bool:
+        raise ValueError(f"{name}: expected an integer array, got dtype {arr.dtype}")
+    return arr.astype(np.int64)
+
+
+@dataclass(frozen=True, eq=False)
+class ParameterTable:
+    """The physical parameters of each instance.
+
+    Attributes:
+        instances: instance ids ``b``, shape (n,), unique.
+        names: parameter names (e.g. ``("link_mass_1", "link_mass_2")``), length p.
+        values: parameter values, shape (n, p).
+    """
+
+    instances: Array
+    names: tuple[str, ...]
+    values: Array
+
+    def __post_init__(self) -> None:
+        ids = _int_array("instances", self.instances, np.asarray(self.instances).size)
+        names = tuple(self.names)
+        if not all(isinstance(s, str) and s for s in names):
+            raise ValueError("names: expected non-empty strings")
+        if len(set(names)) != len(names):
+            raise ValueError(f"names: duplicate parameter name in {names}")
+        if len(np.unique(ids)) != len(ids):
+            raise ValueError("instances: ids must be unique")
+        vals = _finite_float("values", self.values, "(n_instances, n_params)", 2)
+        if vals.shape != (len(ids), len(names)):
+            raise ValueError(
+                f"values: expected shape ({len(ids)}, {len(names)}), got {vals.shape}"
+            )
+        object.__setattr__(self, "instances", ids)
+        object.__setattr__(self, "names", names)
+        object.__setattr__(self, "values", vals)
+
+    def row(self, instance: int) -> dict[str, float]:
+        """The parameters of one instance as ``{name: value}``."""
+        hit = np.flatnonzero(self.instances == int(instance))
+        if hit.size == 0:
+            raise KeyError(f"instance {instance} is not in the parameter table")
+        return {
+            n: float(v) for n, v in zip(self.names, self.values[hit[0]], strict=True)
+        }
+
+    def column(self, name: str) -> Array:
+        """One parameter for every instance, shape (n,)."""
+        if name not in self.names:
+            raise KeyError(f"parameter {name!r} is not in {self.names}")
+        return self.values[:, self.names.index(name)]
+
+    def _arrays(self) -> dict[str, Array]:
+        return {
+            "table_instances": self.instances,
+            "table_names": np.array(self.names, dtype=np.str_),
+            "table_values": self.values,
+        }
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> ParameterTable | None:
+        """The table stored in a dataset file, or None if it has none."""
+        with np.load(path, allow_pickle=False) as f:
+            if "table_instances" not in f:
+                return None
+            return cls(
+                instances=f["table_instances"],
+                names=tuple(str(s) for s in f["table_names"]),
+                values=f["table_values"],
+            )
+
+
+@dataclass(frozen=True, eq=False)
+class Transitions:
+    """A batch of transitions ``(s, a, s', r, done)`` tagged by instance.
+
+    Attributes:
+        states: ``s``, shape (N, D), finite.
+        actions: discrete action indices ``a``, shape (N,), integers >= 0.
+        next_states: ``s'``, shape (N, D), finite.
+        instances: instance id ``b`` of each transition, shape (N,), integers.
+        rewards: shape (N,), or None.
+        dones: episode ended after this transition, bool shape (N,), or None.
+        angle_dims: state dimensions that are angles (wrapped in ``deltas``).
+    """
+
+    states: Array
+    actions: Array
+    next_states: Array
+    instances: Array
+    rewards: Array | None = None
+    dones: Array | None = None
+    angle_dims: tuple[int, ...] = ()
+
+    def __post_init__(self) -> None:
+        s = _finite_float("states", self.states, "(N, D)", 2)
+        n, d = s.shape
+        s2 = _finite_float("next_states", self.next_states, f"({n}, {d})", 2)
+        if s2.shape != s.shape:
+            raise ValueError(f"next_states: expected shape {s.shape}, got {s2.shape}")
+        a = _int_array("actions", self.actions, n)
+        if n and a.min() < 0:
+            raise ValueError(f"actions: expected indices >= 0, got {a.min()}")
+        b = _int_array("instances", self.instances, n)
+        r = self.rewards
+        if r is not None:
+            r = _finite_float("rewards", r, f"({n},)", 1)
+            if r.shape != (n,):
+                raise ValueError(f"rewards: expected shape ({n},), got {r.shape}")
+        done = self.dones
+        if done is not None:
+            done = np.asarray(done)
+            if done.shape != (n,):
+                raise ValueError(f"dones: expected shape ({n},), got {done.shape}")
+            if done.dtype != bool:
+                if not np.all(np.isin(done, (0, 1))):
+                    raise ValueError("dones: expected booleans (or 0/1)")
+                done = done.astype(bool)
+        angles = tuple(int(i) for i in self.angle_dims)
+        if any(i < 0 or i >= d for i in angles) or len(set(angles)) != len(angles):
+            raise ValueError(
+                f"angle_dims: expected distinct indices in [0, {d}), got {angles}"
+            )
+        for name, v in [
+            ("states", s),
+            ("actions", a),
+            ("next_states", s2),
+            ("instances", b),
+            ("rewards", r),
+            ("dones", done),
+            ("angle_dims", angles),
+        ]:
+            object.__setattr__(self, name, v)
+
+    # -- shape facts ------------------------------------------------------------------
+
+    def __len__(self) -> int:
+        return self.states.shape[0]
+
+    @property
+    def n_transitions(self) -> int:
+        return self.states.shape[0]
+
+    @property
+    def state_dim(self) -> int:
+        return self.states.shape[1]
+
+    @property
+    def n_actions(self) -> int:
+        """``max(action) + 1`` (0 for an empty batch)."""
+        return int(self.actions.max()) + 1 if len(self) else 0
+
+    @property
+    def instance_ids(self) -> Array:
+        """Sorted unique instance ids."""
+        return np.unique(self.instances)
+
+    @property
+    def deltas(self) -> Array:
+        """``Δs = s' - s``, shape (N, D), angle dimensions wrapped to (-π, π]."""
+        delta = self.next_states - self.states
+        if self.angle_dims:
+            idx = list(self.angle_dims)
+            delta[:, idx] = wrap_angle(delta[:, idx])
+        return delta
+
+    # -- selection and concatenation ---------------------------------------------------
+
+    def _take(self, mask: Array) -> Transitions:
+        return Transitions(
+            states=self.states[mask],
+            actions=self.actions[mask],
+            next_states=self.next_states[mask],
+            instances=self.instances[mask],
+            rewards=None if self.rewards is None else self.rewards[mask],
+            dones=None if self.dones is None else self.dones[mask],
+            angle_dims=self.angle_dims,
+        )
+
+    def select(
+        self,
+        instances: int | Iterable[int] | None = None,
+        actions: int | Iterable[int] | None = None,
+    ) -> Transitions:
+        """The transitions of the given instance ids and/or action indices."""
+        mask = np.ones(len(self), dtype=bool)
+        if instances is not None:
+            mask &= np.isin(self.instances, np.atleast_1d(np.asarray(instances)))
+        if actions is not None:
+            mask &= np.isin(self.actions, np.atleast_1d(np.asarray(actions)))
+        return self._take(mask)
+
+    def head(self, n: int) -> Transitions:
+        """The first ``n`` transitions."""
+        return self._take(np.arange(len(self)) < n)
+
+    @classmethod
+    def concatenate(cls, parts: Sequence[Transitions]) -> Transitions:
+        """Stack batches with the same state dimension and angle dimensions.
+
+        ``rewards``/``dones`` are kept only if every part has them.
+        """
+        parts = list(parts)
+        if not parts:
+            raise ValueError("concatenate: expected at least one Transitions")
+        d, angles = parts[0].state_dim, parts[0].angle_dims
+        for i, p in enumerate(parts):
+            if not isinstance(p, Transitions):
+                raise ValueError(f"concatenate: part {i} is {type(p).__name__}")
+            if p.state_dim != d or p.angle_dims != angles:
+                raise ValueError(
+                    f"concatenate: part {i} has state_dim {p.state_dim} and angle_dims"
+                    f" {p.angle_dims}, expected {d} and {angles}"
+                )
+
+        def cat(name: str) -> Array | None:
+            vals = [getattr(p, name) for p in parts]
+            if any(v is None for v in vals):
+                return None
+            return np.concatenate(vals)
+
+        return cls(
+            states=cat("states"),
+            actions=cat("actions"),
+            next_states=cat("next_states"),
+            instances=cat("instances"),
+            rewards=cat("rewards"),
+            dones=cat("dones"),
+            angle_dims=angles,
+        )
+
+    # -- files ---------------------------------------------------------------------
+
+    def save(
+        self, path: str | os.PathLike, table: ParameterTable | None = None
+    ) -> Path:
+        """Write an ``.npz`` (no pickle) atomically; optionally with the parameters.
+
+        Every instance in the data must have a row in ``table`` if one is given.
+        """
+        path = Path(path)
+        if path.suffix != ".npz":
+            raise ValueError(f"path: expected a .npz file name, got {path.name!r}")
+        arrays: dict[str, Array] = {
+            "format_version": np.array(FORMAT_VERSION),
+            "states": self.states,
+            "actions": self.actions,
+            "next_states": self.next_states,
+            "instances": self.instances,
+            "angle_dims": np.array(self.angle_dims, dtype=np.int64),
+        }
+        if self.rewards is not None:
+            arrays["rewards"] = self.rewards
+        if self.dones is not None:
+            arrays["dones"] = self.dones
+        if table is not None:
+            if not isinstance(table, ParameterTable):
+                raise ValueError(f"table: expected ParameterTable, got {type(table)}")
+            missing = np.setdiff1d(self.instance_ids, table.instances)
+            if missing.size:
+                raise ValueError(
+                    f"table: no parameters for instances {missing.tolist()[:10]}"
+                )
+            arrays.update(table._arrays())
+        return atomic_write(path, lambda fh: np.savez(fh, **arrays))
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> Transitions:
+        """Read a file written by :meth:`save` (``allow_pickle=False``)."""
+        with np.load(path, allow_pickle=False) as f:
+            version = int(f["format_version"]) if "format_version" in f else None
+            if version != FORMAT_VERSION:
+                raise ValueError(
+                    f"{path}: format_version {version}, expected {FORMAT_VERSION}"
+                )
+            return cls(
+                states=f["states"],
+                actions=f["actions"],
+                next_states=f["next_states"],
+                instances=f["instances"],
+                rewards=f["rewards"] if "rewards" in f else None,
+                dones=f["dones"] if "dones" in f else None,
+                angle_dims=tuple(int(i) for i in f["angle_dims"]),
+            )

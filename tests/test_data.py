@@ -1,0 +1,187 @@
+"""Transitions and ParameterTable: validation, deltas, selection, files."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from hipmdp import Transitions
+from hipmdp.data import ParameterTable, wrap_angle
+
+
+def make(n=12, d=4, seed=0, **kw) -> Transitions:
+    rng = np.random.default_rng(seed)
+    args = dict(
+        states=rng.normal(size=(n, d)),
+        actions=rng.integers(0, 3, size=n),
+        next_states=rng.normal(size=(n, d)),
+        instances=rng.integers(0, 4, size=n),
+        rewards=-np.ones(n),
+        dones=rng.random(n) < 0.2,
+        angle_dims=(0, 1),
+    )
+    args.update(kw)
+    return Transitions(**args)
+
+
+def table_for(t: Transitions) -> ParameterTable:
+    ids = t.instance_ids
+    return ParameterTable(
+        instances=ids, names=("mass", "length"), values=np.c_[ids + 1.0, ids * 0.5 + 1]
+    )
+
+
+@given(st.floats(-1e3, 1e3, allow_nan=False))
+def test_wrap_angle_range_and_equivalence(x):
+    y = float(wrap_angle(x))
+    assert -np.pi < y <= np.pi
+    # same angle: differs from x by a whole number of turns
+    turns = (x - y) / (2 * np.pi)
+    assert abs(turns - round(turns)) < 1e-9
+
+
+def test_wrap_angle_boundary_maps_to_plus_pi():
+    assert wrap_angle(-np.pi) == np.pi
+    assert wrap_angle(np.pi) == np.pi
+
+
+def test_deltas_wrap_only_angle_dims():
+    s = np.array([[3.0, 0.0, 3.0]])
+    s2 = np.array([[-3.0, 0.0, -3.0]])
+    t = Transitions(s, [0], s2, [0], angle_dims=(0,))
+    d = t.deltas
+    np.testing.assert_allclose(d[0, 0], 2 * np.pi - 6.0)  # wrapped across ±π
+    np.testing.assert_allclose(d[0, 2], -6.0)  # not an angle: plain difference
+
+
+def test_shape_facts():
+    t = make()
+    assert len(t) == t.n_transitions == 12
+    assert t.state_dim == 4
+    assert t.n_actions == int(t.actions.max()) + 1
+    np.testing.assert_array_equal(t.instance_ids, np.unique(t.instances))
+
+
+def test_select_by_instance_and_action():
+    t = make(n=200)
+    sub = t.select(instances=[1, 2], actions=0)
+    assert set(sub.instances) <= {1, 2} and set(sub.actions) == {0}
+    expected = np.isin(t.instances, [1, 2]) & (t.actions == 0)
+    assert len(sub) == expected.sum()
+    np.testing.assert_array_equal(sub.states, t.states[expected])
+    np.testing.assert_array_equal(sub.dones, t.dones[expected])
+
+
+def test_concatenate_keeps_order_and_drops_missing_optional_fields():
+    a, b = make(seed=1), make(seed=2, rewards=None)
+    c = Transitions.concatenate([a, b])
+    np.testing.assert_array_equal(c.states, np.vstack([a.states, b.states]))
+    assert c.rewards is None and c.dones is not None
+    with pytest.raises(ValueError, match="angle_dims"):
+        Transitions.concatenate([a, make(angle_dims=(0,))])
+    with pytest.raises(ValueError, match="at least one"):
+        Transitions.concatenate([])
+
+
+def test_save_load_round_trip(tmp_path):
+    t = make(n=50)
+    table = table_for(t)
+    path = t.save(tmp_path / "d.npz", table=table)
+    u = Transitions.load(path)
+    for name in ["states", "actions", "next_states", "instances", "rewards", "dones"]:
+        np.testing.assert_array_equal(getattr(u, name), getattr(t, name))
+    assert u.angle_dims == t.angle_dims
+    v = ParameterTable.load(path)
+    np.testing.assert_array_equal(v.values, table.values)
+    assert v.names == table.names
+    assert (
+        v.row(int(t.instance_ids[0]))["mass"]
+        == table.row(int(t.instance_ids[0]))["mass"]
+    )
+    # a file with no table
+    t.save(tmp_path / "e.npz")
+    assert ParameterTable.load(tmp_path / "e.npz") is None
+
+
+def test_file_is_plain_npz_without_pickle(tmp_path):
+    path = make().save(tmp_path / "d.npz", table=table_for(make()))
+    with np.load(path, allow_pickle=False) as f:
+        assert all(f[k].dtype != object for k in f.files)
+
+
+@pytest.mark.parametrize(
+    "override, match",
+    [
+        (dict(states=np.zeros((12,))), "states: expected shape"),
+        (dict(next_states=np.zeros((11, 4))), "next_states: expected shape"),
+        (dict(actions=np.zeros(11, int)), "actions: expected shape"),
+        (dict(actions=np.full(12, -1)), "actions: expected indices >= 0"),
+        (dict(actions=np.full(12, 0.5)), "actions: expected integers"),
+        (dict(instances=np.zeros(13, int)), "instances: expected shape"),
+        (dict(states=np.full((12, 4), np.nan)), "states: non-finite"),
+        (dict(next_states=np.full((12, 4), np.inf)), "next_states: non-finite"),
+        (dict(rewards=np.full(12, np.nan)), "rewards: non-finite"),
+        (dict(rewards=np.zeros(3)), "rewards: expected shape"),
+        (dict(dones=np.full(12, 2)), "dones: expected booleans"),
+        (dict(angle_dims=(7,)), "angle_dims"),
+        (dict(angle_dims=(0, 0)), "angle_dims"),
+        (dict(states=np.full((12, 4), "x")), "states: expected a numeric array"),
+    ],
+)
+def test_bad_input_names_the_field(override, match):
+    with pytest.raises(ValueError, match=match):
+        make(**override)
+
+
+def test_bad_save_writes_nothing(tmp_path):
+    t = make()
+    with pytest.raises(ValueError, match="path: expected a .npz"):
+        t.save(tmp_path / "d.txt")
+    partial = ParameterTable(instances=[0], names=("mass",), values=[[1.0]])
+    with pytest.raises(ValueError, match="table: no parameters for instances"):
+        t.save(tmp_path / "d.npz", table=partial)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_failed_write_leaves_old_file_intact(tmp_path, monkeypatch):
+    t = make()
+    path = t.save(tmp_path / "d.npz")
+    before = path.read_bytes()
+
+    def boom(*args, **kwargs):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(np, "savez", boom)
+    with pytest.raises(RuntimeError, match="disk full"):
+        make(seed=5).save(path)
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["d.npz"]  # no temp file left
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(names=("a", "a"), values=[[1.0, 2.0]]), "names: duplicate"),
+        (dict(names=("a",), values=[[1.0, 2.0]]), "values: expected shape"),
+        (dict(names=("a",), values=[[np.nan]]), "values: non-finite"),
+    ],
+)
+def test_parameter_table_bad_input(kw, match):
+    with pytest.raises(ValueError, match=match):
+        ParameterTable(instances=[0], **kw)
+
+
+def test_load_rejects_other_files(tmp_path):
+    np.savez(tmp_path / "x.npz", a=np.zeros(3))
+    with pytest.raises(ValueError, match="format_version"):
+        Transitions.load(tmp_path / "x.npz")
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(1, 30), st.integers(1, 5), st.integers(0, 10_000))
+def test_select_partitions_data(n, d, seed):
+    t = make(n=n, d=d, seed=seed, angle_dims=())
+    parts = [t.select(instances=int(b)) for b in t.instance_ids]
+    assert sum(len(p) for p in parts) == len(t)
