@@ -1,0 +1,237 @@
+"""Gaussian-process regression: marginal likelihood, hyperparameter fitting, prediction.
+
+Symbols: `X` inputs (states), shape (n, D); `y` targets (one state dimension of Δs),
+shape (n,); `ℓ` length scales (D,), `σ_f²` signal variance, `σ_n²` noise variance;
+`a` action, `d` state dimension, `b` instance. The prior mean is zero, as for every
+basis function `f[k,a,d] ~ GP(0, k_ad)` of the model.
+
+Hyperparameters of the `(a, d)` GP are shared by all instances: the marginal likelihood
+maximised is the sum over instances `b` of independent GP marginal likelihoods, each on
+instance `b`'s own transitions. Pooling instances into one GP would count the
+between-instance variation as noise, which is exactly what the latent parameters are
+meant to explain.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+from scipy import linalg, optimize
+
+from hipmdp.kernels import se_kernel, se_kernel_grad
+
+Array = np.ndarray
+
+# Bounds of the hyperparameter search, relative to the data's scale (see `_bounds`).
+_LENGTH_RANGE = 1e2  # ℓ_j within [std_j / 100, std_j * 100]
+_SIGNAL_RANGE = (1e-4, 1e2)  # σ_f² within this factor of mean(y²)
+_NOISE_RANGE = (1e-8, 1.0)  # σ_n² within this factor of mean(y²)
+
+
+class GPHyper(NamedTuple):
+    """GP hyperparameters: lengthscales ℓ (D,), signal_var σ_f², noise_var σ_n²."""
+
+    lengthscales: Array
+    signal_var: float
+    noise_var: float
+
+    def to_theta(self) -> Array:
+        """θ = (log ℓ, log σ_f², log σ_n²), shape (D + 2,)."""
+        return np.concatenate(
+            [
+                np.log(self.lengthscales),
+                [np.log(self.signal_var), np.log(self.noise_var)],
+            ]
+        )
+
+    @classmethod
+    def from_theta(cls, theta: Array) -> GPHyper:
+        """Inverse of `to_theta`."""
+        theta = np.asarray(theta, dtype=float)
+        return cls(
+            np.exp(theta[:-2]), float(np.exp(theta[-2])), float(np.exp(theta[-1]))
+        )
+
+
+@dataclass(frozen=True)
+class HyperSet:
+    """Hyperparameters of every `(a, d)` GP.
+
+    lengthscales: ℓ[a,d], shape (A, D, D); signal_var: σ_f²[a,d], shape (A, D);
+    noise_var: σ²[a,d], shape (A, D).
+    """
+
+    lengthscales: Array
+    signal_var: Array
+    noise_var: Array
+
+    def get(self, a: int, d: int) -> GPHyper:
+        """The hyperparameters of action `a`, state dimension `d`."""
+        return GPHyper(
+            self.lengthscales[a, d],
+            float(self.signal_var[a, d]),
+            float(self.noise_var[a, d]),
+        )
+
+
+class NLML(NamedTuple):
+    """-log marginal likelihood `value` and its gradient `grad` in θ (D + 2,)."""
+
+    value: float
+    grad: Array
+
+
+def neg_log_marginal_likelihood(
+    theta: Array, groups: list[tuple[Array, Array]]
+) -> NLML:
+    """Negative log marginal likelihood of independent zero-mean GPs sharing θ.
+
+    For each group (X_b (n_b, D), y_b (n_b,)), with C = K + σ_n² I and α = C⁻¹ y:
+
+        -log p(y_b | X_b, θ) = ½ yᵀα + ½ log|C| + ½ n_b log 2π
+        ∂/∂θ_i = -½ tr((α αᵀ - C⁻¹) ∂C/∂θ_i)
+
+    with ∂C/∂log σ_n² = σ_n² I. The value and gradient are summed over groups.
+    """
+    hyper = GPHyper.from_theta(theta)
+    value = 0.0
+    grad = np.zeros(len(theta))
+    for X, y in groups:
+        n = len(y)
+        if n == 0:
+            continue
+        kg = se_kernel_grad(X, hyper.lengthscales, hyper.signal_var)
+        C = kg.K + hyper.noise_var * np.eye(n)
+        L = linalg.cholesky(C, lower=True)
+        alpha = linalg.cho_solve((L, True), y)
+        value += (
+            0.5 * y @ alpha + np.log(np.diag(L)).sum() + 0.5 * n * np.log(2 * np.pi)
+        )
+        Cinv = linalg.cho_solve((L, True), np.eye(n))
+        Q = np.outer(alpha, alpha) - Cinv
+        # tr(Q dK) = Σ_ij Q_ij dK_ij since both are symmetric.
+        grad[:-1] -= 0.5 * np.einsum("ij,kij->k", Q, kg.dK)
+        grad[-1] -= 0.5 * hyper.noise_var * np.trace(Q)
+    return NLML(float(value), grad)
+
+
+def _bounds(
+    groups: list[tuple[Array, Array]],
+) -> tuple[Array, list[tuple[float, float]]]:
+    """Starting point θ₀ and box bounds, both scaled to the data."""
+    X = np.concatenate([g[0] for g in groups])
+    y = np.concatenate([g[1] for g in groups])
+    std = X.std(0)
+    std = np.where(std > 0, std, 1.0)
+    scale = max(float(np.mean(y * y)), 1e-12)
+    theta0 = np.concatenate([np.log(std), [np.log(scale), np.log(1e-2 * scale)]])
+    lr = np.log(_LENGTH_RANGE)
+    bounds = [(float(np.log(s) - lr), float(np.log(s) + lr)) for s in std]
+    bounds.append(tuple(float(np.log(scale * r)) for r in _SIGNAL_RANGE))
+    bounds.append(tuple(float(np.log(scale * r)) for r in _NOISE_RANGE))
+    return theta0, bounds
+
+
+def fit_hyperparameters(groups: list[tuple[Array, Array]]) -> GPHyper:
+    """Maximise the summed marginal likelihood over θ (L-BFGS-B, analytic gradient).
+
+    groups: list of (X_b (n_b, D), y_b (n_b,)), one per instance. Deterministic given
+    the data. The search starts at ℓ = std(X), σ_f² = mean(y²), σ_n² = mean(y²)/100
+    and is boxed relative to those scales.
+    """
+    if not groups or sum(len(g[1]) for g in groups) < 2:
+        raise ValueError("groups: expected at least 2 data points in total")
+    theta0, bounds = _bounds(groups)
+
+    def fun(theta: Array) -> tuple[float, Array]:
+        try:
+            res = neg_log_marginal_likelihood(theta, groups)
+        except linalg.LinAlgError:
+            return 1e300, np.zeros_like(theta)
+        return res.value, res.grad
+
+    result = optimize.minimize(fun, theta0, jac=True, method="L-BFGS-B", bounds=bounds)
+    return GPHyper.from_theta(result.x)
+
+
+class GPPosterior(NamedTuple):
+    """A GP conditioned on data: X (n, D), alpha = (K + σ_n² I)⁻¹ y (n,), the Cholesky
+    factor L (n, n) of K + σ_n² I, and its hyperparameters."""
+
+    X: Array
+    alpha: Array
+    L: Array
+    hyper: GPHyper
+
+    def predict(self, Xs: Array, include_noise: bool = False) -> tuple[Array, Array]:
+        """Predictive mean and variance at Xs (n_s, D).
+
+        mean = K(Xs, X) α
+        var  = σ_f² - diag(K(Xs, X) (K + σ_n² I)⁻¹ K(X, Xs))  [+ σ_n²]
+        """
+        h = self.hyper
+        Ks = se_kernel(Xs, self.X, h.lengthscales, h.signal_var)
+        mean = Ks @ self.alpha
+        V = linalg.solve_triangular(self.L, Ks.T, lower=True)
+        var = np.maximum(h.signal_var - (V * V).sum(0), 0.0)
+        if include_noise:
+            var = var + h.noise_var
+        return mean, var
+
+
+def condition(X: Array, y: Array, hyper: GPHyper) -> GPPosterior:
+    """Condition the zero-mean GP on (X (n, D), y (n,))."""
+    X = np.atleast_2d(np.asarray(X, dtype=float))
+    y = np.asarray(y, dtype=float)
+    if X.shape[0] != y.shape[0]:
+        raise ValueError(
+            f"X and y: expected the same length, got {len(X)} and {len(y)}"
+        )
+    K = se_kernel(X, X, hyper.lengthscales, hyper.signal_var)
+    L = linalg.cholesky(K + hyper.noise_var * np.eye(len(y)), lower=True)
+    alpha = linalg.cho_solve((L, True), y)
+    return GPPosterior(X, alpha, L, hyper)
+
+
+def subsample(n: int, size: int, *, rng: np.random.Generator) -> Array:
+    """Sorted indices of `min(n, size)` distinct items drawn uniformly from range(n)."""
+    if n <= size:
+        return np.arange(n)
+    return np.sort(rng.choice(n, size=size, replace=False))
+
+
+def fit_hyper_set(
+    states: Array,
+    actions: Array,
+    deltas: Array,
+    instances: Array,
+    n_actions: int,
+    *,
+    n_subsample: int,
+    rng: np.random.Generator,
+) -> HyperSet:
+    """Fit the hyperparameters of every `(a, d)` GP on a reproducible subsample.
+
+    states: (N, D); actions: (N,); deltas: Δs, (N, D); instances: (N,).
+    For each action a, at most `n_subsample // B` transitions per instance are drawn
+    (without replacement, from `rng`), and for each d the summed per-instance marginal
+    likelihood is maximised (`fit_hyperparameters`). Returns a HyperSet.
+    """
+    D = states.shape[1]
+    ids = np.unique(instances)
+    per_instance = max(2, n_subsample // len(ids))
+    ell = np.empty((n_actions, D, D))
+    sf2 = np.empty((n_actions, D))
+    sn2 = np.empty((n_actions, D))
+    for a in range(n_actions):
+        rows = []
+        for b in ids:
+            idx = np.flatnonzero((actions == a) & (instances == b))
+            rows.append(idx[subsample(len(idx), per_instance, rng=rng)])
+        for d in range(D):
+            groups = [(states[r], deltas[r, d]) for r in rows if len(r)]
+            h = fit_hyperparameters(groups)
+            ell[a, d], sf2[a, d], sn2[a, d] = h
+    return HyperSet(ell, sf2, sn2)
