@@ -1,0 +1,127 @@
+"""What every experiment shares: run folders, JSON artefacts, intervals, tables.
+
+An experiment writes ``runs/<name>/``: ``config.json``, ``metrics.json``,
+``report.md``, PNG figures, a rerun ``.rrd`` and the fitted model. Every file is
+written to a temporary name and renamed, so a killed run leaves no half-written
+artefact. All randomness of a run is spawned from one ``np.random.SeedSequence``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+from hipmdp.data import atomic_write
+
+Array = np.ndarray
+
+
+def to_jsonable(x: Any) -> Any:
+    """Dataclasses, numpy scalars/arrays, tuples and paths as plain JSON values."""
+    if dataclasses.is_dataclass(x) and not isinstance(x, type):
+        return {f.name: to_jsonable(getattr(x, f.name)) for f in dataclasses.fields(x)}
+    if isinstance(x, dict):
+        return {str(k): to_jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [to_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return to_jsonable(x.tolist())
+    if isinstance(x, np.bool_):
+        return bool(x)
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.floating | float):
+        x = float(x)
+        return x if np.isfinite(x) else None  # JSON has no NaN/inf
+    if isinstance(x, Path):
+        return str(x)
+    return x
+
+
+def write_json(path: str | os.PathLike, obj: Any) -> Path:
+    """Write ``obj`` as indented JSON, atomically."""
+    text = json.dumps(to_jsonable(obj), indent=2, sort_keys=False) + "\n"
+    return atomic_write(path, lambda fh: fh.write(text.encode()))
+
+
+def write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write a text file atomically."""
+    return atomic_write(path, lambda fh: fh.write(text.encode()))
+
+
+def save_figure(fig, path: str | os.PathLike) -> Path:
+    """Save a matplotlib figure as PNG, atomically, and close it."""
+    import matplotlib.pyplot as plt
+
+    try:
+        return atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=120))
+    finally:
+        plt.close(fig)
+
+
+def run_dir(out: str | os.PathLike | None, name: str) -> Path:
+    """``out`` if given, else ``runs/<name>`` under the working directory."""
+    path = Path(out) if out is not None else Path("runs") / name
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def mean_ci(x: Sequence[float] | Array, axis: int = 0, level: float = 0.95) -> dict:
+    """Mean and Student-t ``level`` confidence interval along ``axis``.
+
+    Returns ``{"mean", "low", "high", "n"}`` (arrays if more than one dimension
+    remains). With one sample the interval is the point itself.
+    """
+    x = np.asarray(x, dtype=float)
+    n = x.shape[axis]
+    mean = x.mean(axis=axis)
+    if n < 2:
+        return {"mean": mean, "low": mean, "high": mean, "n": n}
+    sem = x.std(axis=axis, ddof=1) / np.sqrt(n)
+    half = stats.t.ppf(0.5 + level / 2, df=n - 1) * sem
+    return {"mean": mean, "low": mean - half, "high": mean + half, "n": n}
+
+
+def first_episode_within(
+    curve: Array, target: float, margin: float = 0.1
+) -> int | None:
+    """First episode (1-based) whose mean return is within ``margin`` of ``target``.
+
+    Returns are negative step counts, so "within 10%" means
+    ``curve[e] >= target - margin * |target|``. None if never reached.
+    """
+    curve = np.asarray(curve, dtype=float)
+    ok = np.flatnonzero(curve >= target - margin * abs(target))
+    return int(ok[0]) + 1 if ok.size else None
+
+
+def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
+    """A GitHub Markdown table."""
+    lines = [
+        "| " + " | ".join(str(h) for h in header) + " |",
+        "|" + "|".join("---" for _ in header) + "|",
+    ]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def fmt_ci(ci: dict, digits: int = 3) -> str:
+    """``mean [low, high]`` in scientific notation for small values."""
+
+    def f(v: float) -> str:
+        v = float(v)
+        return f"{v:.{digits}g}" if abs(v) >= 1e-3 or v == 0 else f"{v:.{digits - 1}e}"
+
+    return f"{f(ci['mean'])} [{f(ci['low'])}, {f(ci['high'])}]"
+
+
+def spawn_rngs(seed_seq: np.random.SeedSequence, n: int) -> list[np.random.Generator]:
+    """``n`` independent generators from one seed sequence."""
+    return [np.random.default_rng(s) for s in seed_seq.spawn(n)]

@@ -1,0 +1,42 @@
+"""Shared experiment utilities: intervals, thresholds, JSON artefacts."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+from scipy import stats
+
+from tasks.experiment import first_episode_within, mean_ci, to_jsonable, write_json
+
+
+def test_mean_ci_matches_t_interval_and_covers_at_nominal_rate():
+    rng = np.random.default_rng(0)
+    x = rng.normal(3.0, 2.0, size=(20, 400))
+    ci = mean_ci(x, axis=0)
+    low, high = stats.t.interval(
+        0.95, df=19, loc=x[:, 0].mean(), scale=stats.sem(x[:, 0])
+    )
+    np.testing.assert_allclose([ci["low"][0], ci["high"][0]], [low, high])
+    # 400 independent intervals: coverage ~ Binomial(400, .95)/400, sd ~ 0.011
+    coverage = np.mean((ci["low"] <= 3.0) & (3.0 <= ci["high"]))
+    assert abs(coverage - 0.95) < 4 * np.sqrt(0.95 * 0.05 / 400)
+
+
+def test_mean_ci_single_sample_is_a_point():
+    ci = mean_ci([2.5])
+    assert ci["low"] == ci["mean"] == ci["high"] == 2.5 and ci["n"] == 1
+
+
+def test_first_episode_within_uses_negative_returns():
+    # returns are -steps: the true model ends at -100, so within 10% is >= -110
+    curve = np.array([-500.0, -200.0, -111.0, -109.0, -100.0])
+    assert first_episode_within(curve, target=-100.0) == 4
+    assert first_episode_within(curve, target=-10.0) is None
+
+
+def test_json_artefacts_are_plain_and_nan_free(tmp_path):
+    obj = {"a": np.arange(3), "b": np.float64(np.nan), "c": (1, np.int64(2))}
+    assert to_jsonable(obj) == {"a": [0, 1, 2], "b": None, "c": [1, 2]}
+    path = write_json(tmp_path / "m.json", obj)
+    assert json.loads(path.read_text())["a"] == [0, 1, 2]
