@@ -1,0 +1,183 @@
+"""Pieces shared by the domains: instance parameters, model loading, the state
+vector and the discrete-action dm_control task.
+
+Conventions (DESIGN.md §1): the state is `s = (qpos, qvel)`, shape `(D,)` with
+`D = 2 · nq`, angle entries wrapped to (-π, π]; an action is an index `a` into the
+domain's table `ACTIONS` of controls, shape `(A,)`.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import importlib.resources
+import math
+from typing import Any
+
+import mujoco
+import numpy as np
+from dm_control import mujoco as dm_mujoco
+from dm_control.mujoco import wrapper
+from dm_control.suite import base
+from dm_env import specs
+
+Array = np.ndarray
+
+#: Name of the one observation every task returns: the state `(qpos, qvel)`.
+STATE_OBSERVATION = "state"
+
+
+def parameter(nominal: float, unit: str, low: float, high: float) -> Any:
+    """A dataclass field for an instance parameter with its unit and bounds.
+
+    The bounds are closed, `low ≤ value ≤ high`, with `low > 0`.
+    """
+    return dataclasses.field(
+        default=nominal, metadata={"unit": unit, "bounds": (low, high)}
+    )
+
+
+def validate_parameters(params: Any) -> None:
+    """Check every field of a parameter dataclass; store it as a Python float.
+
+    Raises:
+        ValueError: naming the field and its bound if a value is not a finite real
+            number inside its documented bounds.
+    """
+    cls = type(params).__name__
+    for field in dataclasses.fields(params):
+        value = getattr(params, field.name)
+        low, high = field.metadata["bounds"]
+        unit = field.metadata["unit"]
+        where = f"{cls}.{field.name} must be in [{low}, {high}] {unit}"
+        if isinstance(value, bool) or not isinstance(value, int | float | np.number):
+            raise ValueError(f"{where}, got {value!r} (not a real number)")
+        if not math.isfinite(value):
+            raise ValueError(f"{where}, got {value!r} (not finite)")
+        if not low <= value <= high:
+            bound = "lower bound" if value < low else "upper bound"
+            raise ValueError(
+                f"{where}, got {value!r} (outside the {bound} "
+                f"{low if value < low else high} {unit})"
+            )
+        # Frozen dataclass: store plain floats so equality and hashing behave.
+        object.__setattr__(params, field.name, float(value))
+
+
+def check_params(params: Any, params_type: type) -> Any:
+    """`params_type()` (nominal) for None, `params` if of that type, else ValueError."""
+    if params is None:
+        return params_type()
+    if not isinstance(params, params_type):
+        raise ValueError(
+            f"params must be {params_type.__name__} or None, got {params!r}"
+        )
+    return params
+
+
+def check_max_steps(max_steps: Any) -> int:
+    """`max_steps` if it is a positive int, else ValueError."""
+    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
+        raise ValueError(f"max_steps must be a positive int, got {max_steps!r}")
+    return max_steps
+
+
+def parameter_names(params_type: type) -> tuple[str, ...]:
+    """Field names of a parameter dataclass, in declaration order."""
+    return tuple(field.name for field in dataclasses.fields(params_type))
+
+
+def parameter_values(params: Any) -> Array:
+    """Field values of a parameter dataclass as an array, shape `(p,)`."""
+    return np.array(dataclasses.astuple(params), dtype=float)
+
+
+def load_spec(filename: str) -> mujoco.MjSpec:
+    """Parse a nominal model from the installed package data `tasks.mjcf`."""
+    path = importlib.resources.files("tasks.mjcf") / filename
+    return mujoco.MjSpec.from_string(path.read_text())
+
+
+def set_link(
+    body: Any, geom: Any, mass: float, length: float, inertia: float, down: float
+) -> None:
+    """Rewrite one link of a chain with `mujoco.MjSpec`.
+
+    The link runs from its joint (the body origin) along `(0, 0, down · length)`:
+    centre of mass at mid-link, `diaginertia = (I, I, I)` with `I = inertia` (only
+    the component about the hinge axis enters the planar dynamics), and the drawn
+    capsule follows the length.
+
+    Args:
+        body: the link's `MjsBody`; geom: its `MjsGeom`; mass in kg; length in m;
+        inertia in kg·m² about the centre of mass; down: -1 hangs, +1 stands.
+    """
+    body.mass = mass
+    body.ipos = [0.0, 0.0, down * length / 2]
+    body.inertia = [inertia, inertia, inertia]
+    geom.fromto = [0.0, 0.0, 0.0, 0.0, 0.0, down * length]
+
+
+class StatePhysics(dm_mujoco.Physics):
+    """A Physics with the project's state vector; subclasses set `ANGLE_DIMS`."""
+
+    ANGLE_DIMS: tuple[int, ...] = ()
+
+    @classmethod
+    def from_mj_model(cls, model: mujoco.MjModel) -> StatePhysics:
+        """Wrap a compiled `mujoco.MjModel` (e.g. from `MjSpec.compile`)."""
+        return cls.from_model(wrapper.MjModel(model))
+
+    def state(self) -> Array:
+        """`s = (qpos, qvel)` with angles wrapped to (-π, π], shape `(D,)`."""
+        s = np.concatenate([self.data.qpos, self.data.qvel])
+        return wrap_state(s, self.ANGLE_DIMS)
+
+
+def wrap_state(states: Array, angle_dims: tuple[int, ...]) -> Array:
+    """Wrap the angle entries of states to (-π, π]; shape `(..., D)` kept.
+
+    `wrap(x) = x - 2π ⌈(x - π) / (2π)⌉`, so π maps to π and -π to π.
+    """
+    out = np.array(states, dtype=float, copy=True)
+    angles = out[..., list(angle_dims)]
+    out[..., list(angle_dims)] = angles - 2 * np.pi * np.ceil(
+        (angles - np.pi) / (2 * np.pi)
+    )
+    return out
+
+
+class DiscreteActionTask(base.Task):
+    """A task whose action is an index into a table of controls.
+
+    `step(a)` takes `a` as a Python or NumPy integer (or a 0-d integer array) in
+    `[0, A)` and applies control `ACTIONS[a]` for the whole control step. The action
+    spec is a `DiscreteArray(num_values=A)`. The observation is one array,
+    `{"state": s}`. Randomness comes from `np.random.default_rng(seed)`.
+    """
+
+    def __init__(self, actions: Array, *, seed: Any) -> None:
+        super().__init__(random=None)  # dm_control's RandomState is not used.
+        self._actions = np.asarray(actions, dtype=float)
+        self.rng = np.random.default_rng(seed)
+
+    def action_spec(self, physics: dm_mujoco.Physics) -> specs.DiscreteArray:
+        return specs.DiscreteArray(len(self._actions), dtype=np.int64, name="action")
+
+    def before_step(self, action: Any, physics: dm_mujoco.Physics) -> None:
+        n = len(self._actions)
+        if np.ndim(action) != 0 or not np.issubdtype(
+            np.asarray(action).dtype, np.integer
+        ):
+            raise ValueError(
+                f"action must be an integer index in [0, {n}), got {action!r}"
+            )
+        index = int(action)
+        if not 0 <= index < n:
+            raise ValueError(
+                f"action must be an integer index in [0, {n}), got {index}"
+            )
+        physics.data.ctrl[0] = self._actions[index]
+
+    def get_observation(self, physics: StatePhysics) -> collections.OrderedDict:
+        return collections.OrderedDict([(STATE_OBSERVATION, physics.state())])

@@ -1,0 +1,217 @@
+"""Acrobot swing-up (Sutton & Barto, *Reinforcement Learning*, 1998, §11.3) on
+MuJoCo, one compiled model per instance.
+
+Symbols: `m₁, m₂` link masses (kg); `l₁, l₂` link lengths (m); `lc_i = l_i / 2` the
+centres of mass; `I_i = m_i l_i²` the moments of inertia about the centres of mass
+(kg·m², the book's 1 at nominal: the shape is kept and scaled); `g = 9.8` m/s²;
+`τ ∈ ACTIONS = (-1, 0, +1)` N·m the elbow torque.
+
+State `s = (θ₁, θ₂, θ̇₁, θ̇₂)`, shape `(4,)` (`STATE_DIM`): `θ₁ = 0` hangs straight
+down, `θ₂` is the elbow angle relative to link 1, angles (`ANGLE_DIMS`) wrapped to
+(-π, π]. The tip is at height `y = -l₁ cos θ₁ - l₂ cos(θ₁ + θ₂)` above the shoulder.
+
+Task: every episode starts near hanging at rest, each of the four state entries
+uniform in [-0.1, 0.1] (drawn from the task's seed). Each step holds the chosen
+torque for 0.2 s and gives reward -1, so the return is minus the number of steps
+taken. The episode ends (discount 0) when the tip is higher than the first link's
+length above the shoulder, `y > l₁` (the book's goal line at nominal lengths; with
+rewritten lengths it stays reachable since `l₁ + l₂ > l₁`), or (discount 1) after
+`max_steps` steps (default 500).
+
+Integration: MuJoCo's RK4 with a 10 ms step, 20 steps per action. Against a
+tolerance-1e-12 ODE solve of the book equations, one 0.2 s action errs below 1e-5
+for |θ̇₁| ≤ 5, |θ̇₂| ≤ 8 rad/s (tests/test_acrobot.py); 20 ms steps err ~1e-4.
+
+Deviation from the book: velocities are not clipped (the book clips θ̇₁ to ±4π and
+θ̇₂ to ±9π rad/s). Clipping is not part of the equations of motion and would make
+the dynamics non-smooth; swing-ups with torques ±1 stay far below those limits.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import mujoco
+import numpy as np
+from dm_control.rl import control
+
+from tasks._common import (
+    DiscreteActionTask,
+    StatePhysics,
+    check_max_steps,
+    check_params,
+    load_spec,
+    parameter,
+    set_link,
+    validate_parameters,
+)
+
+Array = np.ndarray
+
+#: Elbow torques (N·m) indexed by the discrete action `a`; the actuator's control
+#: range is `[ACTIONS.min(), ACTIONS.max()]`.
+ACTIONS = np.array([-1.0, 0.0, 1.0])
+#: State `(θ₁, θ₂, θ̇₁, θ̇₂)`: its dimension and which entries are angles.
+STATE_DIM = 4
+ANGLE_DIMS = (0, 1)
+#: Seconds per action; MuJoCo RK4 steps of 10 ms per action.
+CONTROL_TIMESTEP = 0.2
+N_SUB_STEPS = 20
+DEFAULT_MAX_STEPS = 500
+#: Half-width of the uniform initial-state noise around hanging at rest.
+INITIAL_NOISE = 0.1
+
+
+@dataclasses.dataclass(frozen=True)
+class AcrobotParams:
+    """Instance parameters of the acrobot, validated on construction.
+
+    ==============  ====  =======  ===========
+    name            unit  nominal  valid range
+    ==============  ====  =======  ===========
+    link_mass_1     kg    1.0      [0.2, 5.0]
+    link_mass_2     kg    1.0      [0.2, 5.0]
+    link_length_1   m     1.0      [0.2, 5.0]
+    link_length_2   m     1.0      [0.2, 5.0]
+    ==============  ====  =======  ===========
+
+    Each link keeps its shape: centre of mass at mid-link and moment of inertia
+    about it `I_i = m_i l_i²` (1 kg·m² at nominal, as in the book).
+
+    Raises:
+        ValueError: naming the field and the bound, for a value that is not a
+            finite number inside its range.
+    """
+
+    link_mass_1: float = parameter(1.0, "kg", 0.2, 5.0)
+    link_mass_2: float = parameter(1.0, "kg", 0.2, 5.0)
+    link_length_1: float = parameter(1.0, "m", 0.2, 5.0)
+    link_length_2: float = parameter(1.0, "m", 0.2, 5.0)
+
+    def __post_init__(self) -> None:
+        validate_parameters(self)
+
+
+def make_model(params: AcrobotParams | None = None) -> mujoco.MjModel:
+    """Compile `assets/mjcf/acrobot.xml` rewritten to `params` with `mujoco.MjSpec`.
+
+    Link `i` gets mass `m_i`, centre of mass at `l_i / 2`, inertia `m_i l_i²` about
+    it and a capsule of length `l_i`; the elbow sits at `l₁` and the tip site at
+    `l₂` below it.
+    """
+    params = _check_params(params)
+    spec = load_spec("acrobot.xml")
+    m1, m2 = params.link_mass_1, params.link_mass_2
+    l1, l2 = params.link_length_1, params.link_length_2
+    set_link(spec.body("link_1"), spec.geom("link_1"), m1, l1, m1 * l1**2, down=-1)
+    spec.body("link_2").pos = [0.0, 0.0, -l1]
+    set_link(spec.body("link_2"), spec.geom("link_2"), m2, l2, m2 * l2**2, down=-1)
+    spec.site("tip").pos = [0.0, 0.0, -l2]
+    return spec.compile()
+
+
+class Physics(StatePhysics):
+    """Acrobot physics: `state()` is `(θ₁, θ₂, θ̇₁, θ̇₂)` with angles wrapped."""
+
+    ANGLE_DIMS = ANGLE_DIMS
+
+
+def tip_height(states: Array, params: AcrobotParams | None = None) -> Array:
+    """Height of the tip above the shoulder for an array of states.
+
+    `y = -l₁ cos θ₁ - l₂ cos(θ₁ + θ₂)`.
+
+    Args:
+        states: `(..., 4)` states `(θ₁, θ₂, θ̇₁, θ̇₂)`.
+        params: the instance (nominal if None).
+
+    Returns:
+        `y`, shape `(...)`, in m.
+    """
+    params = _check_params(params)
+    states = _check_states(states)
+    theta_1, theta_2 = states[..., 0], states[..., 1]
+    return -params.link_length_1 * np.cos(theta_1) - params.link_length_2 * np.cos(
+        theta_1 + theta_2
+    )
+
+
+def goal_reached(states: Array, params: AcrobotParams | None = None) -> Array:
+    """Whether the tip is higher than `l₁` above the shoulder, `y > l₁`.
+
+    Args:
+        states: `(..., 4)` states; params: the instance (nominal if None).
+
+    Returns:
+        Boolean array of shape `(...)`.
+    """
+    params = _check_params(params)
+    return tip_height(states, params) > params.link_length_1
+
+
+class SwingUp(DiscreteActionTask):
+    """Swing the tip above `l₁`: reward -1 per step, ends at the goal."""
+
+    def __init__(self, params: AcrobotParams, *, max_steps: int, seed: Any) -> None:
+        super().__init__(ACTIONS, seed=seed)
+        self.params = params
+        self.max_steps = max_steps
+        self._steps = 0
+
+    def initialize_episode(self, physics: Physics) -> None:
+        """Start near hanging at rest: `s₀ ~ U[-0.1, 0.1]⁴`."""
+        s0 = self.rng.uniform(-INITIAL_NOISE, INITIAL_NOISE, size=STATE_DIM)
+        physics.data.qpos[:] = s0[:2]
+        physics.data.qvel[:] = s0[2:]
+        self._steps = 0
+
+    def after_step(self, physics: Physics) -> None:
+        self._steps += 1
+
+    def get_reward(self, physics: Physics) -> float:
+        return -1.0
+
+    def get_termination(self, physics: Physics) -> float | None:
+        if goal_reached(physics.state(), self.params):
+            return 0.0
+        if self._steps >= self.max_steps:
+            return 1.0
+        return None
+
+
+def swingup(
+    params: AcrobotParams | None = None,
+    *,
+    seed: Any = None,
+    max_steps: int = DEFAULT_MAX_STEPS,
+) -> control.Environment:
+    """The swing-up environment on the instance `params` (nominal if None).
+
+    `env.step(a)` takes an action index `a ∈ {0, 1, 2}` (torque `ACTIONS[a]`); the
+    observation is `{"state": (θ₁, θ₂, θ̇₁, θ̇₂)}` with angles wrapped.
+
+    Args:
+        params: the instance; seed: anything `np.random.default_rng` accepts, for
+        the initial states; max_steps: the step limit per episode.
+    """
+    params = _check_params(params)
+    max_steps = check_max_steps(max_steps)
+    physics = Physics.from_mj_model(make_model(params))
+    task = SwingUp(params, max_steps=max_steps, seed=seed)
+    return control.Environment(
+        physics, task, n_sub_steps=N_SUB_STEPS, legacy_step=False
+    )
+
+
+def _check_params(params: AcrobotParams | None) -> AcrobotParams:
+    return check_params(params, AcrobotParams)
+
+
+def _check_states(states: Array) -> Array:
+    states = np.asarray(states, dtype=float)
+    if states.ndim < 1 or states.shape[-1] != STATE_DIM:
+        raise ValueError(
+            f"states must have shape (..., {STATE_DIM}), got {states.shape}"
+        )
+    return states

@@ -1,0 +1,182 @@
+"""Cart-pole balancing (Barto, Sutton & Anderson, 1983) on MuJoCo, one compiled
+model per instance.
+
+Symbols: `M` cart mass (kg); `m` pole mass (kg); `l` pole half-length (m), the pole a
+uniform rod of length `2l` with moment of inertia `m (2l)² / 12` about its centre;
+`g = 9.81` m/s²; `F ∈ ACTIONS = (-10, +10)` N the force on the cart.
+
+State `s = (x, θ, ẋ, θ̇)`, shape `(4,)` (`STATE_DIM`): `x` the cart position, `θ = 0`
+upright and `θ > 0` leaning toward +x, the angle (`ANGLE_DIMS`) wrapped to (-π, π].
+
+Task: every episode starts near upright at rest, each of the four state entries
+uniform in [-0.05, 0.05] (drawn from the task's seed). Each step holds the chosen
+force for 0.02 s. The pole fails when `|θ| > 12°` or `|x| > 2.4` m (`failed`); a
+step gives reward 1 if the new state has not failed and 0 if it has, so the return
+is the number of steps balanced. The episode ends (discount 0) at failure, or
+(discount 1) after `max_steps` steps (default 300).
+
+Integration: MuJoCo's RK4 with a 10 ms step, 2 steps per action (the classic code
+uses one Euler step of 20 ms; RK4 integrates the same equations far more
+accurately, see tests/test_cartpole.py).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import mujoco
+import numpy as np
+from dm_control.rl import control
+
+from tasks._common import (
+    DiscreteActionTask,
+    StatePhysics,
+    check_max_steps,
+    check_params,
+    load_spec,
+    parameter,
+    set_link,
+    validate_parameters,
+)
+
+Array = np.ndarray
+
+#: Cart forces (N) indexed by the discrete action `a`; the actuator's control range
+#: is `[ACTIONS.min(), ACTIONS.max()]`.
+ACTIONS = np.array([-10.0, 10.0])
+#: State `(x, θ, ẋ, θ̇)`: its dimension and which entries are angles.
+STATE_DIM = 4
+ANGLE_DIMS = (1,)
+#: Seconds per action; MuJoCo RK4 steps of 10 ms per action.
+CONTROL_TIMESTEP = 0.02
+N_SUB_STEPS = 2
+DEFAULT_MAX_STEPS = 300
+#: Failure thresholds: pole angle (rad) and cart position (m).
+THETA_LIMIT = 12 * 2 * np.pi / 360
+X_LIMIT = 2.4
+#: Half-width of the uniform initial-state noise around upright at rest.
+INITIAL_NOISE = 0.05
+
+
+@dataclasses.dataclass(frozen=True)
+class CartpoleParams:
+    """Instance parameters of the cart-pole, validated on construction.
+
+    ================  ====  =======  ============
+    name              unit  nominal  valid range
+    ================  ====  =======  ============
+    cart_mass         kg    1.0      [0.1, 10.0]
+    pole_mass         kg    0.1      [0.01, 2.0]
+    pole_half_length  m     0.5      [0.1, 2.5]
+    ================  ====  =======  ============
+
+    The pole stays a uniform rod: centre of mass at `l`, inertia `m (2l)² / 12`.
+
+    Raises:
+        ValueError: naming the field and the bound, for a value that is not a
+            finite number inside its range.
+    """
+
+    cart_mass: float = parameter(1.0, "kg", 0.1, 10.0)
+    pole_mass: float = parameter(0.1, "kg", 0.01, 2.0)
+    pole_half_length: float = parameter(0.5, "m", 0.1, 2.5)
+
+    def __post_init__(self) -> None:
+        validate_parameters(self)
+
+
+def make_model(params: CartpoleParams | None = None) -> mujoco.MjModel:
+    """Compile `assets/mjcf/cartpole.xml` rewritten to `params` with `mujoco.MjSpec`.
+
+    The cart gets mass `M`; the pole mass `m`, centre of mass at `l`, inertia
+    `m (2l)² / 12` about it, a capsule of length `2l` and the tip site at `2l`.
+    """
+    params = _check_params(params)
+    spec = load_spec("cartpole.xml")
+    spec.body("cart").mass = params.cart_mass
+    m, length = params.pole_mass, 2 * params.pole_half_length
+    set_link(spec.body("pole"), spec.geom("pole"), m, length, m * length**2 / 12, 1)
+    spec.site("tip").pos = [0.0, 0.0, length]
+    return spec.compile()
+
+
+class Physics(StatePhysics):
+    """Cart-pole physics: `state()` is `(x, θ, ẋ, θ̇)` with the angle wrapped."""
+
+    ANGLE_DIMS = ANGLE_DIMS
+
+
+def failed(states: Array) -> Array:
+    """Whether states are past the failure thresholds, `|θ| > 12°` or `|x| > 2.4`.
+
+    Args:
+        states: `(..., 4)` states `(x, θ, ẋ, θ̇)`, `θ` wrapped to (-π, π].
+
+    Returns:
+        Boolean array of shape `(...)`.
+    """
+    states = np.asarray(states, dtype=float)
+    if states.ndim < 1 or states.shape[-1] != STATE_DIM:
+        raise ValueError(
+            f"states must have shape (..., {STATE_DIM}), got {states.shape}"
+        )
+    return (np.abs(states[..., 1]) > THETA_LIMIT) | (np.abs(states[..., 0]) > X_LIMIT)
+
+
+class Balance(DiscreteActionTask):
+    """Keep the pole up: reward 1 per step not failed, ends at failure."""
+
+    def __init__(self, params: CartpoleParams, *, max_steps: int, seed: Any) -> None:
+        super().__init__(ACTIONS, seed=seed)
+        self.params = params
+        self.max_steps = max_steps
+        self._steps = 0
+
+    def initialize_episode(self, physics: Physics) -> None:
+        """Start near upright at rest: `s₀ ~ U[-0.05, 0.05]⁴`."""
+        s0 = self.rng.uniform(-INITIAL_NOISE, INITIAL_NOISE, size=STATE_DIM)
+        physics.data.qpos[:] = s0[:2]
+        physics.data.qvel[:] = s0[2:]
+        self._steps = 0
+
+    def after_step(self, physics: Physics) -> None:
+        self._steps += 1
+
+    def get_reward(self, physics: Physics) -> float:
+        return 0.0 if failed(physics.state()) else 1.0
+
+    def get_termination(self, physics: Physics) -> float | None:
+        if failed(physics.state()):
+            return 0.0
+        if self._steps >= self.max_steps:
+            return 1.0
+        return None
+
+
+def balance(
+    params: CartpoleParams | None = None,
+    *,
+    seed: Any = None,
+    max_steps: int = DEFAULT_MAX_STEPS,
+) -> control.Environment:
+    """The balancing environment on the instance `params` (nominal if None).
+
+    `env.step(a)` takes an action index `a ∈ {0, 1}` (force `ACTIONS[a]`); the
+    observation is `{"state": (x, θ, ẋ, θ̇)}` with the angle wrapped.
+
+    Args:
+        params: the instance; seed: anything `np.random.default_rng` accepts, for
+        the initial states; max_steps: the step limit per episode.
+    """
+    params = _check_params(params)
+    max_steps = check_max_steps(max_steps)
+    physics = Physics.from_mj_model(make_model(params))
+    task = Balance(params, max_steps=max_steps, seed=seed)
+    return control.Environment(
+        physics, task, n_sub_steps=N_SUB_STEPS, legacy_step=False
+    )
+
+
+def _check_params(params: CartpoleParams | None) -> CartpoleParams:
+    return check_params(params, CartpoleParams)

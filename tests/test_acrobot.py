@@ -1,0 +1,182 @@
+"""The acrobot model is the Sutton & Barto acrobot, with every parameter rewritten
+consistently; the swing-up task's reward, goal and step limit."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import mujoco
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from tasks import acrobot
+from tasks.acrobot import AcrobotParams
+
+REWRITTEN = [
+    AcrobotParams(),
+    AcrobotParams(0.7, 1.3, 1.0, 1.0),
+    AcrobotParams(1.3, 0.7, 0.6, 1.8),
+    AcrobotParams(0.2, 5.0, 5.0, 0.2),
+]
+
+
+def book_accelerations(s: np.ndarray, tau: float, p: AcrobotParams) -> np.ndarray:
+    """(θ̈₁, θ̈₂) from Sutton & Barto (1998) §11.3, with lc = l/2, I = m l², g = 9.8."""
+    m1, m2 = p.link_mass_1, p.link_mass_2
+    l1, l2 = p.link_length_1, p.link_length_2
+    lc1, lc2, I1, I2, g = l1 / 2, l2 / 2, m1 * l1**2, m2 * l2**2, 9.8
+    t1, t2, dt1, dt2 = s
+    d1 = m1 * lc1**2 + m2 * (l1**2 + lc2**2 + 2 * l1 * lc2 * np.cos(t2)) + I1 + I2
+    d2 = m2 * (lc2**2 + l1 * lc2 * np.cos(t2)) + I2
+    phi2 = m2 * lc2 * g * np.cos(t1 + t2 - np.pi / 2)
+    phi1 = (
+        -m2 * l1 * lc2 * dt2**2 * np.sin(t2)
+        - 2 * m2 * l1 * lc2 * dt2 * dt1 * np.sin(t2)
+        + (m1 * lc1 + m2 * l1) * g * np.cos(t1 - np.pi / 2)
+        + phi2
+    )
+    ddt2 = (tau + d2 / d1 * phi1 - m2 * l1 * lc2 * dt1**2 * np.sin(t2) - phi2) / (
+        m2 * lc2**2 + I2 - d2**2 / d1
+    )
+    ddt1 = -(d2 * ddt2 + phi1) / d1
+    return np.array([ddt1, ddt2])
+
+
+def mujoco_accelerations(model, s, tau):
+    data = mujoco.MjData(model)
+    data.qpos[:], data.qvel[:], data.ctrl[0] = s[:2], s[2:], tau
+    mujoco.mj_forward(model, data)
+    return data.qacc.copy()
+
+
+@pytest.mark.parametrize("params", REWRITTEN, ids=str)
+def test_accelerations_equal_book_equations(params):
+    rng = np.random.default_rng(0)
+    model = acrobot.make_model(params)
+    for _ in range(50):
+        s = rng.uniform(-1, 1, 4) * [np.pi, np.pi, 4 * np.pi, 9 * np.pi]
+        tau = rng.uniform(-1, 1)
+        np.testing.assert_allclose(
+            mujoco_accelerations(model, s, tau),
+            book_accelerations(s, tau, params),
+            rtol=1e-8,
+            atol=1e-8,
+        )
+
+
+def test_nominal_model_is_the_book_acrobot():
+    model = acrobot.make_model()
+    np.testing.assert_array_equal(model.body_mass[1:], [1.0, 1.0])
+    np.testing.assert_array_equal(model.body_inertia[1:, 1], [1.0, 1.0])
+    np.testing.assert_array_equal(model.body_ipos[1:], [[0, 0, -0.5], [0, 0, -0.5]])
+    np.testing.assert_array_equal(model.opt.gravity, [0, 0, -9.8])
+    np.testing.assert_array_equal(model.dof_damping, [0, 0])
+    np.testing.assert_array_equal(model.dof_armature, [0, 0])
+    assert model.nu == 1 and model.actuator_trnid[0, 0] == model.joint("elbow").id
+    np.testing.assert_array_equal(
+        model.actuator_ctrlrange[0], [acrobot.ACTIONS.min(), acrobot.ACTIONS.max()]
+    )
+    np.testing.assert_array_equal(acrobot.ACTIONS, [-1.0, 0.0, 1.0])
+    assert model.opt.timestep * acrobot.N_SUB_STEPS == pytest.approx(0.2, abs=1e-15)
+
+
+@pytest.mark.parametrize("params", REWRITTEN[1:3], ids=str)
+def test_one_action_matches_an_accurate_ode_solution(params):
+    """RK4 at 10 ms over one 0.2 s action stays within 1e-5 of a 1e-12 ODE solve."""
+    rng = np.random.default_rng(1)
+    model = acrobot.make_model(params)
+    data = mujoco.MjData(model)
+    for _ in range(5):
+        s = rng.uniform(-1, 1, 4) * [np.pi, np.pi, 5, 8]
+        tau = rng.choice(acrobot.ACTIONS)
+        data.qpos[:], data.qvel[:], data.ctrl[0] = s[:2], s[2:], tau
+        mujoco.mj_step(model, data, acrobot.N_SUB_STEPS)
+        exact = solve_ivp(
+            lambda t, y, tau=tau: np.r_[y[2:], book_accelerations(y, tau, params)],
+            (0.0, acrobot.CONTROL_TIMESTEP),
+            s,
+            method="DOP853",
+            rtol=1e-12,
+            atol=1e-12,
+        ).y[:, -1]
+        np.testing.assert_allclose(np.r_[data.qpos, data.qvel], exact, atol=1e-5)
+
+
+@pytest.mark.parametrize("field", [f.name for f in dataclasses.fields(AcrobotParams)])
+def test_every_parameter_changes_the_accelerations(field):
+    rng = np.random.default_rng(2)
+    states = rng.uniform(-1, 1, (10, 4)) * [np.pi, np.pi, 3, 3]
+    nominal = acrobot.make_model()
+    changed = acrobot.make_model(dataclasses.replace(AcrobotParams(), **{field: 1.2}))
+    difference = max(
+        np.abs(
+            mujoco_accelerations(nominal, s, 1.0)
+            - mujoco_accelerations(changed, s, 1.0)
+        ).max()
+        for s in states
+    )
+    assert difference > 1e-2
+
+
+@pytest.mark.parametrize("params", REWRITTEN, ids=str)
+def test_tip_height_is_the_tip_site_height(params):
+    rng = np.random.default_rng(3)
+    states = rng.uniform(-np.pi, np.pi, (20, 4))
+    model = acrobot.make_model(params)
+    data = mujoco.MjData(model)
+    heights = []
+    for s in states:
+        data.qpos[:] = s[:2]
+        mujoco.mj_kinematics(model, data)
+        heights.append(data.site("tip").xpos[2])
+    np.testing.assert_allclose(acrobot.tip_height(states, params), heights, atol=1e-12)
+    np.testing.assert_array_equal(
+        acrobot.goal_reached(states, params),
+        np.array(heights) > params.link_length_1,
+    )
+
+
+@pytest.mark.parametrize("field", [f.name for f in dataclasses.fields(AcrobotParams)])
+@pytest.mark.parametrize(
+    "value, message",
+    [
+        (float("nan"), "not finite"),
+        (float("inf"), "not finite"),
+        (0.0, "lower bound 0.2"),
+        (-1.0, "lower bound 0.2"),
+        (5.5, "upper bound 5.0"),
+        ("1.0", "not a real number"),
+    ],
+)
+def test_invalid_parameters_name_the_field_and_bound(field, value, message):
+    with pytest.raises(ValueError, match=rf"AcrobotParams\.{field} .*{message}"):
+        AcrobotParams(**{field: value})
+
+
+def test_episode_starts_near_hanging_and_ends_at_the_goal():
+    env = acrobot.swingup(seed=4)
+    first = env.reset()
+    assert np.all(np.abs(first.observation["state"]) <= acrobot.INITIAL_NOISE)
+    step = env.step(1)
+    assert step.reward == -1.0 and step.discount == 1.0 and step.mid()
+    env.physics.data.qpos[:] = [np.pi, 0.0]  # standing straight up: above the goal
+    env.physics.data.qvel[:] = 0.0
+    step = env.step(1)
+    assert step.last() and step.discount == 0.0 and step.reward == -1.0
+
+
+def test_episode_is_truncated_at_the_step_limit():
+    env = acrobot.swingup(seed=5, max_steps=3)
+    env.reset()
+    steps = [env.step(1) for _ in range(3)]
+    assert [s.last() for s in steps] == [False, False, True]
+    assert steps[-1].discount == 1.0
+
+
+@pytest.mark.parametrize("action", [3, -1, 1.0, np.array([1]), "1"])
+def test_invalid_action_is_rejected(action):
+    env = acrobot.swingup(seed=6)
+    env.reset()
+    with pytest.raises(ValueError, match="integer index"):
+        env.step(action)

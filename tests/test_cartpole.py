@@ -1,0 +1,179 @@
+"""The cart-pole model is the classic cart-pole, with every parameter rewritten
+consistently; the balancing task's reward, failure and step limit."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import mujoco
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from tasks import cartpole
+from tasks.cartpole import CartpoleParams
+
+REWRITTEN = [
+    CartpoleParams(),
+    CartpoleParams(1.0, 0.3, 0.8),
+    CartpoleParams(2.5, 1.0, 0.2),
+    CartpoleParams(0.1, 2.0, 2.5),
+]
+
+
+def classic_accelerations(s: np.ndarray, F: float, p: CartpoleParams) -> np.ndarray:
+    """(ẍ, θ̈) of Barto, Sutton & Anderson (1983) without friction, g = 9.81."""
+    M, m, l, g = p.cart_mass, p.pole_mass, p.pole_half_length, 9.81
+    _, theta, _, dtheta = s
+    v = (F + m * l * dtheta**2 * np.sin(theta)) / (M + m)
+    ddtheta = (g * np.sin(theta) - np.cos(theta) * v) / (
+        l * (4 / 3 - m * np.cos(theta) ** 2 / (M + m))
+    )
+    ddx = v - m * l * ddtheta * np.cos(theta) / (M + m)
+    return np.array([ddx, ddtheta])
+
+
+def mujoco_accelerations(model, s, F):
+    data = mujoco.MjData(model)
+    data.qpos[:], data.qvel[:], data.ctrl[0] = s[:2], s[2:], F
+    mujoco.mj_forward(model, data)
+    return data.qacc.copy()
+
+
+@pytest.mark.parametrize("params", REWRITTEN, ids=str)
+def test_accelerations_equal_classic_equations(params):
+    rng = np.random.default_rng(0)
+    model = cartpole.make_model(params)
+    for _ in range(50):
+        s = rng.uniform(-1, 1, 4) * [2.4, np.pi, 3, 10]
+        F = rng.uniform(-10, 10)
+        np.testing.assert_allclose(
+            mujoco_accelerations(model, s, F),
+            classic_accelerations(s, F, params),
+            rtol=1e-8,
+            atol=1e-8,
+        )
+
+
+def test_nominal_model_is_the_classic_cartpole():
+    model = cartpole.make_model()
+    np.testing.assert_array_equal(model.body_mass[1:], [1.0, 0.1])
+    np.testing.assert_allclose(model.body_inertia[2, 1], 0.1 * 1.0**2 / 12, rtol=1e-15)
+    np.testing.assert_array_equal(model.body_ipos[2], [0, 0, 0.5])
+    np.testing.assert_array_equal(model.opt.gravity, [0, 0, -9.81])
+    np.testing.assert_array_equal(model.dof_damping, [0, 0])
+    np.testing.assert_array_equal(model.dof_frictionloss, [0, 0])
+    assert model.nu == 1 and model.actuator_trnid[0, 0] == model.joint("slider").id
+    np.testing.assert_array_equal(
+        model.actuator_ctrlrange[0], [cartpole.ACTIONS.min(), cartpole.ACTIONS.max()]
+    )
+    np.testing.assert_array_equal(cartpole.ACTIONS, [-10.0, 10.0])
+    assert model.opt.timestep * cartpole.N_SUB_STEPS == pytest.approx(0.02, abs=1e-15)
+
+
+@pytest.mark.parametrize("params", REWRITTEN[:3], ids=str)
+def test_one_action_matches_an_accurate_ode_solution(params):
+    """RK4 at 10 ms over one 0.02 s action stays within 1e-7 of a 1e-12 ODE solve."""
+    rng = np.random.default_rng(1)
+    model = cartpole.make_model(params)
+    data = mujoco.MjData(model)
+    for _ in range(5):
+        s = rng.uniform(-1, 1, 4) * [2.4, 0.5, 2, 3]
+        F = rng.choice(cartpole.ACTIONS)
+        data.qpos[:], data.qvel[:], data.ctrl[0] = s[:2], s[2:], F
+        mujoco.mj_step(model, data, cartpole.N_SUB_STEPS)
+        exact = solve_ivp(
+            lambda t, y, F=F: np.r_[y[2:], classic_accelerations(y, F, params)],
+            (0.0, cartpole.CONTROL_TIMESTEP),
+            s,
+            method="DOP853",
+            rtol=1e-12,
+            atol=1e-12,
+        ).y[:, -1]
+        np.testing.assert_allclose(np.r_[data.qpos, data.qvel], exact, atol=1e-7)
+
+
+@pytest.mark.parametrize("field", [f.name for f in dataclasses.fields(CartpoleParams)])
+def test_every_parameter_changes_the_accelerations(field):
+    rng = np.random.default_rng(2)
+    states = rng.uniform(-1, 1, (10, 4)) * [1, 0.5, 1, 1]
+    nominal = CartpoleParams()
+    changed = cartpole.make_model(
+        dataclasses.replace(nominal, **{field: 1.5 * getattr(nominal, field)})
+    )
+    nominal = cartpole.make_model(nominal)
+    difference = max(
+        np.abs(
+            mujoco_accelerations(nominal, s, 10.0)
+            - mujoco_accelerations(changed, s, 10.0)
+        ).max()
+        for s in states
+    )
+    assert difference > 1e-2
+
+
+@pytest.mark.parametrize("field", [f.name for f in dataclasses.fields(CartpoleParams)])
+@pytest.mark.parametrize(
+    "value, message",
+    [
+        (float("nan"), "not finite"),
+        (float("-inf"), "not finite"),
+        (0.0, "lower bound"),
+        (-0.5, "lower bound"),
+        (100.0, "upper bound"),
+        (None, "not a real number"),
+    ],
+)
+def test_invalid_parameters_name_the_field_and_bound(field, value, message):
+    with pytest.raises(ValueError, match=rf"CartpoleParams\.{field} .*{message}"):
+        CartpoleParams(**{field: value})
+
+
+def test_failed_marks_the_classic_thresholds():
+    limit = 12 * np.pi / 180
+    states = np.array(
+        [
+            [0.0, 0.99 * limit, 5.0, -5.0],
+            [0.0, 1.01 * limit, 0.0, 0.0],
+            [0.0, -1.01 * limit, 0.0, 0.0],
+            [2.39, 0.0, 0.0, 0.0],
+            [2.41, 0.0, 0.0, 0.0],
+            [-2.41, 0.0, 0.0, 0.0],
+        ]
+    )
+    np.testing.assert_array_equal(
+        cartpole.failed(states), [False, True, True, False, True, True]
+    )
+    np.testing.assert_array_equal(
+        cartpole.failed(states.reshape(2, 3, 4)).shape, (2, 3)
+    )
+
+
+def test_episode_starts_near_upright_and_ends_at_failure():
+    env = cartpole.balance(seed=4)
+    first = env.reset()
+    assert np.all(np.abs(first.observation["state"]) <= cartpole.INITIAL_NOISE)
+    step = env.step(1)
+    assert step.reward == 1.0 and step.discount == 1.0 and step.mid()
+    env.physics.data.qpos[:] = [0.0, 0.5]  # leaning far past 12 degrees
+    step = env.step(1)
+    assert step.last() and step.discount == 0.0 and step.reward == 0.0
+
+
+def test_always_pushing_one_way_fails_within_the_step_limit():
+    env = cartpole.balance(seed=5)
+    env.reset()
+    n_steps, step = 0, env.step(1)
+    while not step.last():
+        step, n_steps = env.step(1), n_steps + 1
+    assert n_steps < cartpole.DEFAULT_MAX_STEPS and step.discount == 0.0
+    # Pushing +x tips the pole toward -x.
+    assert step.observation["state"][1] < -cartpole.THETA_LIMIT
+
+
+def test_episode_is_truncated_at_the_step_limit():
+    env = cartpole.balance(seed=6, max_steps=3)
+    env.reset()
+    steps = [env.step(i % 2) for i in range(3)]
+    assert [s.last() for s in steps] == [False, False, True]
+    assert steps[-1].discount == 1.0
