@@ -1,0 +1,114 @@
+"""Online belief over a new instance's latent weights, in information form.
+
+Symbols: `k` latent parameter (the mean-dynamics feature k = 1 is excluded: its weight
+is fixed at 1, so the belief is over the `K - 1` others); `d` state dimension; `n`
+transitions; `F` basis values `z[k,a,d] f[k,a,d](s)`, shape (n, D, K - 1); `f_1` the
+mean dynamics `f[1,a,d](s)`, shape (n, D); `σ²` noise `σ²[a,d]` of each transition's
+action, shape (n, D); `Δ` observed changes `s' - s`, shape (n, D).
+
+The belief `N(w; μ, Σ)` is kept as `(h, P) = (Σ⁻¹ μ, Σ⁻¹)`:
+
+    prior:   P₀ = I / σ_w²,  h₀ = P₀ μ_w
+    update:  h ← h + Fᵀ Σ⁻¹ (Δ - f_1),   P ← P + Fᵀ Σ⁻¹ F
+
+with `Σ = diag(σ²)` over the stacked (transition, dimension) rows. The paper prints the
+innovation as `Δ`; the mean-dynamics term must be subtracted (DESIGN errata). Since
+every step adds a sum over rows, one update with n transitions equals n single updates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import linalg
+
+Array = np.ndarray
+
+
+@dataclass(frozen=True)
+class Belief:
+    """Gaussian belief over the latent weights in information form.
+
+    h: information vector Σ⁻¹ μ, shape (K - 1,); P: precision Σ⁻¹, shape (K - 1, K - 1).
+    """
+
+    h: Array
+    P: Array
+
+    def __post_init__(self) -> None:
+        h = np.asarray(self.h, dtype=float)
+        P = np.asarray(self.P, dtype=float)
+        if h.ndim != 1 or P.shape != (len(h), len(h)):
+            raise ValueError(
+                f"Belief: expected h (k,) and P (k, k), got {h.shape} and {P.shape}"
+            )
+        if not (np.all(np.isfinite(h)) and np.all(np.isfinite(P))):
+            raise ValueError("Belief: expected finite h and P")
+        object.__setattr__(self, "h", h)
+        object.__setattr__(self, "P", P)
+
+    @property
+    def dim(self) -> int:
+        """Number of latent weights K - 1."""
+        return len(self.h)
+
+    @property
+    def mean(self) -> Array:
+        """μ = P⁻¹ h, shape (K - 1,)."""
+        if self.dim == 0:
+            return np.zeros(0)
+        return linalg.cho_solve(linalg.cho_factor(self.P, lower=True), self.h)
+
+    @property
+    def cov(self) -> Array:
+        """Σ = P⁻¹, shape (K - 1, K - 1)."""
+        if self.dim == 0:
+            return np.zeros((0, 0))
+        return linalg.cho_solve(linalg.cho_factor(self.P, lower=True), np.eye(self.dim))
+
+
+def prior_belief(mu_w: Array, sigma_w: float) -> Belief:
+    """Prior over an unseen instance's weights: P₀ = I/σ_w², h₀ = P₀ μ_w.
+
+    mu_w: μ_w[k] for k = 2..K, shape (K - 1,).
+    """
+    mu_w = np.asarray(mu_w, dtype=float)
+    P0 = np.eye(len(mu_w)) / sigma_w**2
+    return Belief(h=P0 @ mu_w, P=P0)
+
+
+def update_belief(
+    belief: Belief, F: Array, innovation: Array, noise_var: Array
+) -> Belief:
+    """Condition the belief on n transitions at once.
+
+        h ← h + Σ_{i,d} F[i,d,:] (Δ[i,d] - f_1[i,d]) / σ²[i,d]
+        P ← P + Σ_{i,d} F[i,d,:] F[i,d,:]ᵀ / σ²[i,d]
+
+    F: (n, D, K - 1); innovation: Δ - f_1, shape (n, D); noise_var: σ², shape (n, D).
+    """
+    inv = 1.0 / noise_var
+    h = belief.h + np.einsum("idk,id->k", F, innovation * inv)
+    P = belief.P + np.einsum("idk,idj->kj", F * inv[..., None], F)
+    return Belief(h=h, P=0.5 * (P + P.T))
+
+
+def predictive(
+    belief: Belief, F: Array, f1: Array, noise_var: Array
+) -> tuple[Array, Array]:
+    """Predictive mean and variance of Δs under the belief.
+
+        mean[i,d] = f_1[i,d] + F[i,d,:] μ
+        var[i,d]  = σ²[i,d] + F[i,d,:] Σ F[i,d,:]ᵀ
+
+    F: (n, D, K - 1); f1, noise_var: (n, D). Returns two (n, D) arrays. The basis
+    functions are taken at their GP-mean interpolation (their own uncertainty is
+    ignored, as in the paper).
+    """
+    if belief.dim == 0:
+        return f1.copy(), noise_var.copy()
+    mu, cov = belief.mean, belief.cov
+    mean = f1 + F @ mu
+    var = noise_var + np.einsum("idk,kj,idj->id", F, cov, F)
+    return mean, var

@@ -1,0 +1,250 @@
+"""The fitted IBP-GP HiP-MDP: basis functions, latent weights, online filtering.
+
+Symbols: `k` latent parameter (k = 0 here is the paper's k = 1, the mean dynamics),
+`a` action, `d` state dimension, `b` training instance, `m` support points `S*`
+(m, D); `z[k,a,d]` filter, `f[k,a,d](S*)` basis values, `w[k,b]` weights, `σ²[a,d]`
+noise. The model is
+
+    Δs_d = Σ_k z[k,a,d] w[k,b] f[k,a,d](s) + ε,   ε ~ N(0, σ²[a,d]),
+
+and each basis function is interpolated from its support values with the GP mean
+
+    f[k,a,d](s) = k_ad(s, S*) (K_ad + σ²[a,d] I)⁻¹ f[k,a,d](S*) = k_ad(s, S*) c[k,a,d],
+
+the coefficients `c` being solved once at construction, so evaluating the basis at n
+states is a matrix product.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import linalg
+
+from hipmdp.data import Transitions, atomic_write
+from hipmdp.filter import Belief, predictive, prior_belief, update_belief
+from hipmdp.gp import HyperSet
+from hipmdp.kernels import se_kernel
+
+Array = np.ndarray
+
+FORMAT_VERSION = 1
+_ARRAYS = (
+    "support",
+    "lengthscales",
+    "signal_var",
+    "noise_var",
+    "z",
+    "f",
+    "weights",
+    "mu_w",
+    "instance_ids",
+)
+
+
+def interpolation_coefficients(support: Array, hyper: HyperSet, f: Array) -> Array:
+    """c[k,a,d] = (K_ad + σ²[a,d] I)⁻¹ f[k,a,d](S*).
+
+    support: S*, (m, D); f: (K, A, D, m). Returns c with the shape of f.
+    """
+    K, A, D, m = f.shape
+    c = np.empty_like(f)
+    for a in range(A):
+        for d in range(D):
+            h = hyper.get(a, d)
+            Kss = se_kernel(support, support, h.lengthscales, h.signal_var)
+            cf = linalg.cho_factor(Kss + h.noise_var * np.eye(m), lower=True)
+            c[:, a, d] = linalg.cho_solve(cf, f[:, a, d].T).T
+    return c
+
+
+@dataclass(frozen=True, eq=False)
+class HipMDP:
+    """A fitted HiP-MDP.
+
+    Attributes:
+        support: S*, shape (m, D).
+        hyper: per-(a, d) kernel hyperparameters and noise σ²[a,d].
+        z: bool (K, A, D), z[0] all True (mean dynamics).
+        f: basis values f[k,a,d](S*), shape (K, A, D, m).
+        weights: posterior means of w[k,b] for the training instances, shape (K, B),
+            weights[0] = 1.
+        mu_w: prior mean of a new instance's weights, shape (K,), mu_w[0] = 1.
+        sigma_w: prior standard deviation σ_w of a weight around μ_w.
+        instance_ids: training instance ids, shape (B,), the columns of `weights`.
+        info: JSON-serialisable metadata (config, log joint, ...).
+    """
+
+    support: Array
+    hyper: HyperSet
+    z: Array
+    f: Array
+    weights: Array
+    mu_w: Array
+    sigma_w: float
+    instance_ids: Array
+    info: dict
+
+    def __post_init__(self) -> None:
+        K, A, D, m = self.f.shape
+        if self.support.shape != (m, D):
+            raise ValueError(
+                f"support: expected shape ({m}, {D}), got {self.support.shape}"
+            )
+        if self.z.shape != (K, A, D) or not self.z[0].all():
+            raise ValueError(f"z: expected bool (K={K}, {A}, {D}) with z[0] all True")
+        if self.weights.shape[0] != K or self.mu_w.shape != (K,):
+            raise ValueError(f"weights, mu_w: expected {K} rows")
+        object.__setattr__(
+            self, "_coef", interpolation_coefficients(self.support, self.hyper, self.f)
+        )
+
+    # -- shape facts ---------------------------------------------------------------
+    @property
+    def n_features(self) -> int:
+        """K, including the mean dynamics."""
+        return self.f.shape[0]
+
+    @property
+    def n_actions(self) -> int:
+        return self.f.shape[1]
+
+    @property
+    def state_dim(self) -> int:
+        return self.f.shape[2]
+
+    # -- basis evaluation ------------------------------------------------------------
+    def _check_inputs(self, states: Array, actions: Array) -> tuple[Array, Array]:
+        states = np.asarray(states, dtype=float)
+        actions = np.asarray(actions)
+        D = self.state_dim
+        if states.ndim != 2 or states.shape[1] != D:
+            raise ValueError(f"states: expected shape (n, {D}), got {states.shape}")
+        if actions.shape != (len(states),):
+            raise ValueError(
+                f"actions: expected shape ({len(states)},), got {actions.shape}"
+            )
+        if not np.all(np.isfinite(states)):
+            raise ValueError("states: expected finite values")
+        if len(actions) and (actions.min() < 0 or actions.max() >= self.n_actions):
+            raise ValueError(f"actions: expected integers in [0, {self.n_actions})")
+        return states, actions.astype(int)
+
+    def basis(self, states: Array, actions: Array) -> Array:
+        """z[k,a,d] f[k,a,d](s) for each transition's action, shape (n, D, K).
+
+        states: (n, D); actions: (n,).
+        """
+        states, actions = self._check_inputs(states, actions)
+        out = np.zeros((len(states), self.state_dim, self.n_features))
+        for a in np.unique(actions):
+            idx = np.flatnonzero(actions == a)
+            for d in range(self.state_dim):
+                h = self.hyper.get(a, d)
+                Kx = se_kernel(states[idx], self.support, h.lengthscales, h.signal_var)
+                out[idx, d] = (Kx @ self._coef[:, a, d].T) * self.z[:, a, d]
+        return out
+
+    # -- online filtering ------------------------------------------------------------
+    def prior(self) -> Belief:
+        """Belief over an unseen instance's weights k = 2..K: N(μ_w, σ_w² I)."""
+        return prior_belief(self.mu_w[1:], self.sigma_w)
+
+    def _check_belief(self, belief: Belief) -> None:
+        if belief.dim != self.n_features - 1:
+            raise ValueError(
+                f"belief: expected {self.n_features - 1} weights, got {belief.dim}"
+            )
+
+    def update(self, belief: Belief, data: Transitions) -> Belief:
+        """Condition the belief on any number of a new instance's transitions.
+
+        h ← h + Fᵀ Σ⁻¹ (Δ - f_1(s)),   P ← P + Fᵀ Σ⁻¹ F   (see hipmdp.filter)
+        """
+        self._check_belief(belief)
+        self._check_data(data)
+        F = self.basis(data.states, data.actions)
+        noise = self.hyper.noise_var[data.actions]
+        return update_belief(belief, F[..., 1:], data.deltas - F[..., 0], noise)
+
+    def predict(
+        self, states: Array, actions: Array, belief: Belief
+    ) -> tuple[Array, Array]:
+        """Predicted Δs and its variance (noise + weight uncertainty), each (n, D)."""
+        self._check_belief(belief)
+        F = self.basis(states, actions)
+        noise = self.hyper.noise_var[np.asarray(actions, dtype=int)]
+        return predictive(belief, F[..., 1:], F[..., 0], noise)
+
+    def log_likelihood(self, data: Transitions, belief: Belief) -> float:
+        """Σ_i Σ_d log N(Δ[i,d]; mean[i,d], var[i,d]) under the predictive of `predict`
+        (each transition and dimension scored on its own marginal)."""
+        self._check_data(data)
+        mean, var = self.predict(data.states, data.actions, belief)
+        r = data.deltas - mean
+        return float(-0.5 * np.sum(r * r / var + np.log(2 * np.pi * var)))
+
+    def _check_data(self, data: Transitions) -> None:
+        if not isinstance(data, Transitions):
+            raise ValueError(f"data: expected hipmdp.Transitions, got {type(data)}")
+        if data.state_dim != self.state_dim:
+            raise ValueError(
+                f"data: expected state dimension {self.state_dim}, got {data.state_dim}"
+            )
+
+    # -- files -------------------------------------------------------------------------
+    def save(self, path: str | os.PathLike) -> None:
+        """Write one .npz (arrays + a JSON metadata string), atomically, no pickle."""
+        arrays = {
+            "support": self.support,
+            "lengthscales": self.hyper.lengthscales,
+            "signal_var": self.hyper.signal_var,
+            "noise_var": self.hyper.noise_var,
+            "z": self.z,
+            "f": self.f,
+            "weights": self.weights,
+            "mu_w": self.mu_w,
+            "instance_ids": self.instance_ids,
+        }
+        meta = {
+            "format_version": FORMAT_VERSION,
+            "sigma_w": self.sigma_w,
+            "info": self.info,
+        }
+        arrays["meta_json"] = np.array(json.dumps(meta))
+
+        def write(fh: io.BufferedWriter) -> None:
+            np.savez(fh, **arrays)
+
+        atomic_write(path, write)
+
+
+def load(path: str | os.PathLike) -> HipMDP:
+    """Read a model written by `HipMDP.save` (allow_pickle=False)."""
+    with np.load(path, allow_pickle=False) as npz:
+        missing = [k for k in (*_ARRAYS, "meta_json") if k not in npz.files]
+        if missing:
+            raise ValueError(f"{path}: not a HiP-MDP model file, missing {missing}")
+        arr = {k: npz[k] for k in _ARRAYS}
+        meta = json.loads(str(npz["meta_json"]))
+    if meta.get("format_version") != FORMAT_VERSION:
+        raise ValueError(
+            f"{path}: expected format_version {FORMAT_VERSION}, got "
+            f"{meta.get('format_version')}"
+        )
+    hyper = HyperSet(arr["lengthscales"], arr["signal_var"], arr["noise_var"])
+    return HipMDP(
+        support=arr["support"],
+        hyper=hyper,
+        z=arr["z"].astype(bool),
+        f=arr["f"],
+        weights=arr["weights"],
+        mu_w=arr["mu_w"],
+        sigma_w=float(meta["sigma_w"]),
+        instance_ids=arr["instance_ids"],
+        info=meta["info"],
+    )
