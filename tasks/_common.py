@@ -21,6 +21,8 @@ from dm_control.mujoco import wrapper
 from dm_control.suite import base
 from dm_env import specs
 
+from hipmdp.data import wrap_angle
+
 Array = np.ndarray
 
 #: Name of the one observation every task returns: the state `(qpos, qvel)`.
@@ -135,15 +137,11 @@ class StatePhysics(dm_mujoco.Physics):
 
 
 def wrap_state(states: Array, angle_dims: tuple[int, ...]) -> Array:
-    """Wrap the angle entries of states to (-π, π]; shape `(..., D)` kept.
-
-    `wrap(x) = x - 2π ⌈(x - π) / (2π)⌉`, so π maps to π and -π to π.
-    """
+    """A copy of `states`, shape `(..., D)`, with the `angle_dims` entries wrapped to
+    (-π, π] (`hipmdp.data.wrap_angle`)."""
     out = np.array(states, dtype=float, copy=True)
-    angles = out[..., list(angle_dims)]
-    out[..., list(angle_dims)] = angles - 2 * np.pi * np.ceil(
-        (angles - np.pi) / (2 * np.pi)
-    )
+    dims = list(angle_dims)
+    out[..., dims] = wrap_angle(out[..., dims])
     return out
 
 
