@@ -1,0 +1,171 @@
+"""Baselines of the paper's prediction experiments: single GPs that ignore instances.
+
+Symbols: `a` action, `d` state dimension, `Δs` the predicted change; one zero-mean GP
+per `(a, d)` with the anisotropic squared-exponential kernel of `hipmdp.kernels`.
+
+- "batch only" (the average model): one GP on all batch data of every training
+  instance, ignoring which instance a transition came from;
+- "train only": one GP on the new instance's few transitions;
+- "batch + train": one GP on both.
+
+Hyperparameters are fitted by maximum marginal likelihood on (a subsample of) the same
+data the GP is conditioned on, pooled as one GP (that is what these baselines assume),
+unless given. Large batches use a subset-of-data approximation: at most `n_max`
+transitions per action, drawn uniformly with `rng`; "batch + train" always keeps every
+training transition and fills the rest of the budget from the batch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from hipmdp.data import Transitions
+from hipmdp.gp import GPPosterior, HyperSet, condition, fit_hyperparameters, subsample
+
+Array = np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class GPBaseline:
+    """Independent GPs per (action, dimension) on pooled data.
+
+    posteriors: posteriors[a][d] is the GP conditioned on action-a data, or None where
+    action a has no data (the prior N(0, σ_f²) is used there); hyper: their
+    hyperparameters (noise σ²[a,d] included); name: which baseline.
+    """
+
+    posteriors: tuple[tuple[GPPosterior | None, ...], ...]
+    hyper: HyperSet
+    name: str
+
+    @property
+    def n_actions(self) -> int:
+        return len(self.posteriors)
+
+    @property
+    def state_dim(self) -> int:
+        return self.hyper.signal_var.shape[1]
+
+    def predict(self, states: Array, actions: Array) -> tuple[Array, Array]:
+        """Predictive mean and variance (noise included) of Δs, each (n, D).
+
+        states: (n, D); actions: (n,) integers in [0, n_actions).
+        """
+        states = np.asarray(states, dtype=float)
+        actions = np.asarray(actions)
+        D = self.state_dim
+        if states.ndim != 2 or states.shape[1] != D:
+            raise ValueError(f"states: expected shape (n, {D}), got {states.shape}")
+        if actions.shape != (len(states),):
+            raise ValueError(
+                f"actions: expected shape ({len(states)},), got {actions.shape}"
+            )
+        if len(actions) and (actions.min() < 0 or actions.max() >= self.n_actions):
+            raise ValueError(f"actions: expected integers in [0, {self.n_actions})")
+        mean = np.zeros((len(states), D))
+        var = np.zeros((len(states), D))
+        for a in np.unique(actions):
+            idx = np.flatnonzero(actions == a)
+            for d in range(D):
+                post = self.posteriors[a][d]
+                h = self.hyper.get(a, d)
+                if post is None:
+                    var[idx, d] = h.signal_var + h.noise_var
+                else:
+                    mean[idx, d], var[idx, d] = post.predict(
+                        states[idx], include_noise=True
+                    )
+        return mean, var
+
+    def log_likelihood(self, data: Transitions) -> float:
+        """Σ_i Σ_d log N(Δ[i,d]; mean[i,d], var[i,d]) under `predict`."""
+        mean, var = self.predict(data.states, data.actions)
+        r = data.deltas - mean
+        return float(-0.5 * np.sum(r * r / var + np.log(2 * np.pi * var)))
+
+
+def fit_gp_baseline(
+    data: Transitions,
+    *,
+    rng: np.random.Generator,
+    n_actions: int | None = None,
+    hyper: HyperSet | None = None,
+    n_max: int = 2000,
+    n_hyper: int = 500,
+    keep: Array | None = None,
+    name: str = "gp",
+) -> GPBaseline:
+    """Condition one GP per (a, d) on `data`, pooled over instances.
+
+    n_actions: A (default data.n_actions); hyper: fixed hyperparameters, else fitted
+    per (a, d) on at most n_hyper of the transitions used; n_max: at most this many
+    transitions per action (subset of data); keep: bool (N,), transitions always kept.
+    """
+    if not isinstance(data, Transitions):
+        raise ValueError(
+            f"data: expected hipmdp.Transitions, got {type(data).__name__}"
+        )
+    A = data.n_actions if n_actions is None else int(n_actions)
+    D = data.state_dim
+    if data.n_actions > A:
+        raise ValueError(f"n_actions: expected >= {data.n_actions} (data), got {A}")
+    if hyper is not None and hyper.signal_var.shape != (A, D):
+        raise ValueError(
+            f"hyper: expected (A, D) = ({A}, {D}), got {hyper.signal_var.shape}"
+        )
+    keep = np.zeros(len(data), dtype=bool) if keep is None else np.asarray(keep, bool)
+    deltas = data.deltas
+    ell, sf2, sn2 = np.ones((A, D, D)), np.ones((A, D)), np.ones((A, D))
+    rows = []
+    for a in range(A):
+        kept = np.flatnonzero((data.actions == a) & keep)
+        rest = np.flatnonzero((data.actions == a) & ~keep)
+        idx = np.sort(
+            np.concatenate(
+                [kept, rest[subsample(len(rest), max(n_max - len(kept), 0), rng=rng)]]
+            )
+        )
+        rows.append(idx)
+        if hyper is None:
+            if len(idx) < 2:
+                raise ValueError(
+                    f"data: action {a} has {len(idx)} transitions; at least 2 are "
+                    "needed to fit hyperparameters (or pass hyper=)"
+                )
+            sub = idx[subsample(len(idx), n_hyper, rng=rng)]
+            for d in range(D):
+                h = fit_hyperparameters([(data.states[sub], deltas[sub, d])])
+                ell[a, d], sf2[a, d], sn2[a, d] = h
+    if hyper is None:
+        hyper = HyperSet(ell, sf2, sn2)
+    posteriors = tuple(
+        tuple(
+            condition(data.states[idx], deltas[idx, d], hyper.get(a, d))
+            if len(idx)
+            else None
+            for d in range(D)
+        )
+        for a, idx in enumerate(rows)
+    )
+    return GPBaseline(posteriors=posteriors, hyper=hyper, name=name)
+
+
+def batch_only(batch: Transitions, *, rng: np.random.Generator, **kwargs) -> GPBaseline:
+    """The average model: one GP on all batch data (kwargs: see fit_gp_baseline)."""
+    return fit_gp_baseline(batch, rng=rng, name="batch only", **kwargs)
+
+
+def train_only(train: Transitions, *, rng: np.random.Generator, **kwargs) -> GPBaseline:
+    """One GP on the new instance's transitions only (kwargs: see fit_gp_baseline)."""
+    return fit_gp_baseline(train, rng=rng, name="train only", **kwargs)
+
+
+def batch_plus_train(
+    batch: Transitions, train: Transitions, *, rng: np.random.Generator, **kwargs
+) -> GPBaseline:
+    """One GP on batch and train data together; every train transition is kept."""
+    both = Transitions.concatenate([batch, train])
+    keep = np.concatenate([np.zeros(len(batch), bool), np.ones(len(train), bool)])
+    return fit_gp_baseline(both, rng=rng, keep=keep, name="batch + train", **kwargs)

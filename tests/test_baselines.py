@@ -1,0 +1,100 @@
+"""Single-GP baselines: exact GP formula, subset of data, which data each one uses."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hipmdp.baselines import batch_only, batch_plus_train, fit_gp_baseline, train_only
+from hipmdp.data import Transitions
+from hipmdp.kernels import se_kernel
+
+D = 2
+
+
+def _instance(b, offset, n, rng):
+    """Δs = sin(s) + offset, a different constant shift per instance, noise 0.05."""
+    S = rng.uniform(-2, 2, size=(n, D))
+    acts = rng.integers(0, 2, size=n)
+    delta = np.sin(S) * (1 + acts[:, None]) + offset + 0.05 * rng.normal(size=(n, D))
+    return Transitions(S, acts, S + delta, np.full(n, b))
+
+
+def _batch(rng):
+    return Transitions.concatenate(
+        [_instance(b, off, 60, rng) for b, off in enumerate([-1.0, 0.0, 1.0])]
+    )
+
+
+def test_prediction_is_the_dense_gp_formula():
+    rng = np.random.default_rng(0)
+    batch = _batch(rng)
+    model = batch_only(batch, rng=np.random.default_rng(1))
+    Xs = rng.normal(size=(5, D))
+    acts = np.array([0, 1, 1, 0, 1])
+    mean, var = model.predict(Xs, acts)
+    deltas = batch.deltas
+    for i in range(5):
+        a = acts[i]
+        sel = batch.actions == a
+        for d in range(D):
+            h = model.hyper.get(a, d)
+            C = se_kernel(
+                batch.states[sel], batch.states[sel], h.lengthscales, h.signal_var
+            ) + h.noise_var * np.eye(sel.sum())
+            k = se_kernel(
+                Xs[i : i + 1], batch.states[sel], h.lengthscales, h.signal_var
+            )[0]
+            assert mean[i, d] == pytest.approx(
+                k @ np.linalg.solve(C, deltas[sel, d]), abs=1e-8
+            )
+            dense_var = h.signal_var + h.noise_var - k @ np.linalg.solve(C, k)
+            assert var[i, d] == pytest.approx(dense_var, abs=1e-8)
+    r = deltas - model.predict(batch.states, batch.actions)[0]
+    v = model.predict(batch.states, batch.actions)[1]
+    dense_ll = np.sum(-0.5 * r**2 / v - 0.5 * np.log(2 * np.pi * v))
+    assert model.log_likelihood(batch) == pytest.approx(dense_ll, rel=1e-12)
+
+
+def test_subset_of_data_and_kept_train_points():
+    rng = np.random.default_rng(2)
+    batch = _batch(rng)
+    train = _instance(9, 2.0, 20, rng)
+    model = batch_plus_train(batch, train, rng=np.random.default_rng(3), n_max=30)
+    for a in range(2):
+        X = model.posteriors[a][0].X
+        n_train_a = int((train.actions == a).sum())
+        assert len(X) == 30
+        # every training state of action a is among the conditioning points
+        hits = (X[None, :, :] == train.states[train.actions == a][:, None, :]).all(-1)
+        assert hits.any(1).sum() == n_train_a
+
+
+def test_train_only_beats_batch_only_on_a_shifted_instance():
+    # The new instance is shifted by +2, outside the batch's offsets {-1, 0, 1}: the
+    # average model is off by about 2 everywhere, the train-only GP is not.
+    rng = np.random.default_rng(4)
+    batch = _batch(rng)
+    train, test = _instance(9, 2.0, 60, rng), _instance(9, 2.0, 50, rng)
+    b = batch_only(batch, rng=np.random.default_rng(5))
+    t = train_only(train, rng=np.random.default_rng(5))
+    bt = batch_plus_train(batch, train, rng=np.random.default_rng(5))
+
+    def mse(model):
+        return np.mean((model.predict(test.states, test.actions)[0] - test.deltas) ** 2)
+
+    assert mse(t) < 0.25 * mse(b)
+    assert t.log_likelihood(test) > b.log_likelihood(test)
+    assert mse(bt) < mse(b)
+
+
+def test_missing_action_needs_hyperparameters():
+    rng = np.random.default_rng(6)
+    train = _instance(0, 0.0, 20, rng).select(actions=[0])
+    with pytest.raises(ValueError, match="action 1"):
+        train_only(train, rng=rng, n_actions=2)
+    hyper = batch_only(_batch(rng), rng=rng).hyper
+    model = fit_gp_baseline(train, rng=rng, n_actions=2, hyper=hyper)
+    mean, var = model.predict(np.zeros((1, D)), np.array([1]))
+    np.testing.assert_allclose(mean, 0.0)  # the prior where action 1 has no data
+    np.testing.assert_allclose(var[0], hyper.signal_var[1] + hyper.noise_var[1])
