@@ -1,0 +1,240 @@
+"""Gathering transitions: run a policy on one or many instances of a domain.
+
+Symbols: `b` instance id, `s` state `(qpos, qvel)` with angles wrapped, shape `(D,)`,
+`a` discrete action index in `[0, A)`, `N` transitions.
+
+A policy is any callable `state -> action index`; `random_policy` draws actions
+uniformly. A simulation that diverges (MuJoCo raises a warning, which dm_control
+turns into `PhysicsError`, or a state is not finite) ends its episode; the whole
+episode is then dropped from the data and reported in `Collection.diverged`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple
+
+import numpy as np
+from dm_control.rl import control
+from tqdm import tqdm
+
+from hipmdp.data import ParameterTable, Transitions
+from tasks import acrobot, cartpole
+from tasks._common import STATE_OBSERVATION, parameter_names, parameter_values
+
+Array = np.ndarray
+Policy = Callable[[Array], int]
+
+
+class Domain(NamedTuple):
+    """What gathering needs to know about a domain."""
+
+    name: str
+    params_type: type
+    make_env: Callable[..., control.Environment]
+    n_actions: int
+    state_dim: int
+    angle_dims: tuple[int, ...]
+
+
+DOMAINS = {
+    "acrobot": Domain(
+        "acrobot",
+        acrobot.AcrobotParams,
+        acrobot.swingup,
+        len(acrobot.ACTIONS),
+        acrobot.STATE_DIM,
+        acrobot.ANGLE_DIMS,
+    ),
+    "cartpole": Domain(
+        "cartpole",
+        cartpole.CartpoleParams,
+        cartpole.balance,
+        len(cartpole.ACTIONS),
+        cartpole.STATE_DIM,
+        cartpole.ANGLE_DIMS,
+    ),
+}
+
+
+class Divergence(NamedTuple):
+    """One episode dropped because its simulation diverged."""
+
+    instance: int
+    episode: int
+    step: int
+    reason: str
+
+
+class Collection(NamedTuple):
+    """What `collect` gathered.
+
+    Attributes:
+        transitions: the kept transitions, `N` of them, `angle_dims` set; `dones`
+            marks the last transition of each episode (goal, failure or limit).
+        parameters: one row per instance id `b`, columns the dataclass fields.
+        n_episodes: episodes run, kept or not.
+        diverged: the dropped episodes.
+    """
+
+    transitions: Transitions
+    parameters: ParameterTable
+    n_episodes: int
+    diverged: tuple[Divergence, ...]
+
+
+def get_domain(name: str) -> Domain:
+    """The registered domain called `name` (ValueError listing the choices)."""
+    if name not in DOMAINS:
+        raise ValueError(f"domain must be one of {sorted(DOMAINS)}, got {name!r}")
+    return DOMAINS[name]
+
+
+def random_policy(n_actions: int, *, rng: np.random.Generator) -> Policy:
+    """A policy ignoring the state: `a ~ Uniform{0, …, n_actions - 1}`."""
+    if isinstance(n_actions, bool) or not isinstance(n_actions, int) or n_actions < 1:
+        raise ValueError(f"n_actions must be a positive int, got {n_actions!r}")
+    return lambda state: int(rng.integers(n_actions))
+
+
+def collect(
+    domain: str,
+    instances: Sequence[Any],
+    *,
+    episodes_per_instance: int,
+    rng: np.random.Generator,
+    policy: Policy | None = None,
+    instance_ids: Sequence[int] | None = None,
+    max_steps: int | None = None,
+    progress: bool = False,
+) -> Collection:
+    """Run `policy` for `episodes_per_instance` episodes on each instance.
+
+    Args:
+        domain: "acrobot" or "cartpole".
+        instances: the parameters of each instance (`AcrobotParams` or
+            `CartpoleParams`), length `B`.
+        episodes_per_instance: episodes per instance, ≥ 1.
+        rng: all randomness (initial states, and the random policy when `policy`
+            is None) is drawn from streams spawned from it.
+        policy: `state (D,) -> action index`, or None for `random_policy`.
+        instance_ids: the id `b` of each instance, default `0, …, B-1`.
+        max_steps: step limit per episode, default the task's.
+        progress: show a tqdm bar over episodes.
+
+    Returns:
+        A `Collection`.
+    """
+    spec = get_domain(domain)
+    instances = list(instances)
+    if not instances:
+        raise ValueError("instances must hold at least one parameter set")
+    for params in instances:
+        if not isinstance(params, spec.params_type):
+            raise ValueError(
+                f"instances must be {spec.params_type.__name__}, got {params!r}"
+            )
+    ids = list(range(len(instances))) if instance_ids is None else list(instance_ids)
+    if len(ids) != len(instances) or len(set(ids)) != len(ids):
+        raise ValueError(
+            f"instance_ids must be {len(instances)} distinct ints, got {ids!r}"
+        )
+    _check_positive_int("episodes_per_instance", episodes_per_instance)
+    if max_steps is not None:
+        _check_positive_int("max_steps", max_steps)
+    if not isinstance(rng, np.random.Generator):
+        raise ValueError(f"rng must be a numpy Generator, got {rng!r}")
+    if policy is not None and not callable(policy):
+        raise ValueError(f"policy must be callable or None, got {policy!r}")
+
+    env_rngs = rng.spawn(len(instances))
+    if policy is None:
+        policy = random_policy(spec.n_actions, rng=rng.spawn(1)[0])
+    kwargs = {} if max_steps is None else {"max_steps": max_steps}
+    episodes: list[dict[str, Array]] = []
+    diverged: list[Divergence] = []
+    bar = tqdm(
+        total=len(instances) * episodes_per_instance,
+        desc=f"{domain} episodes",
+        disable=not progress,
+    )
+    with bar:
+        for b, params, env_rng in zip(ids, instances, env_rngs, strict=True):
+            env = spec.make_env(params, seed=env_rng, **kwargs)
+            for episode in range(episodes_per_instance):
+                result = run_episode(env, policy, spec.n_actions)
+                if isinstance(result, Divergence):
+                    diverged.append(result._replace(instance=b, episode=episode))
+                else:
+                    result["instances"] = np.full(len(result["actions"]), b)
+                    episodes.append(result)
+                bar.update()
+
+    transitions = Transitions(
+        **_stack(episodes, spec.state_dim), angle_dims=spec.angle_dims
+    )
+    table = ParameterTable(
+        instances=np.array(ids),
+        names=parameter_names(spec.params_type),
+        values=np.array([parameter_values(p) for p in instances]),
+    )
+    return Collection(
+        transitions, table, len(instances) * episodes_per_instance, tuple(diverged)
+    )
+
+
+def run_episode(
+    env: control.Environment, policy: Policy, n_actions: int
+) -> dict[str, Array] | Divergence:
+    """One episode from `env.reset()` until it ends.
+
+    Returns:
+        Arrays `states (T, D)`, `actions (T,)`, `next_states (T, D)`,
+        `rewards (T,)`, `dones (T,)`; or a `Divergence` (with `instance` and
+        `episode` set to -1) if the simulation diverged at some step.
+    """
+    step = env.reset()
+    s = step.observation[STATE_OBSERVATION]
+    rows: dict[str, list] = {
+        k: [] for k in ("states", "actions", "next_states", "rewards", "dones")
+    }
+    t = 0
+    while not step.last():
+        a = policy(s)
+        if isinstance(a, bool) or not isinstance(a, int | np.integer):
+            raise ValueError(f"policy must return an int action index, got {a!r}")
+        if not 0 <= a < n_actions:
+            raise ValueError(f"policy returned action {a}, expected [0, {n_actions})")
+        try:
+            step = env.step(a)
+        except control.PhysicsError as error:
+            return Divergence(-1, -1, t, f"MuJoCo warning: {error}")
+        s2 = step.observation[STATE_OBSERVATION]
+        if not np.all(np.isfinite(s2)):
+            return Divergence(-1, -1, t, "non-finite state")
+        for key, value in zip(
+            rows, (s, int(a), s2, step.reward, step.last()), strict=True
+        ):
+            rows[key].append(value)
+        s, t = s2, t + 1
+    return {k: np.array(v) for k, v in rows.items()}
+
+
+def _stack(episodes: list[dict[str, Array]], state_dim: int) -> dict[str, Array]:
+    """Concatenate episode arrays (empty arrays of the right shapes if none)."""
+    if not episodes:
+        empty_states = np.zeros((0, state_dim))
+        return {
+            "states": empty_states,
+            "actions": np.zeros(0, dtype=int),
+            "next_states": empty_states,
+            "instances": np.zeros(0, dtype=int),
+            "rewards": np.zeros(0),
+            "dones": np.zeros(0, dtype=bool),
+        }
+    return {k: np.concatenate([e[k] for e in episodes]) for k in episodes[0]}
+
+
+def _check_positive_int(name: str, value: Any) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name} must be a positive int, got {value!r}")

@@ -1,0 +1,147 @@
+"""Gathering: the data are what the simulator does, episodes are reproducible from
+the rng, and diverging episodes are dropped and reported."""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import pytest
+
+from hipmdp.data import wrap_angle
+from tasks import acrobot, cartpole, collect
+from tasks.acrobot import AcrobotParams
+from tasks.cartpole import CartpoleParams
+
+ACROBOTS = [AcrobotParams(), AcrobotParams(1.3, 0.7, 0.9, 1.1)]
+
+
+def gather(seed=0, **kwargs):
+    options = dict(episodes_per_instance=2, max_steps=15)
+    options.update(kwargs)
+    return collect.collect(
+        "acrobot", ACROBOTS, rng=np.random.default_rng(seed), **options
+    )
+
+
+def test_transitions_follow_the_simulator_and_carry_the_parameters():
+    result = gather(instance_ids=[4, 9])
+    t = result.transitions
+    # Random torques cannot swing up within 15 steps: every episode is full length.
+    assert len(t) == 2 * 2 * 15 and result.n_episodes == 4 and not result.diverged
+    assert t.angle_dims == acrobot.ANGLE_DIMS and t.state_dim == acrobot.STATE_DIM
+    np.testing.assert_array_equal(np.unique(t.instances), [4, 9])
+    assert result.parameters.row(9) == {
+        "link_mass_1": 1.3,
+        "link_mass_2": 0.7,
+        "link_length_1": 0.9,
+        "link_length_2": 1.1,
+    }
+    np.testing.assert_array_equal(t.rewards, -1.0)
+    np.testing.assert_array_equal(np.flatnonzero(t.dones), [14, 29, 44, 59])
+    within = ~t.dones[:-1]  # consecutive transitions of one episode chain up
+    np.testing.assert_array_equal(t.states[1:][within], t.next_states[:-1][within])
+    # Replaying transitions on a fresh model of its instance gives the same s'.
+    for i in [0, 17, 31, 58]:
+        params = ACROBOTS[[4, 9].index(t.instances[i])]
+        model = acrobot.make_model(params)
+        data = mujoco.MjData(model)
+        s = t.states[i]
+        data.qpos[:], data.qvel[:] = s[:2], s[2:]
+        data.ctrl[0] = acrobot.ACTIONS[t.actions[i]]
+        mujoco.mj_step(model, data, acrobot.N_SUB_STEPS)
+        replay = np.r_[wrap_angle(data.qpos), data.qvel]
+        np.testing.assert_allclose(replay, t.next_states[i], atol=1e-9)
+
+
+def test_same_rng_gives_the_same_data_and_another_does_not():
+    a, b, c = gather(seed=1).transitions, gather(seed=1).transitions, gather(2)
+    for name in ("states", "actions", "next_states", "instances", "rewards"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    assert not np.array_equal(a.states, c.transitions.states)
+
+
+def test_a_policy_callable_chooses_the_actions():
+    result = collect.collect(
+        "cartpole",
+        [CartpoleParams()],
+        episodes_per_instance=3,
+        rng=np.random.default_rng(3),
+        policy=lambda s: int(s[1] + 0.5 * s[3] > 0),  # push toward the lean
+    )
+    t = result.transitions
+    np.testing.assert_array_equal(
+        t.actions, (t.states[:, 1] + 0.5 * t.states[:, 3] > 0).astype(int)
+    )
+    # This simple controller balances far longer than random pushes (~20 steps).
+    assert len(t) / result.n_episodes > 100
+    assert np.all(t.rewards[~t.dones] == 1.0)
+
+
+def test_diverging_episode_is_dropped_and_reported(monkeypatch):
+    """A huge velocity injected at the 20th step makes MuJoCo warn (BADQVEL)."""
+    original = acrobot.SwingUp.before_step
+    calls = []
+
+    def before_step(self, action, physics):
+        original(self, action, physics)
+        calls.append(action)
+        if len(calls) == 20:  # step 5 of the second episode of instance 0
+            physics.data.qvel[0] = 1e12
+
+    monkeypatch.setattr(acrobot.SwingUp, "before_step", before_step)
+    result = gather()
+    assert result.n_episodes == 4 and len(result.transitions) == 3 * 15
+    (divergence,) = result.diverged
+    assert divergence[:3] == (0, 1, 4) and "BADQVEL" in divergence.reason
+    assert np.all(np.isfinite(result.transitions.next_states))
+    assert np.all(np.abs(result.transitions.next_states[:, 2:]) < 100)
+
+
+def test_non_finite_state_is_dropped_and_reported(monkeypatch):
+    original = cartpole.Physics.state
+
+    def state(self):
+        s = original(self)
+        return s * np.nan if self.data.time > 0.1 else s  # after 5 steps
+
+    monkeypatch.setattr(cartpole.Physics, "state", state)
+    result = collect.collect(
+        "cartpole",
+        [CartpoleParams(), CartpoleParams(pole_mass=0.2)],
+        episodes_per_instance=2,
+        rng=np.random.default_rng(4),
+    )
+    assert len(result.diverged) == 4 and len(result.transitions) == 0
+    assert {d.reason for d in result.diverged} == {"non-finite state"}
+    assert [d.step for d in result.diverged] == [5, 5, 5, 5]
+    assert result.parameters.values.shape == (2, 3)
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(domain="pendulum"), "domain must be one of"),
+        (dict(instances=[]), "at least one"),
+        (dict(instances=[CartpoleParams()]), "instances must be AcrobotParams"),
+        (dict(instance_ids=[0, 0]), "instance_ids must be 2 distinct"),
+        (dict(episodes_per_instance=0), "episodes_per_instance must be"),
+        (dict(max_steps=-1), "max_steps must be"),
+        (dict(rng=0), "rng must be a numpy Generator"),
+        (dict(policy="random"), "policy must be callable"),
+        (dict(policy=lambda s: 3), r"policy returned action 3, expected \[0, 3\)"),
+        (dict(policy=lambda s: 0.5), "policy must return an int"),
+    ],
+)
+def test_bad_arguments_raise_clear_errors(kwargs, message):
+    arguments = dict(
+        domain="acrobot",
+        instances=ACROBOTS,
+        episodes_per_instance=1,
+        rng=np.random.default_rng(0),
+        max_steps=3,
+    )
+    arguments.update(kwargs)
+    with pytest.raises(ValueError, match=message):
+        collect.collect(
+            arguments.pop("domain"), arguments.pop("instances"), **arguments
+        )
