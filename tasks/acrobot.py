@@ -24,7 +24,7 @@ for |θ̇₁| ≤ 5, |θ̇₂| ≤ 8 rad/s (tests/test_acrobot.py); 20 ms steps 
 
 Deviation from the book: velocities are not clipped (the book clips θ̇₁ to ±4π and
 θ̇₂ to ±9π rad/s). Clipping is not part of the equations of motion and would make
-the dynamics non-smooth; swing-ups with torques ±1 stay far below those limits.
+the dynamics non-smooth; random-torque episodes stay well below those limits.
 """
 
 from __future__ import annotations
@@ -154,30 +154,16 @@ class SwingUp(DiscreteActionTask):
     """Swing the tip above `l₁`: reward -1 per step, ends at the goal."""
 
     def __init__(self, params: AcrobotParams, *, max_steps: int, seed: Any) -> None:
-        super().__init__(ACTIONS, seed=seed)
+        super().__init__(
+            ACTIONS, initial_noise=INITIAL_NOISE, max_steps=max_steps, seed=seed
+        )
         self.params = params
-        self.max_steps = max_steps
-        self._steps = 0
 
-    def initialize_episode(self, physics: Physics) -> None:
-        """Start near hanging at rest: `s₀ ~ U[-0.1, 0.1]⁴`."""
-        s0 = self.rng.uniform(-INITIAL_NOISE, INITIAL_NOISE, size=STATE_DIM)
-        physics.data.qpos[:] = s0[:2]
-        physics.data.qvel[:] = s0[2:]
-        self._steps = 0
-
-    def after_step(self, physics: Physics) -> None:
-        self._steps += 1
+    def is_terminal(self, state: Array) -> bool:
+        return bool(goal_reached(state, self.params))
 
     def get_reward(self, physics: Physics) -> float:
         return -1.0
-
-    def get_termination(self, physics: Physics) -> float | None:
-        if goal_reached(physics.state(), self.params):
-            return 0.0
-        if self._steps >= self.max_steps:
-            return 1.0
-        return None
 
 
 def swingup(

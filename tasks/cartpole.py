@@ -128,30 +128,16 @@ class Balance(DiscreteActionTask):
     """Keep the pole up: reward 1 per step not failed, ends at failure."""
 
     def __init__(self, params: CartpoleParams, *, max_steps: int, seed: Any) -> None:
-        super().__init__(ACTIONS, seed=seed)
+        super().__init__(
+            ACTIONS, initial_noise=INITIAL_NOISE, max_steps=max_steps, seed=seed
+        )
         self.params = params
-        self.max_steps = max_steps
-        self._steps = 0
 
-    def initialize_episode(self, physics: Physics) -> None:
-        """Start near upright at rest: `s₀ ~ U[-0.05, 0.05]⁴`."""
-        s0 = self.rng.uniform(-INITIAL_NOISE, INITIAL_NOISE, size=STATE_DIM)
-        physics.data.qpos[:] = s0[:2]
-        physics.data.qvel[:] = s0[2:]
-        self._steps = 0
-
-    def after_step(self, physics: Physics) -> None:
-        self._steps += 1
+    def is_terminal(self, state: Array) -> bool:
+        return bool(failed(state))
 
     def get_reward(self, physics: Physics) -> float:
-        return 0.0 if failed(physics.state()) else 1.0
-
-    def get_termination(self, physics: Physics) -> float | None:
-        if failed(physics.state()):
-            return 0.0
-        if self._steps >= self.max_steps:
-            return 1.0
-        return None
+        return 0.0 if failed(self.state) else 1.0
 
 
 def balance(

@@ -12,7 +12,9 @@ import numpy as np
 import pytest
 from dm_env import specs
 
+from hipmdp.data import wrap_angle
 from tasks import acrobot, cartpole
+from tasks._common import wrap_scalar_angle
 
 DOMAINS = {
     "acrobot": (acrobot, acrobot.swingup, acrobot.AcrobotParams(1.3, 0.7, 1.0, 1.0)),
@@ -111,3 +113,22 @@ def test_tasks_are_headless():
     )
     assert "GLFW" not in result.stderr + result.stdout
     assert "display" not in (result.stderr + result.stdout).lower()
+
+
+def test_scalar_wrap_agrees_with_the_array_wrap():
+    x = np.r_[
+        np.pi,
+        -np.pi,
+        3 * np.pi,
+        -3 * np.pi,
+        0.0,
+        1e-300,
+        -1e-300,
+        1e6,
+        -1e6,
+        np.random.default_rng(0).uniform(-50, 50, 200),
+    ]
+    wrapped = np.array([wrap_scalar_angle(v) for v in x])
+    assert np.all((wrapped > -np.pi) & (wrapped <= np.pi))
+    np.testing.assert_allclose(wrapped, wrap_angle(x), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.sin(wrapped), np.sin(x), atol=1e-9)
