@@ -4,10 +4,13 @@ dynamics."""
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 import os
 import subprocess
 import sys
 
+import mujoco
 import numpy as np
 import pytest
 from dm_env import specs
@@ -132,3 +135,34 @@ def test_scalar_wrap_agrees_with_the_array_wrap():
     assert np.all((wrapped > -np.pi) & (wrapped <= np.pi))
     np.testing.assert_allclose(wrapped, wrap_angle(x), rtol=0, atol=1e-9)
     np.testing.assert_allclose(np.sin(wrapped), np.sin(x), atol=1e-9)
+
+
+def corners(params_type):
+    """Every corner of a parameter dataclass's documented bounds."""
+    fields = dataclasses.fields(params_type)
+    for values in itertools.product(*(f.metadata["bounds"] for f in fields)):
+        yield params_type(*values)
+
+
+@pytest.mark.parametrize("name", DOMAINS)
+def test_energy_is_conserved_at_every_corner_of_the_bounds(name):
+    """Unforced and undamped, MuJoCo's total energy must stay constant: over 10 s
+    from a large swing it drifts by less than 0.1% of its scale everywhere inside
+    the documented bounds (the worst corner drifts ~1e-4), so the chosen RK4 step
+    is accurate for every valid instance."""
+    module, _, _ = DOMAINS[name]
+    n_actions = round(10.0 / module.CONTROL_TIMESTEP)
+    s = np.array([2.5, 1.0, 0.0, 0.0] if name == "acrobot" else [0.0, 2.5, 0.0, 0.0])
+    for params in corners(type(DOMAINS[name][2])):
+        model = module.make_model(params)
+        model.opt.enableflags |= mujoco.mjtEnableBit.mjENBL_ENERGY
+        data = mujoco.MjData(model)
+        data.qpos[:], data.qvel[:] = s[:2], s[2:]
+        mujoco.mj_forward(model, data)
+        e0, scale = data.energy.sum(), np.abs(data.energy).max()
+        energies = []
+        for _ in range(n_actions):
+            mujoco.mj_step(model, data, module.N_SUB_STEPS)
+            mujoco.mj_forward(model, data)
+            energies.append(data.energy.sum())
+        assert np.abs(np.array(energies) - e0).max() < 1e-3 * scale, params
