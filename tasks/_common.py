@@ -51,7 +51,9 @@ def validate_parameters(params: Any) -> None:
         low, high = field.metadata["bounds"]
         unit = field.metadata["unit"]
         where = f"{cls}.{field.name} must be in [{low}, {high}] {unit}"
-        if isinstance(value, bool) or not isinstance(value, int | float | np.number):
+        if isinstance(value, bool) or not isinstance(
+            value, int | float | np.integer | np.floating
+        ):
             raise ValueError(f"{where}, got {value!r} (not a real number)")
         if not math.isfinite(value):
             raise ValueError(f"{where}, got {value!r} (not finite)")

@@ -166,3 +166,20 @@ def test_energy_is_conserved_at_every_corner_of_the_bounds(name):
             mujoco.mj_forward(model, data)
             energies.append(data.energy.sum())
         assert np.abs(np.array(energies) - e0).max() < 1e-3 * scale, params
+
+
+@pytest.mark.parametrize("name", DOMAINS)
+def test_docstring_table_states_each_parameter_unit_nominal_and_bounds(name):
+    params_type = type(DOMAINS[name][2])
+    rows = {
+        line.split()[0]: line.split()
+        for line in params_type.__doc__.splitlines()
+        if line.strip() and line.split()[0] in params_type.__dataclass_fields__
+    }
+    nominal = params_type()
+    for field in dataclasses.fields(params_type):
+        low, high = field.metadata["bounds"]
+        _, unit, value, *bounds = rows[field.name]
+        assert unit == field.metadata["unit"]
+        assert float(value) == getattr(nominal, field.name)
+        assert " ".join(bounds) == f"[{low}, {high}]"
