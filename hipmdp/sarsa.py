@@ -1,0 +1,248 @@
+"""Sarsa(λ) with linear function approximation and ε-greedy action selection.
+
+Sutton & Barto (1998), §8.4 (gradient-descent Sarsa(λ)), with the per-feature step
+sizes of the Fourier basis (Konidaris et al. 2011). Symbols:
+
+- ``A`` discrete actions, ``F`` features, ``φ(s)`` the feature vector (shape ``(F,)``).
+- ``θ``: one weight vector per action, ``weights`` of shape ``(A, F)``;
+  ``Q(s, a) = θ_a · φ(s)``.
+- ``e``: eligibility traces, ``traces`` of shape ``(A, F)`` (one episode) or
+  ``(N, A, F)`` (``N`` episodes run in lockstep, see :func:`sarsa_update_batch`).
+- ``α_i``: per-feature step sizes, ``step_sizes`` of shape ``(F,)`` (for a Fourier
+  basis ``α_i = α / ‖c_i‖``, i.e. ``config.alpha * basis.step_scale``).
+
+One update, for the transition ``(s, a, r, s', a')``::
+
+    δ = r + γ Q(s', a') − Q(s, a)          (δ = r − Q(s, a) if s' is terminal)
+    e ← γλ e;  e_a ← φ(s) + e_a  (accumulating)  or  e_a ← repl(e_a, φ(s))  (replacing)
+    θ ← θ + δ (α ⊙ e)
+
+``repl`` generalises replacing traces (Singh & Sutton 1996) to features in [-1, 1]:
+each entry takes ``φ_i`` where ``|φ_i| > |e_{a,i}|`` and keeps ``e_{a,i}`` elsewhere,
+so ``|e| ≤ 1`` always; for binary features it is the classic ``e_{a,i} ← 1``. Other
+actions' traces are only decayed, not cleared (with a dense basis every feature is
+active in every state, so clearing would cut all credit for the other actions).
+
+Everything is explicit state: :class:`SarsaState` in, a new :class:`SarsaState` out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+TraceKind = Literal["replacing", "accumulating"]
+
+
+@dataclass(frozen=True)
+class SarsaConfig:
+    """Hyperparameters of Sarsa(λ).
+
+    ========== ===================================================== ==========
+    name       meaning                                               valid
+    ========== ===================================================== ==========
+    alpha      base step size α (scaled per feature by the basis)    (0, 1]
+    lam        trace decay λ                                         [0, 1]
+    gamma      discount γ                                            [0, 1]
+    epsilon    exploration rate ε of the ε-greedy policy             [0, 1]
+    traces     ``"replacing"`` or ``"accumulating"``
+    ========== ===================================================== ==========
+    """
+
+    alpha: float = 0.001
+    lam: float = 0.9
+    gamma: float = 1.0
+    epsilon: float = 0.0
+    traces: TraceKind = "accumulating"
+
+    def __post_init__(self) -> None:
+        if not (0.0 < self.alpha <= 1.0):
+            raise ValueError(f"alpha: expected 0 < alpha <= 1, got {self.alpha}")
+        for name in ("lam", "gamma", "epsilon"):
+            value = getattr(self, name)
+            if not (0.0 <= value <= 1.0):
+                raise ValueError(f"{name}: expected a value in [0, 1], got {value}")
+        if self.traces not in ("replacing", "accumulating"):
+            raise ValueError(
+                f"traces: expected 'replacing' or 'accumulating', got {self.traces!r}"
+            )
+
+
+class SarsaState(NamedTuple):
+    """Learner state: ``weights`` θ, shape ``(A, F)``; ``traces`` e, shape ``(A, F)``
+    for one episode or ``(N, A, F)`` for ``N`` episodes in lockstep."""
+
+    weights: Array
+    traces: Array
+
+
+class SarsaStep(NamedTuple):
+    """Result of one update: the new ``state`` and the TD error ``td_error`` δ
+    (a float, or shape ``(N,)`` for a batch)."""
+
+    state: SarsaState
+    td_error: float | Array
+
+
+def init_state(
+    n_actions: int, n_features: int, initial_value: float = 0.0
+) -> SarsaState:
+    """Initial weights and zero traces, shapes ``(A, F)``.
+
+    ``θ_{a,0} = q₀`` (``initial_value``) and every other weight zero, so with a
+    constant feature ``φ_0 ≡ 1`` (a Fourier basis's ``c_0 = 0``) ``Q(s, a) = q₀``
+    everywhere. An optimistic ``q₀`` (above every achievable return) makes a greedy
+    agent try every action (Sutton & Barto 1998, §2.7): ``q₀ = 0`` is optimistic
+    for rewards ≤ 0 (the acrobot's −1 per step); for the cart-pole's +1 per step it
+    is ``1 / (1 − γ)``.
+    """
+    if n_actions < 1 or n_features < 1:
+        raise ValueError(
+            f"n_actions, n_features: expected >= 1, got {n_actions}, {n_features}"
+        )
+    if not np.isfinite(initial_value):
+        raise ValueError(f"initial_value: expected a finite value, got {initial_value}")
+    weights = np.zeros((n_actions, n_features))
+    weights[:, 0] = initial_value
+    return SarsaState(weights, np.zeros((n_actions, n_features)))
+
+
+def reset_traces(state: SarsaState, n_episodes: int | None = None) -> SarsaState:
+    """Zero traces at the start of an episode: shape ``(A, F)``, or
+    ``(n_episodes, A, F)`` for lockstep episodes."""
+    shape = state.weights.shape
+    if n_episodes is not None:
+        shape = (n_episodes, *shape)
+    return SarsaState(state.weights, np.zeros(shape))
+
+
+def q_values(weights: Array, phi: Array) -> Array:
+    """``Q(s, ·) = θ φ(s)``: shape ``(A,)`` for ``phi`` of shape ``(F,)``, or
+    ``(N, A)`` for ``phi`` of shape ``(N, F)``."""
+    return phi @ weights.T
+
+
+def epsilon_greedy(q: Array, epsilon: float, *, rng: np.random.Generator) -> int:
+    """ε-greedy choice from action values ``q`` (shape ``(A,)``).
+
+    With probability ε a uniformly random action, otherwise a greedy one with ties
+    broken uniformly at random (with zero initial weights every action ties, and a
+    fixed tie-break would never explore).
+    """
+    if epsilon > 0.0 and rng.random() < epsilon:
+        return int(rng.integers(q.shape[0]))
+    best = np.flatnonzero(q == q.max())
+    return int(best[0] if best.size == 1 else rng.choice(best))
+
+
+def epsilon_greedy_batch(
+    q: Array, epsilon: float, *, rng: np.random.Generator
+) -> NDArray[np.int64]:
+    """Row-wise ε-greedy choices from ``q`` (shape ``(N, A)``), shape ``(N,)``;
+    ties among maximal actions broken uniformly at random."""
+    n, n_actions = q.shape
+    # A random key below the smallest gap breaks ties at random without moving the
+    # argmax between actions whose values differ.
+    is_max = q == q.max(axis=1, keepdims=True)
+    actions = np.argmax(is_max * (1.0 + rng.random((n, n_actions))), axis=1)
+    if epsilon > 0.0:
+        explore = rng.random(n) < epsilon
+        actions[explore] = rng.integers(n_actions, size=int(explore.sum()))
+    return actions
+
+
+def sarsa_update(
+    state: SarsaState,
+    phi: Array,
+    action: int,
+    reward: float,
+    phi_next: Array | None,
+    action_next: int | None,
+    step_sizes: Array,
+    config: SarsaConfig,
+) -> SarsaStep:
+    """One Sarsa(λ) update for ``(s, a, r, s', a')`` (equations in the module doc).
+
+    Args:
+        state: ``θ`` of shape ``(A, F)`` and ``e`` of shape ``(A, F)``.
+        phi: ``φ(s)``, shape ``(F,)``.
+        action: ``a``.
+        reward: ``r``.
+        phi_next: ``φ(s')``, shape ``(F,)``, or ``None`` if ``s'`` is terminal.
+        action_next: ``a'`` (ignored when ``s'`` is terminal).
+        step_sizes: ``α_i``, shape ``(F,)``.
+        config: ``γ``, ``λ`` and the trace kind.
+    """
+    weights, traces = state
+    target = reward
+    if phi_next is not None:
+        target += config.gamma * float(weights[action_next] @ phi_next)
+    delta = target - float(weights[action] @ phi)
+    traces = traces * (config.gamma * config.lam)
+    if config.traces == "accumulating":
+        traces[action] += phi
+    else:
+        row = traces[action]
+        traces[action] = np.where(np.abs(phi) > np.abs(row), phi, row)
+    weights = weights + delta * (step_sizes * traces)
+    return SarsaStep(SarsaState(weights, traces), delta)
+
+
+def sarsa_update_batch(
+    state: SarsaState,
+    phi: Array,
+    actions: NDArray[np.int64],
+    rewards: Array,
+    phi_next: Array,
+    actions_next: NDArray[np.int64],
+    terminal: NDArray[np.bool_],
+    active: NDArray[np.bool_],
+    step_sizes: Array,
+    config: SarsaConfig,
+) -> SarsaStep:
+    """One lockstep Sarsa(λ) update for ``N`` episodes sharing one ``θ``.
+
+    Each episode ``j`` keeps its own trace ``e_j`` (shape ``(A, F)``); every ``δ_j``
+    is computed with the same ``θ`` and the updates are summed::
+
+        θ ← θ + Σ_j δ_j (α ⊙ e_j)      over active episodes j
+
+    With ``N = 1`` this is exactly :func:`sarsa_update`; with ``N > 1`` it is the
+    synchronous version of ``N`` interleaved sequential updates.
+
+    Args:
+        state: ``θ`` of shape ``(A, F)`` and ``e`` of shape ``(N, A, F)``.
+        phi: ``φ(s_j)``, shape ``(N, F)``.
+        actions: ``a_j``, shape ``(N,)``.
+        rewards: ``r_j``, shape ``(N,)``.
+        phi_next: ``φ(s'_j)``, shape ``(N, F)`` (rows of terminal ``s'`` ignored).
+        actions_next: ``a'_j``, shape ``(N,)``.
+        terminal: ``s'_j`` terminal (no bootstrap), shape ``(N,)``.
+        active: episodes still running (others leave ``θ`` and their trace alone),
+            shape ``(N,)``.
+        step_sizes: ``α_i``, shape ``(F,)``.
+        config: ``γ``, ``λ`` and the trace kind.
+
+    Returns:
+        The new state and ``δ``, shape ``(N,)`` (zero for inactive episodes).
+    """
+    weights, traces = state
+    rows = np.arange(phi.shape[0])
+    q = np.einsum("nf,nf->n", weights[actions], phi)
+    q_next = np.einsum("nf,nf->n", weights[actions_next], phi_next)
+    delta = rewards + np.where(terminal, 0.0, config.gamma * q_next) - q
+    delta = np.where(active, delta, 0.0)
+    decay = np.where(active, config.gamma * config.lam, 1.0)
+    traces = traces * decay[:, None, None]
+    taken = traces[rows, actions]  # (N, F) traces of the actions taken
+    if config.traces == "accumulating":
+        new_rows = taken + phi
+    else:
+        new_rows = np.where(np.abs(phi) > np.abs(taken), phi, taken)
+    traces[rows, actions] = np.where(active[:, None], new_rows, taken)
+    weights = weights + step_sizes * np.einsum("n,naf->af", delta, traces)
+    return SarsaStep(SarsaState(weights, traces), delta)

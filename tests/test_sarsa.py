@@ -1,0 +1,195 @@
+"""Sarsa(λ): the update against a plain tabular reference, the lockstep batch update
+against the single one, ε-greedy statistics, and learning on a small corridor."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hipmdp.fourier import FourierBasis
+from hipmdp.sarsa import (
+    SarsaConfig,
+    SarsaState,
+    epsilon_greedy,
+    epsilon_greedy_batch,
+    init_state,
+    reset_traces,
+    sarsa_update,
+    sarsa_update_batch,
+)
+
+
+def tabular_sarsa_lambda(episode, n_states, n_actions, alpha, gamma, lam, kind):
+    """Textbook tabular Sarsa(λ) (Sutton & Barto 1998, Fig. 7.11) with dicts.
+
+    ``episode``: list of (s, a, r, s', a', terminal) with integer states."""
+    Q = {(s, a): 0.0 for s in range(n_states) for a in range(n_actions)}
+    e = dict.fromkeys(Q, 0.0)
+    for s, a, r, s2, a2, terminal in episode:
+        delta = r + (0.0 if terminal else gamma * Q[(s2, a2)]) - Q[(s, a)]
+        for key in e:
+            e[key] *= gamma * lam
+        e[(s, a)] = e[(s, a)] + 1.0 if kind == "accumulating" else 1.0
+        for key in Q:
+            Q[key] += alpha * delta * e[key]
+    return np.array([[Q[(s, a)] for s in range(n_states)] for a in range(n_actions)])
+
+
+@pytest.mark.parametrize("kind", ["accumulating", "replacing"])
+def test_one_hot_features_reproduce_tabular_sarsa_lambda(kind: str) -> None:
+    rng = np.random.default_rng(0)
+    n_states, n_actions = 5, 2
+    config = SarsaConfig(alpha=0.3, lam=0.8, gamma=0.9, traces=kind)
+    # a random walk that revisits states, so accumulating and replacing differ
+    s = rng.integers(n_states, size=30)
+    a = rng.integers(n_actions, size=30)
+    r = rng.normal(size=29)
+    episode = [(s[t], a[t], r[t], s[t + 1], a[t + 1], t == 28) for t in range(29)]
+    state = init_state(n_actions, n_states)
+    eye = np.eye(n_states)
+    for st, at, rt, s2, a2, terminal in episode:
+        state = sarsa_update(
+            state, eye[st], at, rt, None if terminal else eye[s2], a2,
+            np.full(n_states, config.alpha), config,
+        ).state  # fmt: skip
+    expected = tabular_sarsa_lambda(
+        episode, n_states, n_actions, config.alpha, config.gamma, config.lam, kind
+    )
+    np.testing.assert_allclose(state.weights, expected, atol=1e-12)
+
+
+def test_replacing_traces_are_bounded_by_one_for_real_features() -> None:
+    rng = np.random.default_rng(1)
+    config = SarsaConfig(alpha=0.01, lam=1.0, gamma=1.0, traces="replacing")
+    state = init_state(2, 8)
+    for _ in range(50):
+        phi = rng.uniform(-1, 1, size=8)
+        state = sarsa_update(
+            state, phi, 0, -1.0, phi, 0, np.full(8, 0.01), config
+        ).state
+        assert np.all(np.abs(state.traces) <= 1.0)
+    assert np.all(state.traces[1] == 0.0)  # the untaken action has no trace
+
+
+@pytest.mark.parametrize("kind", ["accumulating", "replacing"])
+def test_batch_update_with_one_episode_equals_single_update(kind: str) -> None:
+    rng = np.random.default_rng(2)
+    config = SarsaConfig(alpha=0.05, lam=0.9, gamma=0.95, traces=kind)
+    single = SarsaState(rng.normal(size=(3, 6)), rng.uniform(-1, 1, size=(3, 6)))
+    batch = SarsaState(single.weights.copy(), single.traces[None].copy())
+    alphas = config.alpha * rng.uniform(0.2, 1.0, size=6)
+    for t in range(20):
+        phi, phi2 = rng.uniform(-1, 1, size=(2, 6))
+        a, a2 = rng.integers(3, size=2)
+        r, terminal = rng.normal(), t == 19
+        one = sarsa_update(single, phi, a, r, None if terminal else phi2, a2,
+                           alphas, config)  # fmt: skip
+        many = sarsa_update_batch(
+            batch, phi[None], np.array([a]), np.array([r]), phi2[None],
+            np.array([a2]), np.array([terminal]), np.array([True]), alphas, config,
+        )  # fmt: skip
+        np.testing.assert_allclose(many.state.weights, one.state.weights, atol=1e-12)
+        np.testing.assert_allclose(many.state.traces[0], one.state.traces, atol=1e-12)
+        assert many.td_error[0] == pytest.approx(one.td_error, abs=1e-12)
+        single, batch = one.state, many.state
+
+
+def test_batch_update_sums_active_episodes_and_ignores_inactive_ones() -> None:
+    rng = np.random.default_rng(3)
+    config = SarsaConfig(alpha=0.05, lam=0.9, gamma=0.95)
+    weights = rng.normal(size=(2, 4))
+    traces = rng.uniform(-1, 1, size=(3, 2, 4))
+    phi, phi2 = rng.uniform(-1, 1, size=(2, 3, 4))
+    a, a2 = np.array([0, 1, 1]), np.array([1, 1, 0])
+    r, terminal = np.array([1.0, -2.0, 0.5]), np.array([False, True, False])
+    alphas = np.full(4, config.alpha)
+    active = np.array([True, True, False])
+    out = sarsa_update_batch(SarsaState(weights, traces), phi, a, r, phi2, a2,
+                             terminal, active, alphas, config)  # fmt: skip
+    # each active episode alone from the same θ; the summed change is the total
+    total = np.zeros_like(weights)
+    for j in (0, 1):
+        one = sarsa_update(
+            SarsaState(weights, traces[j].copy()), phi[j], a[j], r[j],
+            None if terminal[j] else phi2[j], a2[j], alphas, config,
+        )  # fmt: skip
+        total += one.state.weights - weights
+        np.testing.assert_allclose(out.state.traces[j], one.state.traces, atol=1e-12)
+    np.testing.assert_allclose(out.state.weights, weights + total, atol=1e-12)
+    np.testing.assert_array_equal(out.state.traces[2], traces[2])
+    assert out.td_error[2] == 0.0
+
+
+def test_epsilon_greedy_breaks_ties_uniformly_and_explores_at_rate_epsilon() -> None:
+    rng = np.random.default_rng(4)
+    n = 20_000
+    # ties between actions 0 and 2: each with probability 1/2; a binomial count's
+    # standard deviation is sqrt(n/4) ≈ 71, so ±4 sd is ±283
+    q = np.array([1.0, 0.0, 1.0])
+    counts = np.bincount(
+        [epsilon_greedy(q, 0.0, rng=rng) for _ in range(n)], minlength=3
+    )
+    assert counts[1] == 0 and abs(counts[0] - n / 2) < 283
+    batch = epsilon_greedy_batch(np.tile(q, (n, 1)), 0.0, rng=rng)
+    assert np.sum(batch == 1) == 0 and abs(np.sum(batch == 0) - n / 2) < 283
+    # ε = 0.3 with a unique maximum: the others each get ε/3 = 0.1 (sd ≈ 42)
+    q = np.array([0.0, 5.0, 1.0])
+    for picks in (
+        np.array([epsilon_greedy(q, 0.3, rng=rng) for _ in range(n)]),
+        epsilon_greedy_batch(np.tile(q, (n, 1)), 0.3, rng=rng),
+    ):
+        counts = np.bincount(picks, minlength=3)
+        assert abs(counts[0] - 0.1 * n) < 170 and abs(counts[2] - 0.1 * n) < 170
+
+
+def test_sarsa_learns_the_shortest_path_along_a_corridor() -> None:
+    """x ∈ [0, 1], actions move ±0.1, reward −1 per step, goal at x ≥ 1 from x = 0:
+    the optimal return is −10; zero initial values are optimistic, ε = 0."""
+    basis = FourierBasis(4, np.array([0.0]), np.array([1.0]))
+    config = SarsaConfig(alpha=0.1, lam=0.9, gamma=1.0, epsilon=0.0)
+    alphas = config.alpha * basis.step_scale
+    rng = np.random.default_rng(5)
+    state = init_state(2, basis.n_features)
+    lengths = []
+    for _ in range(40):
+        state = reset_traces(state)
+        x, steps = 0.0, 0
+        a = epsilon_greedy(state.weights @ basis(np.array([x])), 0.0, rng=rng)
+        while True:
+            x2, steps = max(x + (0.1 if a == 1 else -0.1), 0.0), steps + 1
+            done = x2 >= 1.0 - 1e-9 or steps >= 200
+            a2 = epsilon_greedy(state.weights @ basis(np.array([x2])), 0.0, rng=rng)
+            phi2 = None if x2 >= 1.0 - 1e-9 else basis(np.array([x2]))
+            state = sarsa_update(
+                state, basis(np.array([x])), a, -1.0, phi2, a2, alphas, config
+            ).state
+            if done:
+                break
+            x, a = x2, a2
+        lengths.append(steps)
+    assert lengths[0] > 10  # the first episode wanders
+    assert lengths[-5:] == [10] * 5
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "field"),
+    [
+        ({"alpha": 0.0}, "alpha"),
+        ({"lam": 1.5}, "lam"),
+        ({"gamma": -0.1}, "gamma"),
+        ({"epsilon": 2.0}, "epsilon"),
+        ({"traces": "dutch"}, "traces"),
+    ],
+)
+def test_bad_config_raises_naming_the_field(kwargs: dict, field: str) -> None:
+    with pytest.raises(ValueError, match=field):
+        SarsaConfig(**kwargs)
+
+
+def test_init_state_sets_constant_feature_weight() -> None:
+    state = init_state(3, 5, initial_value=7.0)
+    np.testing.assert_array_equal(state.weights[:, 0], 7.0)
+    np.testing.assert_array_equal(state.weights[:, 1:], 0.0)
+    assert reset_traces(state, 4).traces.shape == (4, 3, 5)
+    with pytest.raises(ValueError, match="n_actions"):
+        init_state(0, 5)
