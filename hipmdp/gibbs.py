@@ -59,20 +59,6 @@ __all__ = [
 Array = np.ndarray
 
 
-def _ibp_prior_draw(N: int, alpha: float, *, rng: np.random.Generator) -> Array:
-    """Z (K+, N) from the IBP buffet: customer i takes an existing dish k with
-    probability m_k/i, then Poisson(α/i) new dishes."""
-    cols: list[Array] = []
-    for i in range(1, N + 1):
-        for col in cols:
-            col[i - 1] = rng.random() < col[: i - 1].sum() / i
-        for _ in range(rng.poisson(alpha / i)):
-            col = np.zeros(N, dtype=bool)
-            col[i - 1] = True
-            cols.append(col)
-    return np.array(cols, dtype=bool).reshape(len(cols), N)
-
-
 def init_state(
     data: GibbsData,
     priors: GibbsPriors,
@@ -80,18 +66,16 @@ def init_state(
     rng: np.random.Generator,
     cache: GibbsCache | None = None,
 ) -> GibbsState:
-    """A starting state: z[1:] from the IBP(α) prior over the R rows, μ_w and w from
-    their priors, f drawn from its conditional given z and w."""
+    """A starting state: the mean dynamics only (z = [1,...,1], Kf = 1), f[0] drawn
+    from its conditional. Latent features then enter through the new-feature step,
+    whose weights are importance-resampled to fit the residual; a start with random
+    features from the IBP prior instead begins far from the data and climbs slowly.
+    `priors` is validated for symmetry with the sweep; `rng` draws f[0]."""
     data, priors = check_data(data), check_priors(priors)
     cache = prepare(data) if cache is None else cache
     R, B, m = data.Y.shape
-    z_ibp = _ibp_prior_draw(R, priors.alpha, rng=rng)
-    z = np.vstack([np.ones((1, R), dtype=bool), z_ibp])
-    Kf = z.shape[0]
-    mu_w = np.concatenate([[0.0], priors.sigma_w0 * rng.standard_normal(Kf - 1)])
-    w = mu_w[:, None] + priors.sigma_w * rng.standard_normal((Kf, B))
-    w[0] = 1.0
-    ft = f_block(EigenAlgebra(cache), z, w, np.zeros((Kf, R, m)), rng=rng)
+    z, w, mu_w = np.ones((1, R), dtype=bool), np.ones((1, B)), np.zeros(1)
+    ft = f_block(EigenAlgebra(cache), z, w, np.zeros((1, R, m)), rng=rng)
     return GibbsState(z, w, from_eigen(ft, cache), mu_w)
 
 

@@ -30,7 +30,6 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from scipy import linalg
 
 from hipmdp.gibbs_model import (
     GibbsData,
@@ -126,7 +125,7 @@ def w_posterior(
     h = mu_w[1:, None] / sigma_w**2 + np.einsum(
         "krm,rbm,r->kb", Phi, Yt - ft[0][:, None, :], s
     )
-    cov = linalg.inv(P)
+    cov = np.linalg.inv(P)
     return cov @ h, 0.5 * (cov + cov.T)
 
 

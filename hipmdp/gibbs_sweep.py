@@ -41,7 +41,7 @@ from __future__ import annotations
 from typing import Protocol
 
 import numpy as np
-from scipy.special import expit, logsumexp
+from scipy.special import expit
 
 from hipmdp.gibbs_model import GibbsPriors, draw_new_weights, sample_mu_w
 
@@ -115,11 +115,17 @@ def z_step_row(alg: Algebra, r: int, z: Array, w: Array, f: Array, *, rng) -> Ar
     return E
 
 
+def logsumexp(x: Array) -> float:
+    """log Σ exp(x) for a 1-d array x, stably."""
+    top = float(np.max(x))
+    return top + float(np.log(np.sum(np.exp(x - top))))
+
+
 def _log_ml(alg: Algebra, r: int, E: Array, k: int, priors: GibbsPriors, *, rng):
     """log L̂(k), the N_w-draw estimate, with its draws (mu, W) and per-draw llr."""
     mu, W = draw_new_weights(priors.n_w, E.shape[0], k, priors, rng=rng)
     llr = alg.new_llr(r, E, W) if k else np.zeros(priors.n_w)
-    return float(logsumexp(llr) - np.log(priors.n_w)), mu, W, llr
+    return logsumexp(llr) - float(np.log(priors.n_w)), mu, W, llr
 
 
 def new_feature_step(
