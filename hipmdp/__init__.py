@@ -5,5 +5,6 @@ any simulator.
 """
 
 from hipmdp.data import Transitions
+from hipmdp.gibbs import GibbsData, GibbsPriors, GibbsState, run_chains
 
-__all__ = ["Transitions"]
+__all__ = ["Transitions", "GibbsData", "GibbsPriors", "GibbsState", "run_chains"]
