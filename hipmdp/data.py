@@ -247,7 +247,11 @@ class Transitions:
 
     # -- selection and concatenation ---------------------------------------------------
 
-    def _take(self, mask: Array) -> Transitions:
+    def take(self, index: Array) -> Transitions:
+        """The transitions at ``index``: a boolean mask (N,) or integer indices."""
+        mask = np.asarray(index)
+        if mask.dtype == bool and mask.shape != (len(self),):
+            raise ValueError(f"index: expected a mask of shape ({len(self)},)")
         return Transitions(
             states=self.states[mask],
             actions=self.actions[mask],
@@ -269,11 +273,11 @@ class Transitions:
             mask &= np.isin(self.instances, np.atleast_1d(np.asarray(instances)))
         if actions is not None:
             mask &= np.isin(self.actions, np.atleast_1d(np.asarray(actions)))
-        return self._take(mask)
+        return self.take(mask)
 
     def head(self, n: int) -> Transitions:
         """The first ``n`` transitions."""
-        return self._take(np.arange(len(self)) < n)
+        return self.take(np.arange(min(n, len(self))))
 
     @classmethod
     def concatenate(cls, parts: Sequence[Transitions]) -> Transitions:

@@ -185,3 +185,17 @@ def test_select_partitions_data(n, d, seed):
     t = make(n=n, d=d, seed=seed, angle_dims=())
     parts = [t.select(instances=int(b)) for b in t.instance_ids]
     assert sum(len(p) for p in parts) == len(t)
+
+
+def test_take_by_mask_and_by_indices():
+    t = make(n=20)
+    idx = np.array([3, 0, 7])
+    u = t.take(idx)
+    np.testing.assert_array_equal(u.states, t.states[idx])
+    np.testing.assert_array_equal(u.dones, t.dones[idx])
+    mask = np.zeros(20, dtype=bool)
+    mask[[0, 3, 7]] = True
+    np.testing.assert_array_equal(t.take(mask).states, t.states[[0, 3, 7]])
+    assert len(t.head(5)) == 5 and len(t.head(50)) == 20
+    with pytest.raises(ValueError, match="index: expected a mask"):
+        t.take(np.ones(3, dtype=bool))
