@@ -150,6 +150,30 @@ def goal_reached(states: Array, params: AcrobotParams | None = None) -> Array:
     return tip_height(states, params) > params.link_length_1
 
 
+def link_points(states: Array, params: AcrobotParams | None = None) -> Array:
+    """Shoulder, elbow and tip positions posed by MuJoCo's kinematics.
+
+    Args:
+        states: `(N, 4)` states (only the angles are used); params: the instance.
+
+    Returns:
+        `(N, 3, 3)`: per state the world positions of the shoulder, elbow and tip.
+    """
+    params = _check_params(params)
+    states = np.atleast_2d(_check_states(states))
+    model = make_model(params)
+    data = mujoco.MjData(model)
+    bodies = [model.body("link_1").id, model.body("link_2").id]
+    tip = model.site("tip").id
+    out = np.empty((states.shape[0], 3, 3))
+    for n, state in enumerate(states):
+        data.qpos[:] = state[:2]
+        mujoco.mj_kinematics(model, data)
+        out[n, :2] = data.xpos[bodies]
+        out[n, 2] = data.site_xpos[tip]
+    return out
+
+
 class SwingUp(DiscreteActionTask):
     """Swing the tip above `l₁`: reward -1 per step, ends at the goal."""
 

@@ -180,3 +180,21 @@ def test_invalid_action_is_rejected(action):
     env.reset()
     with pytest.raises(ValueError, match="integer index"):
         env.step(action)
+
+
+def test_link_points_follow_the_book_kinematics():
+    from tasks.acrobot import AcrobotParams, link_points, tip_height
+
+    params = AcrobotParams(
+        link_mass_1=1.0, link_mass_2=1.0, link_length_1=0.8, link_length_2=1.3
+    )
+    rng = np.random.default_rng(3)
+    states = rng.uniform(-np.pi, np.pi, size=(20, 4))
+    pts = link_points(states, params)
+    t1, t12 = states[:, 0], states[:, 0] + states[:, 1]
+    np.testing.assert_allclose(pts[:, 0], 0.0, atol=1e-12)  # the shoulder is fixed
+    elbow = 0.8 * np.c_[np.sin(t1), np.zeros(20), -np.cos(t1)]
+    np.testing.assert_allclose(pts[:, 1], elbow, atol=1e-12)
+    tip = elbow + 1.3 * np.c_[np.sin(t12), np.zeros(20), -np.cos(t12)]
+    np.testing.assert_allclose(pts[:, 2], tip, atol=1e-12)
+    np.testing.assert_allclose(pts[:, 2, 2], tip_height(states, params), atol=1e-12)
