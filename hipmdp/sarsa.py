@@ -207,12 +207,16 @@ def sarsa_update_batch(
     """One lockstep Sarsa(λ) update for ``N`` episodes sharing one ``θ``.
 
     Each episode ``j`` keeps its own trace ``e_j`` (shape ``(A, F)``); every ``δ_j``
-    is computed with the same ``θ`` and the updates are summed::
+    is computed with the same ``θ`` and the step is the mean over the ``n_active``
+    running episodes::
 
-        θ ← θ + Σ_j δ_j (α ⊙ e_j)      over active episodes j
+        θ ← θ + (1 / n_active) Σ_j δ_j (α ⊙ e_j)      over active episodes j
 
-    With ``N = 1`` this is exactly :func:`sarsa_update`; with ``N > 1`` it is the
-    synchronous version of ``N`` interleaved sequential updates.
+    With ``N = 1`` this is exactly :func:`sarsa_update`. With ``N > 1`` it is a
+    synchronous mini-batch step: averaging (not summing) keeps it stable when the
+    episodes are alike (``N`` identical episodes would otherwise take an ``N``-times
+    larger step), at the price that ``N`` lockstep episodes move ``θ`` about as far
+    as one sequential episode, with less variance.
 
     Args:
         state: ``θ`` of shape ``(A, F)`` and ``e`` of shape ``(N, A, F)``.
@@ -244,5 +248,6 @@ def sarsa_update_batch(
     else:
         new_rows = np.where(np.abs(phi) > np.abs(taken), phi, taken)
     traces[rows, actions] = np.where(active[:, None], new_rows, taken)
-    weights = weights + step_sizes * np.einsum("n,naf->af", delta, traces)
+    n_active = max(int(np.count_nonzero(active)), 1)
+    weights = weights + step_sizes * np.einsum("n,naf->af", delta / n_active, traces)
     return SarsaStep(SarsaState(weights, traces), delta)

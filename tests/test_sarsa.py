@@ -94,7 +94,7 @@ def test_batch_update_with_one_episode_equals_single_update(kind: str) -> None:
         single, batch = one.state, many.state
 
 
-def test_batch_update_sums_active_episodes_and_ignores_inactive_ones() -> None:
+def test_batch_update_averages_active_episodes_and_ignores_inactive_ones() -> None:
     rng = np.random.default_rng(3)
     config = SarsaConfig(alpha=0.05, lam=0.9, gamma=0.95)
     weights = rng.normal(size=(2, 4))
@@ -106,7 +106,7 @@ def test_batch_update_sums_active_episodes_and_ignores_inactive_ones() -> None:
     active = np.array([True, True, False])
     out = sarsa_update_batch(SarsaState(weights, traces), phi, a, r, phi2, a2,
                              terminal, active, alphas, config)  # fmt: skip
-    # each active episode alone from the same θ; the summed change is the total
+    # each active episode alone from the same θ; the step is their mean change
     total = np.zeros_like(weights)
     for j in (0, 1):
         one = sarsa_update(
@@ -115,7 +115,7 @@ def test_batch_update_sums_active_episodes_and_ignores_inactive_ones() -> None:
         )  # fmt: skip
         total += one.state.weights - weights
         np.testing.assert_allclose(out.state.traces[j], one.state.traces, atol=1e-12)
-    np.testing.assert_allclose(out.state.weights, weights + total, atol=1e-12)
+    np.testing.assert_allclose(out.state.weights, weights + total / 2, atol=1e-12)
     np.testing.assert_array_equal(out.state.traces[2], traces[2])
     assert out.td_error[2] == 0.0
 

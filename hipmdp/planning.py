@@ -1,0 +1,337 @@
+"""Dynamics models and Dyna-style planning: Sarsa(λ) episodes simulated on a model.
+
+Symbols: ``N`` states in a batch (or episodes in lockstep), ``D`` state dimension,
+``s`` states ``(N, D)``, ``a`` discrete actions ``(N,)``, ``s'`` next states ``(N, D)``,
+``Δ = s' − s`` with angle dimensions wrapped to ``(−π, π]``.
+
+- :class:`DynamicsModel`: anything with ``predict(states, actions) -> next_states``
+  (batched). Implementations: the true simulator of an instance
+  (``tasks.agents.SimulatorModel``), a learned model through :class:`LearnedModel`
+  (the HiP-MDP with a weight belief, or a baseline GP), and :class:`StepwiseModel`
+  for a one-state-at-a-time function.
+- :class:`SimulatedEpisodes`: ``N`` episodes on a model run at once, one batched
+  ``predict`` per step, with the task's reward and termination applied to the
+  predicted arrays (a :class:`PlanningTask`).
+- :func:`plan`: Dyna-style planning (DESIGN §4): simulated Sarsa(λ) episodes started
+  from states the real instance produced, updating the agent's weights.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple, Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import NDArray
+from tqdm.auto import tqdm
+
+from hipmdp.data import wrap_angle
+from hipmdp.fourier import FourierBasis
+from hipmdp.sarsa import (
+    SarsaConfig,
+    SarsaState,
+    epsilon_greedy_batch,
+    reset_traces,
+    sarsa_update_batch,
+)
+
+Array = NDArray[np.float64]
+
+
+@runtime_checkable
+class DynamicsModel(Protocol):
+    """A batched one-step dynamics model."""
+
+    def predict(self, states: Array, actions: NDArray[np.int64]) -> Array:
+        """Next states ``s'``, shape ``(N, D)``, for ``states`` ``(N, D)`` and integer
+        ``actions`` ``(N,)``."""
+        ...
+
+
+def _check_batch(states: Array, actions: Any) -> tuple[Array, NDArray[np.int64]]:
+    s = np.asarray(states, dtype=np.float64)
+    a = np.asarray(actions)
+    if s.ndim != 2:
+        raise ValueError(f"states: expected shape (N, D), got {s.shape}")
+    if a.shape != (s.shape[0],) or not np.issubdtype(a.dtype, np.integer):
+        raise ValueError(
+            f"actions: expected integer shape ({s.shape[0]},), got {a.dtype} {a.shape}"
+        )
+    return s, a.astype(np.int64, copy=False)
+
+
+@dataclass(frozen=True)
+class LearnedModel:
+    """Adapter from a model of ``Δ`` to a :class:`DynamicsModel`.
+
+    ``s' = s + E[Δ | s, a]``, with the angle dimensions of ``s'`` wrapped to
+    ``(−π, π]``.
+
+    Args:
+        model: anything with ``predict(states, actions, belief) -> (mean, var)``
+            (the HiP-MDP) or ``predict(states, actions) -> (mean, var)`` (a
+            baseline GP); ``mean`` is ``E[Δ]``, shape ``(N, D)``; ``var`` is unused.
+        belief: the weight belief passed to ``model.predict``, or ``None`` to call
+            it without one. Planning "with the posterior-mean weights" is the
+            HiP-MDP's ``predict`` with the current belief (its mean prediction).
+        angle_dims: state dimensions that are angles.
+    """
+
+    model: Any
+    belief: Any = None
+    angle_dims: tuple[int, ...] = ()
+
+    def predict(self, states: Array, actions: NDArray[np.int64]) -> Array:
+        """``s + E[Δ]`` with angles wrapped, shape ``(N, D)``."""
+        s, a = _check_batch(states, actions)
+        if self.belief is None:
+            mean, _ = self.model.predict(s, a)
+        else:
+            mean, _ = self.model.predict(s, a, self.belief)
+        mean = np.asarray(mean, dtype=np.float64)
+        if mean.shape != s.shape:
+            raise ValueError(
+                f"model.predict: expected a mean of shape {s.shape}, got {mean.shape}"
+            )
+        next_states = s + mean
+        if self.angle_dims:
+            dims = list(self.angle_dims)
+            next_states[:, dims] = wrap_angle(next_states[:, dims])
+        return next_states
+
+
+@dataclass(frozen=True)
+class StepwiseModel:
+    """A :class:`DynamicsModel` from ``step(state (D,), action) -> next_state (D,)``,
+    applied row by row (for simulators that cannot batch)."""
+
+    step: Callable[[Array, int], Array]
+
+    def predict(self, states: Array, actions: NDArray[np.int64]) -> Array:
+        """Row-by-row ``step``, shape ``(N, D)``."""
+        s, a = _check_batch(states, actions)
+        out = np.empty_like(s)
+        for n in range(s.shape[0]):
+            out[n] = self.step(s[n], int(a[n]))
+        return out
+
+
+@dataclass(frozen=True)
+class PlanningTask:
+    """What a task means on arrays of predicted states.
+
+    Args:
+        reward: ``reward(states, actions, next_states) -> r``, shape ``(N,)``.
+        terminal: ``terminal(next_states) -> bool``, shape ``(N,)``: the episode ends
+            without bootstrapping (goal reached, or failure).
+        max_steps: episodes are cut (with bootstrapping) after this many steps.
+    """
+
+    reward: Callable[[Array, NDArray[np.int64], Array], Array]
+    terminal: Callable[[Array], NDArray[np.bool_]]
+    max_steps: int
+
+    def __post_init__(self) -> None:
+        if self.max_steps < 1:
+            raise ValueError(f"max_steps: expected >= 1, got {self.max_steps}")
+
+
+class StepResult(NamedTuple):
+    """One lockstep step: ``next_states`` ``(N, D)``; ``rewards`` ``(N,)``;
+    ``terminal`` ``(N,)``; ``truncated`` ``(N,)`` (the step limit was hit)."""
+
+    next_states: Array
+    rewards: Array
+    terminal: NDArray[np.bool_]
+    truncated: NDArray[np.bool_]
+
+
+@dataclass
+class SimulatedEpisodes:
+    """``N`` episodes on a model, stepped at once with one batched ``predict``.
+
+    Episodes that ended stay put (their rows are not sent to the model) until all
+    have ended; ``active`` says which still run.
+
+    Args:
+        model: the dynamics model.
+        task: reward, termination and step limit.
+        start_states: ``s_0`` for each episode, shape ``(N, D)``.
+    """
+
+    model: DynamicsModel
+    task: PlanningTask
+    start_states: Array
+    states: Array = field(init=False)
+    steps: NDArray[np.int64] = field(init=False)
+    returns: Array = field(init=False)
+    active: NDArray[np.bool_] = field(init=False)
+    reached: NDArray[np.bool_] = field(init=False)
+
+    def __post_init__(self) -> None:
+        s0 = np.array(self.start_states, dtype=np.float64)
+        if s0.ndim != 2 or s0.shape[0] < 1 or not np.all(np.isfinite(s0)):
+            raise ValueError(
+                f"start_states: expected finite shape (N >= 1, D), got {s0.shape}"
+            )
+        self.states = s0
+        self.steps = np.zeros(s0.shape[0], dtype=np.int64)
+        self.returns = np.zeros(s0.shape[0])
+        self.active = np.ones(s0.shape[0], dtype=bool)
+        self.reached = np.zeros(s0.shape[0], dtype=bool)
+
+    def step(self, actions: NDArray[np.int64]) -> StepResult:
+        """Advance the active episodes by ``actions`` (shape ``(N,)``; entries of
+        ended episodes are ignored). Rows of ended episodes are returned unchanged
+        with zero reward and ``terminal = truncated = False``."""
+        n = self.states.shape[0]
+        idx = np.flatnonzero(self.active)
+        next_states = self.states.copy()
+        rewards = np.zeros(n)
+        terminal = np.zeros(n, dtype=bool)
+        truncated = np.zeros(n, dtype=bool)
+        if idx.size:
+            s, a = self.states[idx], np.asarray(actions)[idx]
+            s2 = np.asarray(self.model.predict(s, a), dtype=np.float64)
+            if s2.shape != s.shape or not np.all(np.isfinite(s2)):
+                raise ValueError(
+                    f"model.predict: expected finite next states of shape {s.shape},"
+                    f" got shape {s2.shape}"
+                )
+            next_states[idx] = s2
+            rewards[idx] = self.task.reward(s, a, s2)
+            terminal[idx] = self.task.terminal(s2)
+            self.steps[idx] += 1
+            truncated[idx] = ~terminal[idx] & (self.steps[idx] >= self.task.max_steps)
+            self.returns[idx] += rewards[idx]
+            self.reached[idx] = terminal[idx]
+            self.active[idx] = ~(terminal[idx] | truncated[idx])
+        self.states = next_states
+        return StepResult(next_states, rewards, terminal, truncated)
+
+
+class PlanResult(NamedTuple):
+    """Planning output: the agent ``state`` (weights updated, traces zero, shape
+    ``(A, F)``); per simulated episode the ``steps`` ``(E,)``, ``returns`` ``(E,)`` and
+    whether a terminal state was ``reached`` ``(E,)``."""
+
+    state: SarsaState
+    steps: NDArray[np.int64]
+    returns: Array
+    reached: NDArray[np.bool_]
+
+
+def run_sarsa_episodes(
+    state: SarsaState,
+    basis: FourierBasis,
+    config: SarsaConfig,
+    episodes: SimulatedEpisodes,
+    *,
+    rng: np.random.Generator,
+    learn: bool = True,
+) -> SarsaState:
+    """Run lockstep episodes to their end with ε-greedy Sarsa(λ) (shared ``θ``).
+
+    Each step: ``a = ε-greedy(θ φ(s))`` for every episode, one batched model step,
+    then :func:`hipmdp.sarsa.sarsa_update_batch` (skipped when ``learn`` is false).
+
+    Returns:
+        The agent state with traces reset to zero, ``θ`` shape ``(A, F)``.
+    """
+    n = episodes.states.shape[0]
+    step_sizes = config.alpha * basis.step_scale
+    state = reset_traces(state, n)
+    phi = basis(episodes.states)
+    actions = epsilon_greedy_batch(phi @ state.weights.T, config.epsilon, rng=rng)
+    while episodes.active.any():
+        active = episodes.active.copy()
+        result = episodes.step(actions)
+        phi_next = basis(result.next_states)
+        actions_next = epsilon_greedy_batch(
+            phi_next @ state.weights.T, config.epsilon, rng=rng
+        )
+        if learn:
+            state = sarsa_update_batch(
+                state, phi, actions, result.rewards, phi_next, actions_next,
+                result.terminal, active, step_sizes, config,
+            ).state  # fmt: skip
+        phi, actions = phi_next, actions_next
+    return SarsaState(state.weights, np.zeros_like(state.weights))
+
+
+def plan(
+    state: SarsaState,
+    basis: FourierBasis,
+    config: SarsaConfig,
+    model: DynamicsModel,
+    task: PlanningTask,
+    start_states: Array,
+    n_episodes: int,
+    *,
+    rng: np.random.Generator,
+    n_parallel: int = 1,
+    progress: bool = False,
+) -> PlanResult:
+    """Dyna-style planning: ``n_episodes`` simulated Sarsa(λ) episodes on ``model``.
+
+    Each episode starts from a row of ``start_states`` drawn uniformly at random
+    (states the real instance produced, e.g. its episodes' initial states).
+    Episodes run in groups of ``n_parallel`` in lockstep (one batched ``predict``
+    per step for the whole group, one averaged update of the shared ``θ``, see
+    :func:`hipmdp.sarsa.sarsa_update_batch`); with ``n_parallel = 1`` (the default,
+    and the paper's protocol) this is plain sequential Sarsa(λ) on the model.
+
+    Args:
+        state: the agent, ``θ`` shape ``(A, F)``.
+        basis: the Fourier basis ``φ``.
+        config: Sarsa(λ) hyperparameters (ε, α, λ, γ).
+        model: the dynamics model (``predict(states, actions) -> next_states``).
+        task: reward and termination on predicted arrays, and the step limit.
+        start_states: candidate initial states, shape ``(M, D)``.
+        n_episodes: ``E``, the number of simulated episodes.
+        rng: random stream for start states and exploration.
+        n_parallel: episodes per lockstep group.
+        progress: show a progress bar over episodes.
+
+    Returns:
+        :class:`PlanResult` with the updated agent and per-episode statistics.
+    """
+    s0 = np.asarray(start_states, dtype=np.float64)
+    if s0.ndim != 2 or s0.shape[0] < 1 or s0.shape[1] != basis.state_dim:
+        raise ValueError(
+            f"start_states: expected shape (M >= 1, {basis.state_dim}), got {s0.shape}"
+        )
+    if n_episodes < 0 or n_parallel < 1:
+        raise ValueError(
+            "n_episodes, n_parallel: expected >= 0 and >= 1, got "
+            f"{n_episodes}, {n_parallel}"
+        )
+    if state.weights.shape[1] != basis.n_features:
+        raise ValueError(
+            f"state.weights: expected {basis.n_features} features, "
+            f"got shape {state.weights.shape}"
+        )
+    steps: list[Sequence[int]] = []
+    returns: list[Sequence[float]] = []
+    reached: list[Sequence[bool]] = []
+    with tqdm(
+        total=n_episodes, desc="planning", unit="ep", disable=not progress
+    ) as bar:
+        done = 0
+        while done < n_episodes:
+            group = min(n_parallel, n_episodes - done)
+            starts = s0[rng.integers(s0.shape[0], size=group)]
+            episodes = SimulatedEpisodes(model, task, starts)
+            state = run_sarsa_episodes(state, basis, config, episodes, rng=rng)
+            steps.append(episodes.steps.tolist())
+            returns.append(episodes.returns.tolist())
+            reached.append(episodes.reached.tolist())
+            done += group
+            bar.update(group)
+    return PlanResult(
+        state,
+        np.array(sum(steps, []), dtype=np.int64),
+        np.array(sum(returns, []), dtype=np.float64),
+        np.array(sum(reached, []), dtype=bool),
+    )

@@ -1,0 +1,168 @@
+"""Planning on models (numpy only): the learned-model adapter, lockstep simulated
+episodes, and Dyna planning against a sequential Sarsa(λ) reference."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hipmdp.data import wrap_angle
+from hipmdp.fourier import FourierBasis
+from hipmdp.planning import (
+    DynamicsModel,
+    LearnedModel,
+    PlanningTask,
+    SimulatedEpisodes,
+    StepwiseModel,
+    plan,
+)
+from hipmdp.sarsa import SarsaConfig, SarsaState, init_state, sarsa_update
+
+
+class Corridor:
+    """x ∈ [0, 1]: action 1 moves +0.1, action 0 moves −0.1 (floored at 0)."""
+
+    def predict(self, states, actions):
+        step = np.where(actions == 1, 0.1, -0.1)[:, None]
+        return np.maximum(states + step, 0.0)
+
+
+CORRIDOR_TASK = PlanningTask(
+    reward=lambda s, a, s2: np.full(s.shape[0], -1.0),
+    terminal=lambda s2: s2[:, 0] >= 1.0 - 1e-9,
+    max_steps=60,
+)
+
+
+class BeliefModel:
+    """A stand-in learned model: E[Δ] = belief · a (per dimension), var = 1."""
+
+    def predict(self, states, actions, belief):
+        mean = np.outer(actions, belief) + 0.0 * states
+        return mean, np.ones_like(mean)
+
+
+class PlainModel:
+    def predict(self, states, actions):
+        return np.full_like(states, 0.5), np.ones_like(states)
+
+
+def test_learned_model_adds_mean_delta_and_wraps_angles() -> None:
+    states = np.array([[3.0, 1.0, 0.0], [-3.0, 2.0, 1.0]])
+    actions = np.array([1, 2])
+    belief = np.array([0.4, 5.0, -0.25])
+    model = LearnedModel(BeliefModel(), belief, angle_dims=(0,))
+    assert isinstance(model, DynamicsModel)
+    got = model.predict(states, actions)
+    raw = states + np.outer(actions, belief)
+    np.testing.assert_allclose(got[:, 1:], raw[:, 1:])
+    np.testing.assert_allclose(got[:, 0], wrap_angle(raw[:, 0]))
+    assert got[0, 0] == pytest.approx(3.4 - 2 * np.pi)  # wrapped past π
+    # without a belief the model is called as predict(states, actions)
+    got = LearnedModel(PlainModel()).predict(states, actions)
+    np.testing.assert_allclose(got, states + 0.5)
+
+
+def test_learned_model_rejects_bad_shapes() -> None:
+    model = LearnedModel(PlainModel())
+    with pytest.raises(ValueError, match="actions"):
+        model.predict(np.zeros((3, 2)), np.zeros(2, dtype=int))
+    with pytest.raises(ValueError, match="states"):
+        model.predict(np.zeros(3), np.zeros(3, dtype=int))
+
+
+def test_stepwise_model_applies_step_row_by_row() -> None:
+    model = StepwiseModel(lambda s, a: s * (a + 1))
+    got = model.predict(np.ones((3, 2)), np.array([0, 1, 2]))
+    np.testing.assert_array_equal(got, [[1, 1], [2, 2], [3, 3]])
+
+
+def test_simulated_episodes_end_at_terminal_or_step_limit() -> None:
+    task = PlanningTask(CORRIDOR_TASK.reward, CORRIDOR_TASK.terminal, max_steps=5)
+    episodes = SimulatedEpisodes(Corridor(), task, np.array([[0.75], [0.0], [0.4]]))
+    actions = np.ones(3, dtype=int)
+    results = [episodes.step(actions) for _ in range(5)]
+    # episode 0 reaches x = 1.05 ≥ 1 after 3 steps; the others run into the limit
+    np.testing.assert_array_equal(episodes.steps, [3, 5, 5])
+    np.testing.assert_array_equal(episodes.reached, [True, False, False])
+    np.testing.assert_array_equal(episodes.returns, [-3.0, -5.0, -5.0])
+    assert results[2].terminal.tolist() == [True, False, False]
+    assert results[4].truncated.tolist() == [False, True, True]
+    assert not episodes.active.any()
+    # an ended episode's state stays put and earns nothing
+    assert results[3].rewards[0] == 0.0
+    np.testing.assert_allclose(episodes.states[:, 0], [1.05, 0.5, 0.9])
+
+
+def test_plan_with_one_episode_at_a_time_is_sequential_sarsa() -> None:
+    """With random (tie-free) weights and ε = 0 the actions are deterministic, so
+    plan() must equal a hand-written loop of sarsa_update on the model."""
+    rng = np.random.default_rng(0)
+    basis = FourierBasis(3, np.array([0.0]), np.array([1.0]))
+    config = SarsaConfig(alpha=0.05, lam=0.9, gamma=1.0, epsilon=0.0)
+    start = SarsaState(rng.normal(size=(2, 4)), np.zeros((2, 4)))
+    out = plan(start, basis, config, Corridor(), CORRIDOR_TASK, np.array([[0.2]]), 3,
+               rng=np.random.default_rng(1))  # fmt: skip
+
+    weights, model, alphas = start.weights, Corridor(), config.alpha * basis.step_scale
+    steps = []
+    for _ in range(3):
+        state = SarsaState(weights, np.zeros_like(weights))
+        s = np.array([[0.2]])
+        a = int(np.argmax(state.weights @ basis(s[0])))
+        for t in range(1, 61):  # noqa: B007 (t is the episode length after the loop)
+            s2 = model.predict(s, np.array([a]))
+            terminal = bool(s2[0, 0] >= 1.0 - 1e-9)
+            a2 = int(np.argmax(state.weights @ basis(s2[0])))
+            state = sarsa_update(state, basis(s[0]), a, -1.0,
+                                 None if terminal else basis(s2[0]), a2, alphas,
+                                 config).state  # fmt: skip
+            s, a = s2, a2
+            if terminal:
+                break
+        steps.append(t)
+        weights = state.weights
+    np.testing.assert_allclose(out.state.weights, weights, atol=1e-12)
+    np.testing.assert_array_equal(out.steps, steps)
+    np.testing.assert_array_equal(out.state.traces, 0.0)
+
+
+@pytest.mark.parametrize("n_parallel", [1, 4])
+def test_planning_learns_the_corridor(n_parallel: int) -> None:
+    """Optimistic zero values, ε = 0: after planning, a greedy rollout on the model
+    takes the shortest path (10 steps from x = 0)."""
+    basis = FourierBasis(4, np.array([0.0]), np.array([1.0]))
+    config = SarsaConfig(alpha=0.1, lam=0.9, gamma=1.0, epsilon=0.0)
+    out = plan(init_state(2, basis.n_features), basis, config, Corridor(),
+               CORRIDOR_TASK, np.zeros((1, 1)), 40, rng=np.random.default_rng(2),
+               n_parallel=n_parallel)  # fmt: skip
+    assert out.steps.shape == (40,) and out.reached[-4:].all()
+    assert out.steps[0] > 10
+    episodes = SimulatedEpisodes(Corridor(), CORRIDOR_TASK, np.zeros((1, 1)))
+    while episodes.active.any():
+        episodes.step(np.argmax(basis(episodes.states) @ out.state.weights.T, axis=1))
+    assert episodes.steps[0] == 10 and episodes.reached[0]
+
+
+def test_plan_rejects_bad_input() -> None:
+    basis = FourierBasis(1, np.zeros(2), np.ones(2))
+    state = init_state(2, basis.n_features)
+    config = SarsaConfig()
+    with pytest.raises(ValueError, match="start_states"):
+        plan(state, basis, config, Corridor(), CORRIDOR_TASK, np.zeros((1, 3)), 1,
+             rng=np.random.default_rng(0))  # fmt: skip
+    with pytest.raises(ValueError, match="n_episodes"):
+        plan(state, basis, config, Corridor(), CORRIDOR_TASK, np.zeros((1, 2)), -1,
+             rng=np.random.default_rng(0))  # fmt: skip
+    with pytest.raises(ValueError, match="max_steps"):
+        PlanningTask(CORRIDOR_TASK.reward, CORRIDOR_TASK.terminal, max_steps=0)
+
+
+def test_non_finite_model_output_is_an_error() -> None:
+    class Broken:
+        def predict(self, states, actions):
+            return states * np.nan
+
+    episodes = SimulatedEpisodes(Broken(), CORRIDOR_TASK, np.zeros((2, 1)))
+    with pytest.raises(ValueError, match="model.predict"):
+        episodes.step(np.zeros(2, dtype=int))
