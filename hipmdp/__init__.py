@@ -5,6 +5,20 @@ any simulator.
 """
 
 from hipmdp.data import Transitions
+from hipmdp.fourier import FourierBasis
 from hipmdp.gibbs import GibbsData, GibbsPriors, GibbsState, run_chains
+from hipmdp.planning import (
+    DynamicsModel,
+    LearnedModel,
+    PlanningTask,
+    PlanResult,
+    SimulatedEpisodes,
+    StepwiseModel,
+    plan,
+)
+from hipmdp.sarsa import SarsaConfig, SarsaState, init_state
 
 __all__ = ["Transitions", "GibbsData", "GibbsPriors", "GibbsState", "run_chains"]
+__all__ += ["FourierBasis", "SarsaConfig", "SarsaState", "init_state", "plan"]
+__all__ += ["DynamicsModel", "LearnedModel", "StepwiseModel", "PlanningTask"]
+__all__ += ["PlanResult", "SimulatedEpisodes"]
