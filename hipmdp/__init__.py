@@ -5,8 +5,11 @@ any simulator.
 """
 
 from hipmdp.data import Transitions
+from hipmdp.filter import Belief
+from hipmdp.fitting import FitConfig, fit
 from hipmdp.fourier import FourierBasis
 from hipmdp.gibbs import GibbsData, GibbsPriors, GibbsState, run_chains
+from hipmdp.model import HipMDP, load
 from hipmdp.planning import (
     DynamicsModel,
     LearnedModel,
@@ -19,6 +22,7 @@ from hipmdp.planning import (
 from hipmdp.sarsa import SarsaConfig, SarsaState, init_state
 
 __all__ = ["Transitions", "GibbsData", "GibbsPriors", "GibbsState", "run_chains"]
+__all__ += ["Belief", "FitConfig", "HipMDP", "fit", "load"]
 __all__ += ["FourierBasis", "SarsaConfig", "SarsaState", "init_state", "plan"]
 __all__ += ["DynamicsModel", "LearnedModel", "StepwiseModel", "PlanningTask"]
 __all__ += ["PlanResult", "SimulatedEpisodes"]

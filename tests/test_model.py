@@ -1,0 +1,227 @@
+"""fit → model: recovery of a known z, prediction after filtering, files, bad input."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+import hipmdp
+from hipmdp import fitting
+from hipmdp.data import Transitions
+from hipmdp.fitting import FitConfig, fit
+from hipmdp.model import HipMDP, load
+
+A, D, NOISE_SD = 2, 2, 0.05
+# Known truth: feature 1 acts on rows (a=0, d=0) and (a=1, d=0), feature 2 on
+# (a=0, d=1) only; row (a=1, d=1) is mean dynamics alone.
+TRUE_ROWS = {frozenset({(0, 0), (1, 0)}), frozenset({(0, 1)})}
+W_TRAIN = np.array(
+    [[-1.5, -0.8, 0.0, 0.6, 1.2, 1.6], [1.0, -1.4, 0.5, -0.3, 1.5, -1.0]]
+)
+
+
+def _true_basis(S, acts):
+    """F[i, d, k] of the true model (k = 0 mean dynamics), shape (n, D, 3)."""
+    x, y = S[:, 0], S[:, 1]
+    a = acts.astype(float)
+    F = np.zeros((len(S), D, 3))
+    F[:, 0, 0] = 0.5 * np.sin(x) + 0.3 * a
+    F[:, 1, 0] = 0.4 * np.cos(y) - 0.2 * a
+    F[:, 0, 1] = np.cos(0.7 * x + 0.5 * y) * (1 + 0.5 * a)  # rows (0,0), (1,0)
+    F[:, 1, 2] = np.sin(0.8 * y - 0.3 * x) * (acts == 0)  # row (0,1)
+    return F
+
+
+def _instance(b, w, n, rng):
+    S = rng.uniform(-2, 2, size=(n, D))
+    acts = np.arange(n) % A
+    F = _true_basis(S, acts)
+    delta = F[..., 0] + F[..., 1:] @ w + NOISE_SD * rng.normal(size=(n, D))
+    return Transitions(S, acts, S + delta, np.full(n, b))
+
+
+def _batch():
+    rng = np.random.default_rng(0)
+    return Transitions.concatenate(
+        [_instance(b, W_TRAIN[:, b], 200, rng) for b in range(W_TRAIN.shape[1])]
+    )
+
+
+CONFIG = FitConfig(
+    n_support=60,
+    n_sweeps=60,
+    n_chains=2,
+    n_hyper=300,
+    n_candidates=600,
+    n_smooth=200,
+    progress=False,
+)
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    return fit(_batch(), CONFIG, rng=np.random.default_rng(1))
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="sampler mixing: the chains settle in a rotated mode (two features on rows "
+    "(0,0), (0,1), (1,0)) whose log marginal is ~150 below the truth's; see issue 3",
+)
+def test_fit_recovers_the_z_pattern(fitted):
+    # One column of z per true latent parameter, no split or spurious features.
+    rows = sorted(
+        sorted((a, d) for a in range(A) for d in range(D) if fitted.z[k, a, d])
+        for k in range(1, fitted.n_features)
+    )
+    assert rows == sorted(sorted(r) for r in TRUE_ROWS)
+    assert fitted.weights.shape == (fitted.n_features, W_TRAIN.shape[1])
+
+
+def test_new_instance_prediction_after_40_transitions(fitted):
+    # The true model's MSE is the noise variance (its mean is exact); the fitted model
+    # filtered on 40 transitions must come within 1.5x of it on 400 test points.
+    rng = np.random.default_rng(2)
+    w_new = np.array([0.8, -1.2])
+    train, test = _instance(7, w_new, 40, rng), _instance(7, w_new, 400, rng)
+    belief = fitted.update(fitted.prior(), train)
+    mean, var = fitted.predict(test.states, test.actions, belief)
+    F = _true_basis(test.states, test.actions)
+    true_mse = np.mean((F[..., 0] + F[..., 1:] @ w_new - test.deltas) ** 2)
+    mse = np.mean((mean - test.deltas) ** 2)
+    assert mse < 1.5 * true_mse
+    # and the filter is what makes it so: the prior mean alone is far worse
+    prior_mean = fitted.predict(test.states, test.actions, fitted.prior())[0]
+    assert np.mean((prior_mean - test.deltas) ** 2) > 3 * true_mse
+
+
+def test_same_seed_same_fit(fitted):
+    again = fit(_batch(), CONFIG, rng=np.random.default_rng(1))
+    for name in ("support", "z", "f", "weights", "mu_w"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(fitted, name))
+
+
+def test_save_load_identical_predictions(fitted, tmp_path):
+    path = tmp_path / "model.npz"
+    fitted.save(path)
+    loaded = load(path)
+    rng = np.random.default_rng(3)
+    data = _instance(7, np.array([0.5, 0.5]), 30, rng)
+    b1 = fitted.update(fitted.prior(), data)
+    b2 = loaded.update(loaded.prior(), data)
+    np.testing.assert_array_equal(b1.h, b2.h)
+    np.testing.assert_array_equal(b1.P, b2.P)
+    for x, y in zip(
+        fitted.predict(data.states, data.actions, b1),
+        loaded.predict(data.states, data.actions, b2),
+        strict=True,
+    ):
+        np.testing.assert_array_equal(x, y)
+    assert loaded.info == fitted.info
+
+
+def test_save_is_atomic(fitted, tmp_path, monkeypatch):
+    path = tmp_path / "model.npz"
+    fitted.save(path)
+    before = path.read_bytes()
+
+    def broken(fh, **arrays):
+        fh.write(b"partial")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(np, "savez", broken)
+    with pytest.raises(OSError, match="disk full"):
+        fitted.save(path)
+    assert path.read_bytes() == before  # the old file is intact
+    assert os.listdir(tmp_path) == ["model.npz"]  # no temporary left behind
+
+
+def test_load_rejects_other_files(tmp_path):
+    path = tmp_path / "x.npz"
+    np.savez(path, a=np.zeros(2))
+    with pytest.raises(ValueError, match="missing"):
+        load(path)
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("n_support", 0),
+        ("n_sweeps", 0),
+        ("n_chains", 0),
+        ("alpha", 0.0),
+        ("alpha", float("nan")),
+        ("sigma_w", -1.0),
+        ("sigma_w0", 0.0),
+        ("n_w", 0),
+        ("n_hyper", 1),
+        ("n_candidates", 10),
+        ("n_smooth", 0),
+        ("n_sweeps", 2.5),
+        ("progress", "yes"),
+    ],
+)
+def test_config_out_of_range(field, value):
+    with pytest.raises(ValueError, match=f"FitConfig.{field}"):
+        FitConfig(**{field: value})
+
+
+@pytest.fixture
+def no_work(monkeypatch):
+    """Make any work after validation fail the test."""
+
+    def forbidden(*args, **kwargs):
+        raise AssertionError("fit started working before validating its input")
+
+    monkeypatch.setattr(fitting, "fit_hyper_set", forbidden)
+
+
+def test_bad_input_errors(no_work):
+    batch = _batch()
+    rng = np.random.default_rng(0)
+    with pytest.raises(ValueError, match="instances"):
+        fit(batch.select(instances=[0]), CONFIG, rng=rng)
+    with pytest.raises(ValueError, match="action 1 has no transitions$"):
+        # actions {0, 2}: action 1 never taken
+        fit(
+            Transitions(
+                batch.states, batch.actions * 2, batch.next_states, batch.instances
+            ),
+            CONFIG,
+            rng=rng,
+        )
+    one_action = Transitions.concatenate(
+        [batch.select(instances=[0]), batch.select(instances=[1], actions=[0])]
+    )
+    with pytest.raises(
+        ValueError, match=r"action 1 has no transitions in instances \[1\]"
+    ):
+        fit(one_action, CONFIG, rng=rng)
+    with pytest.raises(ValueError, match="n_support"):
+        small = Transitions.concatenate(  # 50 distinct states < n_support = 60
+            [batch.select(instances=[b]).head(25) for b in (0, 1)]
+        )
+        fit(small, CONFIG, rng=rng)
+    with pytest.raises(ValueError, match="data"):
+        fit(batch.states, CONFIG, rng=rng)
+    with pytest.raises(ValueError, match="config"):
+        fit(batch, {"n_support": 5}, rng=rng)
+    with pytest.raises(ValueError, match="rng"):
+        fit(batch, CONFIG, rng=0)
+    nan = Transitions(
+        batch.states.copy(), batch.actions, batch.next_states, batch.instances
+    )
+    nan.states[3, 1] = np.nan  # modified in place after construction
+    with pytest.raises(ValueError, match="finite"):
+        fit(nan, CONFIG, rng=rng)
+    with pytest.raises(ValueError, match="next_states"):
+        hipmdp.Transitions(
+            batch.states, batch.actions, batch.next_states[:-1], batch.instances
+        )
+
+
+def test_public_api():
+    assert hipmdp.fit is fit and hipmdp.FitConfig is FitConfig
+    assert hipmdp.load is load and hipmdp.HipMDP is HipMDP
