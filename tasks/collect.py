@@ -4,9 +4,12 @@ Symbols: `b` instance id, `s` state `(qpos, qvel)` with angles wrapped, shape `(
 `a` discrete action index in `[0, A)`, `N` transitions.
 
 A policy is any callable `state -> action index`; `random_policy` draws actions
-uniformly. A simulation that diverges (MuJoCo raises a warning, which dm_control
-turns into `PhysicsError`, or a state is not finite) ends its episode; the whole
-episode is then dropped from the data and reported in `Collection.diverged`.
+uniformly. `collect_sarsa` instead runs an ε-greedy Sarsa(λ) agent that learns on
+each instance from scratch (`tasks.agents.learn`, the paper's way of gathering
+data) and keeps every transition it saw. A simulation that diverges (MuJoCo raises
+a warning, which dm_control turns into `PhysicsError`, or a state is not finite)
+ends its episode; the whole episode is then dropped from the data and reported in
+`Collection.diverged`.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from dm_control.rl import control
 from tqdm import tqdm
 
 from hipmdp.data import ParameterTable, Transitions
-from tasks import acrobot, cartpole
+from tasks import acrobot, agents, cartpole
 from tasks._common import STATE_OBSERVATION, parameter_names, parameter_values
 
 Array = np.ndarray
@@ -127,18 +130,7 @@ def collect(
     """
     spec = get_domain(domain)
     instances = list(instances)
-    if not instances:
-        raise ValueError("instances must hold at least one parameter set")
-    for params in instances:
-        if not isinstance(params, spec.params_type):
-            raise ValueError(
-                f"instances must be {spec.params_type.__name__}, got {params!r}"
-            )
-    ids = list(range(len(instances))) if instance_ids is None else list(instance_ids)
-    if len(ids) != len(instances) or len(set(ids)) != len(ids):
-        raise ValueError(
-            f"instance_ids must be {len(instances)} distinct ints, got {ids!r}"
-        )
+    ids = _check_instances(spec, instances, instance_ids)
     _check_positive_int("episodes_per_instance", episodes_per_instance)
     if max_steps is not None:
         _check_positive_int("max_steps", max_steps)
@@ -173,13 +165,64 @@ def collect(
     transitions = Transitions(
         **_stack(episodes, spec.state_dim), angle_dims=spec.angle_dims
     )
-    table = ParameterTable(
-        instances=np.array(ids),
-        names=parameter_names(spec.params_type),
-        values=np.array([parameter_values(p) for p in instances]),
+    return Collection(
+        transitions,
+        _table(spec, ids, instances),
+        len(instances) * episodes_per_instance,
+        tuple(diverged),
+    )
+
+
+def collect_sarsa(
+    domain: str,
+    instances: Sequence[Any],
+    *,
+    episodes_per_instance: int,
+    rng: np.random.Generator,
+    instance_ids: Sequence[int] | None = None,
+    max_steps: int | None = None,
+) -> Collection:
+    """A fresh Sarsa(λ) agent learns for `episodes_per_instance` episodes on each
+    instance (`tasks.agents.learn` with the domain's defaults); every transition it
+    saw is kept.
+
+    Instance `i` gets `rng.spawn(B)[i]`, which spawns the environment's seed
+    (initial states) and the agent's exploration stream. If the simulation
+    diverges (`PhysicsError`), the instance's episodes are all dropped and
+    reported as one `Divergence` with `episode = -1` (learning cannot continue
+    past a diverged step).
+
+    Args and Returns: as `collect` (the policy is the learning agent).
+    """
+    spec = get_domain(domain)
+    instances = list(instances)
+    ids = _check_instances(spec, instances, instance_ids)
+    _check_positive_int("episodes_per_instance", episodes_per_instance)
+    agent_domain = agents.DOMAINS[domain]
+    n_steps = agent_domain.max_steps if max_steps is None else max_steps
+    _check_positive_int("max_steps", n_steps)
+    parts, diverged = [], []
+    for b, params, stream in zip(ids, instances, rng.spawn(len(ids)), strict=True):
+        env_rng, agent_rng = stream.spawn(2)
+        env = spec.make_env(params, seed=env_rng, max_steps=n_steps)
+        try:
+            result = agents.learn(
+                env, agent_domain, episodes_per_instance, rng=agent_rng, instance=b
+            )
+        except control.PhysicsError as error:
+            diverged.append(Divergence(b, -1, -1, f"MuJoCo warning: {error}"))
+            continue
+        parts.append(result.transitions)
+    transitions = (
+        Transitions.concatenate(parts)
+        if parts
+        else Transitions(**_stack([], spec.state_dim), angle_dims=spec.angle_dims)
     )
     return Collection(
-        transitions, table, len(instances) * episodes_per_instance, tuple(diverged)
+        transitions,
+        _table(spec, ids, instances),
+        len(ids) * episodes_per_instance,
+        tuple(diverged),
     )
 
 
@@ -233,6 +276,34 @@ def _stack(episodes: list[dict[str, Array]], state_dim: int) -> dict[str, Array]
             "dones": np.zeros(0, dtype=bool),
         }
     return {k: np.concatenate([e[k] for e in episodes]) for k in episodes[0]}
+
+
+def _check_instances(
+    spec: Domain, instances: list[Any], instance_ids: Sequence[int] | None
+) -> list[int]:
+    """The instance ids (default `0, …, B-1`) after checking `instances` and ids."""
+    if not instances:
+        raise ValueError("instances must hold at least one parameter set")
+    for params in instances:
+        if not isinstance(params, spec.params_type):
+            raise ValueError(
+                f"instances must be {spec.params_type.__name__}, got {params!r}"
+            )
+    ids = list(range(len(instances))) if instance_ids is None else list(instance_ids)
+    if len(ids) != len(instances) or len(set(ids)) != len(ids):
+        raise ValueError(
+            f"instance_ids must be {len(instances)} distinct ints, got {ids!r}"
+        )
+    return ids
+
+
+def _table(spec: Domain, ids: list[int], instances: list[Any]) -> ParameterTable:
+    """The parameter table of `instances` with ids `ids`."""
+    return ParameterTable(
+        instances=np.array(ids),
+        names=parameter_names(spec.params_type),
+        values=np.array([parameter_values(p) for p in instances]),
+    )
 
 
 def _check_positive_int(name: str, value: Any) -> None:

@@ -1,98 +1,155 @@
-"""Generate a transition dataset: draw instances of a domain, run a policy on each,
-write one `.npz` (transitions + parameter table) and a JSON summary.
+"""Generate a sharded transition dataset: draw instances of a domain, run a policy on
+each, write one shard per block of instances and a manifest.
 
-    python -m tasks.generate --domain acrobot --instances 4 \\
-        --episodes-per-instance 2 --seed 0 --out runs/data
+    python -m tasks.generate --domain acrobot --instances 1000 \\
+        --episodes-per-instance 4 --policy open-loop --workers 2 --out runs/data
 
-Instances vary the parameters named by `--vary NAME=LOW:HIGH` (default: the two
-link masses in [0.7, 1.3] for the acrobot, as in the paper; the pole mass in
-[0.05, 0.5] kg and half-length in [0.25, 1.0] m for the cart-pole); the others stay
-nominal. `--distribution uniform` (default) draws `--instances` of them
-independently and uniformly; `--grid K` takes the `K^p` points of a regular grid
-over the `p` varied parameters instead.
+Instances (`tasks.distributions`): the parameters named by `--vary NAME=LOW:HIGH`
+(default: the two link masses in [0.7, 1.3] for the acrobot, as in the paper; the
+pole mass in [0.05, 0.5] kg and half-length in [0.25, 1.0] m for the cart-pole)
+follow `--distribution uniform` (default), `relative-normal` (`--sigma`) or `grid`
+(`--grid K` points per parameter, `K^p` instances); the others stay nominal.
+`--split train|interpolation|extrapolation` restricts them to the inner box (the
+central `--inner-fraction` of every range), to held-out points inside it, or to
+outside it; `all` (default) is the whole box.
 
-Writes `OUT/<domain>_seed<S>.npz` (`hipmdp.Transitions.load` and
-`hipmdp.data.ParameterTable.load` read it) and `OUT/<domain>_seed<S>.json` (config,
-seed, counts, diverged episodes, dataset file name), each atomically. The same
-arguments give the same files. Bad options stop with a message before anything is
-written.
+Policies: `random` (uniform actions on the dm_control environment), `sarsa` (an
+ε-greedy Sarsa(λ) agent learning per instance, the paper's way) and `open-loop`
+(random action sequences, many instances at once with `mujoco.rollout`).
+
+Output (`tasks.shards`): `OUT/shard-XXXXX.npz`, one per `--shard-size` instances,
+each written to a temporary name and renamed, and `OUT/manifest.json` (config, seed,
+each shard's instances, parameters, counts and SHA-256), rewritten atomically after
+every shard. Streams: the instance parameters come from
+`SeedSequence(seed, spawn_key=(0, split))`, shard `k`'s episodes from
+`SeedSequence(seed, spawn_key=(1, split, k))`, so the files are the same whatever
+`--workers` or `--scheduler`. `--resume` keeps the shards whose file matches its
+checksum and redoes the others; an `OUT` holding another run's manifest is an error
+and nothing is overwritten.
+
+Execution (`concurrent.futures`): in-process (`--workers 1`), a local process pool
+(`--workers N`), or a Dask cluster (`--scheduler ADDRESS`, needs
+`pip install -e ".[dask]"`). Read the result with `tasks.shards.load_dataset(OUT)`.
 """
 
 from __future__ import annotations
 
 import argparse
+import concurrent.futures as cf
+import contextlib
 import dataclasses
-import itertools
 import json
-from collections.abc import Sequence
+import multiprocessing
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
+from tqdm import tqdm
 
-from hipmdp.data import atomic_write
-from tasks.collect import DOMAINS, Collection, collect, get_domain
+from tasks import shards
+from tasks.collect import DOMAINS, collect, collect_sarsa, get_domain
+from tasks.distributions import KINDS, SPLITS, Distribution, draw
+from tasks.rollout import collect_open_loop
 
 #: Parameters varied when no `--vary` is given: name -> (low, high).
 DEFAULT_VARY = {
     "acrobot": {"link_mass_1": (0.7, 1.3), "link_mass_2": (0.7, 1.3)},
     "cartpole": {"pole_mass": (0.05, 0.5), "pole_half_length": (0.25, 1.0)},
 }
+POLICIES = {"random": collect, "sarsa": collect_sarsa, "open-loop": collect_open_loop}
 
 
 @dataclasses.dataclass(frozen=True)
 class Config:
-    """A validated generation request (see the module docstring for the options)."""
+    """A validated generation request (see the module docstring for the options).
+
+    `manifest_config()` is what determines the data; `out`, `workers`,
+    `scheduler`, `resume` and `progress` only say where and how it runs.
+    """
 
     domain: str
-    instances: int
+    instances: int | None
     episodes_per_instance: int
     seed: int
-    out: Path
-    vary: dict[str, tuple[float, float]]
-    grid: int | None
-    distribution: str
-    policy: str
-    max_steps: int | None
-    progress: bool
+    distribution: Distribution
+    policy: str = "random"
+    max_steps: int | None = None
+    shard_size: int = 16
+    out: Path = Path("runs/data")
+    workers: int = 1
+    scheduler: str | None = None
+    resume: bool = False
+    progress: bool = True
 
-    @property
-    def stem(self) -> str:
-        return f"{self.domain}_seed{self.seed}"
+    def manifest_config(self) -> dict[str, Any]:
+        return {
+            "domain": self.domain,
+            "instances": self.instances,
+            "episodes_per_instance": self.episodes_per_instance,
+            "seed": self.seed,
+            "distribution": self.distribution.as_json(),
+            "policy": self.policy,
+            "max_steps": self.max_steps,
+            "shard_size": self.shard_size,
+        }
+
+
+class ShardJob(NamedTuple):
+    """Everything a worker needs for one shard (plain data, picklable)."""
+
+    domain: str
+    policy: str
+    index: int
+    instances: tuple[int, ...]
+    values: tuple[tuple[float, ...], ...]
+    episodes_per_instance: int
+    max_steps: int | None
+    entropy: int
+    spawn_key: tuple[int, ...]
+
+
+class ShardOutput(NamedTuple):
+    """A finished shard: its archive bytes, counts and diverged episodes."""
+
+    index: int
+    data: bytes
+    counts: dict[str, int]
+    diverged: list[dict[str, Any]]
 
 
 class Generated(NamedTuple):
-    """Paths written and what was gathered."""
+    """What a run left: the manifest path, the manifest, and the shards redone."""
 
-    dataset: Path
-    summary: Path
-    collection: Collection
+    manifest: Path
+    content: dict[str, Any]
+    redone: tuple[int, ...]
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m tasks.generate",
-        description="Gather transitions from instances of a domain into one .npz.",
+        description="Gather transitions from instances of a domain into shards.",
     )
-    parser.add_argument("--domain", required=True, choices=sorted(DOMAINS))
-    parser.add_argument(
-        "--instances", type=int, default=None, help="instances drawn (default 4)"
-    )
-    parser.add_argument("--episodes-per-instance", type=int, default=2)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, default=Path("runs/data"))
-    parser.add_argument(
-        "--vary",
-        action="append",
-        metavar="NAME=LOW:HIGH",
-        help="a varied parameter and its range (repeatable)",
-    )
-    sampling = parser.add_mutually_exclusive_group()
-    sampling.add_argument("--grid", type=int, metavar="K", help="K points per param")
-    sampling.add_argument("--distribution", choices=["uniform"], default=None)
-    parser.add_argument("--policy", choices=["random"], default="random")
-    parser.add_argument("--max-steps", type=int, default=None)
-    parser.add_argument("--no-progress", action="store_true")
+    add = parser.add_argument
+    add("--domain", required=True, choices=sorted(DOMAINS))
+    add("--instances", type=int, default=None, help="instances drawn (default 4)")
+    add("--episodes-per-instance", type=int, default=2)
+    add("--seed", type=int, default=0)
+    add("--out", type=Path, default=Path("runs/data"), help="run directory")
+    add("--vary", action="append", metavar="NAME=LOW:HIGH", help="repeatable")
+    add("--distribution", choices=KINDS, default=None, help="default uniform")
+    add("--grid", type=int, metavar="K", help="K points per parameter (grid)")
+    add("--sigma", type=float, default=0.1, help="relative-normal: std / nominal")
+    add("--split", choices=SPLITS, default="all")
+    add("--inner-fraction", type=float, default=0.5, help="inner box share")
+    add("--policy", choices=sorted(POLICIES), default="random")
+    add("--max-steps", type=int, default=None, help="step limit per episode")
+    add("--shard-size", type=int, default=16, help="instances per shard")
+    add("--workers", type=int, default=1, help="local worker processes")
+    add("--scheduler", metavar="ADDRESS", help="Dask scheduler (tcp://host:port)")
+    add("--resume", action="store_true", help="continue the run in --out")
+    add("--no-progress", action="store_true")
     return parser
 
 
@@ -109,12 +166,20 @@ def parse_config(argv: Sequence[str] | None = None) -> Config:
 
 def _validate(args: argparse.Namespace) -> Config:
     spec = get_domain(args.domain)
-    if args.grid is not None and args.instances is not None:
+    kind = args.distribution or ("grid" if args.grid is not None else "uniform")
+    if args.grid is not None and kind != "grid":
+        raise ValueError(f"--grid K goes with --distribution grid, not {kind}")
+    if kind == "grid" and args.grid is None:
+        raise ValueError("--distribution grid needs --grid K (points per parameter)")
+    if kind == "grid" and args.instances is not None:
         raise ValueError("--instances and --grid are exclusive (grid gives K^p)")
     for name in ("instances", "episodes_per_instance", "grid", "max_steps"):
         value = getattr(args, name)
         if value is not None and value < 1:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
+    for name in ("shard_size", "workers"):
+        if getattr(args, name) < 1:
+            raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
     names = [f.name for f in dataclasses.fields(spec.params_type)]
     vary = dict(DEFAULT_VARY[args.domain])
     if args.vary:
@@ -124,20 +189,28 @@ def _validate(args: argparse.Namespace) -> Config:
             if name not in names:
                 raise ValueError(f"--vary {item}: {args.domain} parameters are {names}")
             vary[name] = (low, high)
-    for name, (low, high) in vary.items():
-        for value in (low, high):  # the dataclass checks the documented bounds
-            spec.params_type(**{name: value})
+    distribution = Distribution(
+        spec.params_type,
+        vary,
+        kind=kind,
+        split=args.split,
+        grid=args.grid,
+        sigma=args.sigma,
+        inner_fraction=args.inner_fraction,
+    )
     return Config(
         domain=args.domain,
-        instances=4 if args.instances is None else args.instances,
+        instances=None if kind == "grid" else (args.instances or 4),
         episodes_per_instance=args.episodes_per_instance,
         seed=args.seed,
-        out=args.out,
-        vary=vary,
-        grid=args.grid,
-        distribution=args.distribution or "uniform",
+        distribution=distribution,
         policy=args.policy,
         max_steps=args.max_steps,
+        shard_size=args.shard_size,
+        out=args.out,
+        workers=args.workers,
+        scheduler=args.scheduler,
+        resume=args.resume,
         progress=not args.no_progress,
     )
 
@@ -153,72 +226,202 @@ def _parse_range(item: str) -> tuple[str, float, float]:
     return name, low, high
 
 
-def draw_instances(config: Config, *, rng: np.random.Generator) -> list[Any]:
-    """The instances' parameters: a grid or independent uniform draws.
-
-    Uniform: each varied parameter `~ U[low, high]` independently, `config.instances`
-    times. Grid: `np.linspace(low, high, K)` per varied parameter, all `K^p`
-    combinations (the first parameter varies slowest).
-    """
-    params_type = get_domain(config.domain).params_type
-    names = list(config.vary)
-    lows = np.array([config.vary[n][0] for n in names])
-    highs = np.array([config.vary[n][1] for n in names])
-    if config.grid is not None:
-        axes = [
-            np.linspace(lo, hi, config.grid) for lo, hi in zip(lows, highs, strict=True)
-        ]
-        points = np.array(list(itertools.product(*axes)))
-    else:
-        points = rng.uniform(lows, highs, size=(config.instances, len(names)))
-    return [params_type(**dict(zip(names, row, strict=True))) for row in points]
-
-
-def generate(config: Config) -> Generated:
-    """Draw instances, gather transitions, write the dataset and its summary."""
-    params_stream, collect_stream = np.random.SeedSequence(config.seed).spawn(2)
-    instances = draw_instances(config, rng=np.random.default_rng(params_stream))
-    collection = collect(
-        config.domain,
-        instances,
-        episodes_per_instance=config.episodes_per_instance,
-        rng=np.random.default_rng(collect_stream),
-        max_steps=config.max_steps,
-        progress=config.progress,
+def plan(config: Config) -> dict[str, Any]:
+    """Draw the instances and lay out the run's manifest (no shard finished)."""
+    split = SPLITS.index(config.distribution.split)
+    stream = np.random.SeedSequence(config.seed, spawn_key=(0, split))
+    drawn = draw(
+        config.distribution, config.instances, rng=np.random.default_rng(stream)
     )
-    config.out.mkdir(parents=True, exist_ok=True)
-    dataset = config.out / f"{config.stem}.npz"
-    collection.transitions.save(dataset, collection.parameters)
-    summary = {
-        "config": {
-            k: str(v) if isinstance(v, Path) else v
-            for k, v in dataclasses.asdict(config).items()
-        },
-        "seed": config.seed,
-        "dataset": dataset.name,
-        "parameter_names": list(collection.parameters.names),
-        "counts": {
-            "instances": len(instances),
-            "episodes": collection.n_episodes,
-            "transitions": len(collection.transitions),
-            "diverged_episodes": len(collection.diverged),
-        },
-        "diverged": [d._asdict() for d in collection.diverged],
+    spec = get_domain(config.domain)
+    entries = []
+    for index, start in enumerate(range(0, len(drawn.params), config.shard_size)):
+        block = range(start, min(start + config.shard_size, len(drawn.params)))
+        entries.append(
+            {
+                "index": index,
+                "file": shards.shard_name(index),
+                "instances": list(block),
+                "parameters": drawn.values[list(block)].tolist(),
+                "sha256": None,
+                "counts": None,
+                "diverged": [],
+            }
+        )
+    manifest = {
+        "format": shards.FORMAT,
+        "config": config.manifest_config(),
+        "parameter_names": [f.name for f in dataclasses.fields(spec.params_type)],
+        "angle_dims": list(spec.angle_dims),
+        "shards": entries,
+        "complete": False,
     }
-    path = config.out / f"{config.stem}.json"
-    text = json.dumps(summary, indent=2) + "\n"
-    atomic_write(path, lambda fh: fh.write(text.encode()))
-    return Generated(dataset, path, collection)
+    return json.loads(json.dumps(manifest))  # as read back: lists, exact floats
+
+
+def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
+    """The manifest to continue from and the shards still to do; writes nothing.
+
+    Raises:
+        ValueError: if `config.out` holds a manifest of another run (listing the
+            differences), or of this run without `config.resume`.
+    """
+    fresh = plan(config)
+    old = shards.read_manifest(config.out)
+    if old is None:
+        return fresh, [e["index"] for e in fresh["shards"]]
+    differences = shards.config_differences(old["config"], fresh["config"])
+    if differences:
+        raise ValueError(
+            f"{config.out} holds a different run ({'; '.join(differences)}); "
+            "choose another --out"
+        )
+    if not config.resume:
+        raise ValueError(
+            f"{config.out} already holds this run; pass --resume to continue it"
+        )
+    todo = []
+    for entry in old["shards"]:
+        if not shards.shard_is_valid(config.out, entry):
+            entry.update(sha256=None, counts=None, diverged=[])
+            todo.append(entry["index"])
+    return old, todo
+
+
+def run_shard(job: ShardJob) -> ShardOutput:
+    """Gather one shard's transitions (runs in a worker)."""
+    spec = get_domain(job.domain)
+    params = [spec.params_type(*row) for row in job.values]
+    seq = np.random.SeedSequence(job.entropy, spawn_key=job.spawn_key)
+    kwargs = {} if job.max_steps is None else {"max_steps": job.max_steps}
+    collection = POLICIES[job.policy](
+        job.domain,
+        params,
+        episodes_per_instance=job.episodes_per_instance,
+        rng=np.random.default_rng(seq),
+        instance_ids=list(job.instances),
+        **kwargs,
+    )
+    counts = {
+        "episodes": collection.n_episodes,
+        "transitions": len(collection.transitions),
+        "diverged_episodes": len(collection.diverged),
+    }
+    data = shards.shard_bytes(collection.transitions, collection.parameters)
+    return ShardOutput(
+        job.index, data, counts, [d._asdict() for d in collection.diverged]
+    )
+
+
+class InlineExecutor(cf.Executor):
+    """Runs each task in the calling thread when it is submitted."""
+
+    def submit(self, fn, /, *args, **kwargs) -> cf.Future:
+        future: cf.Future = cf.Future()
+        try:
+            future.set_result(fn(*args, **kwargs))
+        except BaseException as error:  # handed to the caller via the future
+            future.set_exception(error)
+        return future
+
+
+@contextlib.contextmanager
+def executor_for(workers: int, scheduler: str | None) -> Iterator[cf.Executor]:
+    """In-process for one worker, a process pool for several, or a Dask cluster."""
+    if scheduler is not None:
+        try:
+            import distributed
+        except ImportError:
+            raise ValueError(
+                '--scheduler needs Dask: pip install -e ".[dask]"'
+            ) from None
+        with distributed.Client(scheduler) as client:
+            yield client.get_executor()
+    elif workers == 1:
+        yield InlineExecutor()
+    else:
+        context = multiprocessing.get_context("spawn")  # no forked MuJoCo state
+        with cf.ProcessPoolExecutor(workers, mp_context=context) as pool:
+            yield pool
+
+
+def generate(config: Config, *, executor: cf.Executor | None = None) -> Generated:
+    """Run (or continue) the run `config` describes; see the module docstring.
+
+    Args:
+        config: the run.
+        executor: where shards are computed; default from `config.workers` and
+            `config.scheduler`.
+    """
+    manifest, todo = prepare(config)
+    out = config.out
+    out.mkdir(parents=True, exist_ok=True)
+    shards.remove_temporaries(out)
+    path = shards.write_manifest(out, manifest)
+    entries = {e["index"]: e for e in manifest["shards"]}
+    split = SPLITS.index(config.distribution.split)
+    jobs = [
+        ShardJob(
+            config.domain,
+            config.policy,
+            k,
+            tuple(entries[k]["instances"]),
+            tuple(tuple(row) for row in entries[k]["parameters"]),
+            config.episodes_per_instance,
+            config.max_steps,
+            config.seed,
+            (1, split, k),
+        )
+        for k in todo
+    ]
+    context = (
+        contextlib.nullcontext(executor)
+        if executor is not None
+        else executor_for(config.workers, config.scheduler)
+    )
+    bar = tqdm(
+        total=len(entries),
+        initial=len(entries) - len(todo),
+        desc=f"{config.domain} shards",
+        disable=not config.progress,
+    )
+    with context as pool, bar:
+        in_flight = 2 * max(config.workers, 1) if config.scheduler is None else 64
+        pending: set[cf.Future] = set()
+        queue = list(reversed(jobs))
+        while queue or pending:
+            while queue and len(pending) < in_flight:
+                pending.add(pool.submit(run_shard, queue.pop()))
+            done, pending = cf.wait(pending, return_when=cf.FIRST_COMPLETED)
+            for future in done:
+                result = future.result()
+                entry = entries[result.index]
+                entry["sha256"] = shards.write_shard(out, result.index, result.data)
+                entry["counts"] = result.counts
+                entry["diverged"] = result.diverged
+                shards.write_manifest(out, manifest)
+                bar.update()
+    manifest["complete"] = True
+    shards.write_manifest(out, manifest)
+    return Generated(path, manifest, tuple(todo))
 
 
 def main(argv: Sequence[str] | None = None) -> Generated:
     """Command-line entry point; returns what was written."""
-    result = generate(parse_config(argv))
-    counts = json.loads(result.summary.read_text())["counts"]
+    parser = build_parser()
+    config = parse_config(argv)
+    try:
+        prepare(config)  # a bad --out stops here, before anything is written
+    except ValueError as error:
+        parser.error(str(error))
+    result = generate(config)
+    counts = [e["counts"] for e in result.content["shards"]]
     print(
-        f"wrote {result.dataset} ({counts['transitions']} transitions, "
-        f"{counts['instances']} instances, {counts['diverged_episodes']} diverged "
-        f"episodes) and {result.summary}"
+        f"wrote {len(counts)} shards and {result.manifest}: "
+        f"{sum(c['transitions'] for c in counts)} transitions, "
+        f"{sum(len(e['instances']) for e in result.content['shards'])} instances, "
+        f"{sum(c['diverged_episodes'] for c in counts)} diverged episodes "
+        f"({len(result.redone)} shards generated now)"
     )
     return result
 

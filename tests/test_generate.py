@@ -1,5 +1,5 @@
 """`python -m tasks.generate`: in-process smoke runs, reproducible files, the grid,
-and bad options that stop before anything is written."""
+every policy, and bad options that stop before anything is written."""
 
 from __future__ import annotations
 
@@ -10,59 +10,111 @@ import pytest
 
 from hipmdp import Transitions
 from hipmdp.data import ParameterTable
-from tasks import generate
+from tasks import collect, generate, shards
+from tasks.acrobot import AcrobotParams
 
-TINY = ["--instances", "2", "--episodes-per-instance", "2", "--max-steps", "10"]
+TINY = ["--instances", "3", "--episodes-per-instance", "2", "--max-steps", "10"]
+QUIET = ["--no-progress", "--shard-size", "2"]
 
 
-def test_main_writes_a_loadable_dataset_and_its_summary(tmp_path, capsys):
+def test_main_writes_loadable_shards_and_a_manifest(tmp_path, capsys):
     out = tmp_path / "data"
     result = generate.main(
-        ["--domain", "acrobot", "--seed", "3", "--out", str(out), *TINY]
+        ["--domain", "acrobot", "--seed", "3", "--out", str(out), *TINY, *QUIET]
     )
     assert sorted(p.name for p in out.iterdir()) == [
-        "acrobot_seed3.json",
-        "acrobot_seed3.npz",
+        "manifest.json",
+        "shard-00000.npz",
+        "shard-00001.npz",
     ]
-    data = Transitions.load(out / "acrobot_seed3.npz")
-    table = ParameterTable.load(out / "acrobot_seed3.npz")
-    summary = json.loads((out / "acrobot_seed3.json").read_text())
-    assert summary["dataset"] == "acrobot_seed3.npz" and summary["seed"] == 3
-    assert summary["counts"] == {
-        "instances": 2,
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest == result.content and manifest["complete"]
+    assert manifest["config"]["seed"] == 3
+    assert [e["instances"] for e in manifest["shards"]] == [[0, 1], [2]]
+    first = Transitions.load(out / "shard-00000.npz")
+    table = ParameterTable.load(out / "shard-00000.npz")
+    assert manifest["shards"][0]["counts"] == {
         "episodes": 4,
-        "transitions": len(data),
+        "transitions": len(first),
         "diverged_episodes": 0,
     }
-    assert len(data) == 4 * 10 and data.angle_dims == (0, 1)
-    np.testing.assert_array_equal(data.states, result.collection.transitions.states)
-    masses = table.values[:, :2]
-    assert np.all((masses >= 0.7) & (masses <= 1.3)) and len(np.unique(masses)) == 4
-    np.testing.assert_array_equal(table.values[:, 2:], 1.0)  # lengths stay nominal
-    assert "wrote" in capsys.readouterr().out
+    assert len(first) == 4 * 10 and first.angle_dims == (0, 1)
+    np.testing.assert_array_equal(table.instances, [0, 1])
+    np.testing.assert_array_equal(table.values, manifest["shards"][0]["parameters"])
+    dataset = shards.load_dataset(out)
+    everything = dataset.parameters
+    masses = everything.values[:, :2]
+    assert np.all((masses >= 0.7) & (masses <= 1.3)) and len(np.unique(masses)) == 6
+    np.testing.assert_array_equal(everything.values[:, 2:], 1.0)  # nominal lengths
+    assert len(dataset.load()) == 3 * 2 * 10
+    assert "wrote 2 shards" in capsys.readouterr().out
+
+
+def test_shard_is_the_random_policy_on_its_instances_with_the_shard_stream(tmp_path):
+    """A shard holds exactly what `collect` gathers on its instances with the
+    stream `SeedSequence(seed, spawn_key=(1, split, shard))`."""
+    out = tmp_path / "data"
+    generate.main(
+        ["--domain", "acrobot", "--seed", "5", "--out", str(out), *TINY, *QUIET]
+    )
+    entry = json.loads((out / "manifest.json").read_text())["shards"][1]
+    stream = np.random.SeedSequence(5, spawn_key=(1, 0, 1))
+    expected = collect.collect(
+        "acrobot",
+        [AcrobotParams(*row) for row in entry["parameters"]],
+        episodes_per_instance=2,
+        max_steps=10,
+        rng=np.random.default_rng(stream),
+        instance_ids=[2],
+    ).transitions
+    got = Transitions.load(out / "shard-00001.npz")
+    for name in ("states", "actions", "next_states", "instances", "rewards", "dones"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(expected, name))
 
 
 def test_same_arguments_write_identical_files(tmp_path):
     for name in ("a", "b"):
-        generate.main(["--domain", "cartpole", "--out", str(tmp_path / name), *TINY])
-    first = (tmp_path / "a" / "cartpole_seed0.npz").read_bytes()
-    assert first == (tmp_path / "b" / "cartpole_seed0.npz").read_bytes()
+        generate.main(
+            ["--domain", "cartpole", "--out", str(tmp_path / name), *TINY, *QUIET]
+        )
+    for file in ("manifest.json", "shard-00000.npz", "shard-00001.npz"):
+        assert (tmp_path / "a" / file).read_bytes() == (
+            tmp_path / "b" / file
+        ).read_bytes()
     generate.main(
         ["--domain", "cartpole", "--seed", "1", "--out", str(tmp_path / "c"), *TINY]
+        + QUIET
     )
-    assert first != (tmp_path / "c" / "cartpole_seed1.npz").read_bytes()
+    first = (tmp_path / "a" / "shard-00000.npz").read_bytes()
+    assert first != (tmp_path / "c" / "shard-00000.npz").read_bytes()
 
 
 def test_grid_takes_every_combination(tmp_path):
     argv = ["--domain", "cartpole", "--grid", "2", "--out", str(tmp_path)]
     argv += ["--vary", "pole_mass=0.1:0.3", "--vary", "pole_half_length=0.4:0.6"]
     argv += ["--episodes-per-instance", "1", "--max-steps", "5", "--no-progress"]
-    table = generate.main(argv).collection.parameters
+    generate.main(argv)
+    table = shards.load_dataset(tmp_path).parameters
     assert table.names == ("cart_mass", "pole_mass", "pole_half_length")
     np.testing.assert_allclose(
         table.values,
         [[1, 0.1, 0.4], [1, 0.1, 0.6], [1, 0.3, 0.4], [1, 0.3, 0.6]],
     )
+
+
+@pytest.mark.parametrize("policy", ["sarsa", "open-loop"])
+def test_other_policies_write_chained_episodes(tmp_path, policy):
+    argv = ["--domain", "cartpole", "--policy", policy, "--out", str(tmp_path)]
+    generate.main(argv + ["--instances", "2", "--episodes-per-instance", "3"] + QUIET)
+    data = shards.load_dataset(tmp_path).load()
+    # Three episodes per instance, each ending in a done; balance rewards are 0/1.
+    assert np.count_nonzero(data.dones) == 6 and data.dones[-1]
+    within = ~data.dones[:-1]
+    np.testing.assert_array_equal(
+        data.states[1:][within], data.next_states[:-1][within]
+    )
+    assert set(np.unique(data.rewards)) <= {0.0, 1.0}
+    np.testing.assert_array_equal(data.instance_ids, [0, 1])
 
 
 @pytest.mark.parametrize(
@@ -74,13 +126,31 @@ def test_grid_takes_every_combination(tmp_path):
         (["--domain", "acrobot", "--grid", "2", "--instances", "3"], "exclusive"),
         (
             ["--domain", "acrobot", "--grid", "2", "--distribution", "uniform"],
-            "not allowed",
+            "--grid K goes with --distribution grid",
         ),
+        (["--domain", "acrobot", "--distribution", "grid"], "needs --grid K"),
         (["--domain", "acrobot", "--vary", "pole_mass=0.1:0.2"], "acrobot parameters"),
         (["--domain", "acrobot", "--vary", "link_mass_1=0.1:1"], "lower bound 0.2"),
         (["--domain", "acrobot", "--vary", "link_mass_1=1"], "NAME=LOW:HIGH"),
         (["--domain", "acrobot", "--vary", "link_mass_1=1.2:0.9"], "LOW must be"),
-        (["--domain", "cartpole", "--policy", "sarsa"], "invalid choice"),
+        (
+            [
+                "--domain",
+                "acrobot",
+                "--sigma",
+                "0",
+                "--distribution",
+                "relative-normal",
+            ],
+            "sigma must be a positive",
+        ),
+        (
+            ["--domain", "acrobot", "--split", "train", "--inner-fraction", "1"],
+            "inner_fraction must be in (0, 1)",
+        ),
+        (["--domain", "acrobot", "--policy", "greedy"], "invalid choice"),
+        (["--domain", "acrobot", "--workers", "0"], "--workers must be >= 1"),
+        (["--domain", "acrobot", "--shard-size", "0"], "--shard-size must be >= 1"),
     ],
 )
 def test_bad_options_stop_with_a_message_and_write_nothing(
@@ -99,5 +169,9 @@ def test_help_describes_the_options(capsys):
         generate.main(["--help"])
     assert stopped.value.code == 0
     text = capsys.readouterr().out
-    for option in ("--domain", "--instances", "--grid", "--vary", "--seed", "--out"):
+    for option in (
+        "--domain", "--instances", "--episodes-per-instance", "--grid", "--vary",
+        "--seed", "--out", "--workers", "--resume", "--scheduler", "--policy",
+        "--distribution", "--split",
+    ):  # fmt: skip
         assert option in text

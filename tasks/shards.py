@@ -1,0 +1,242 @@
+"""Sharded datasets: a manifest, shard files with checksums, resuming, lazy loading.
+
+A run directory holds `manifest.json` and one `shard-XXXXX.npz` per block of
+instances. A shard is what `hipmdp.Transitions.save` writes (the same keys, with the
+shard's `ParameterTable`), so `Transitions.load` and `ParameterTable.load` read one
+shard; but its bytes are reproducible: every archive member is stored uncompressed
+with a fixed date (`np.savez` stamps the current time), so the same data give the
+same bytes and the same SHA-256.
+
+The manifest (JSON, written atomically after every shard) holds:
+
+- `format`: `FORMAT`;
+- `config`: everything that determines the data (domain, policy, distribution,
+  counts, seed, shard size), never how it was executed (workers, scheduler, paths);
+- `parameter_names`, `angle_dims`;
+- `shards`: per shard its `index`, `file`, `instances` (ids), `parameters` (one row
+  per instance, the `ParameterTable` values), and once written its `sha256`,
+  `counts` (`episodes`, `transitions`, `diverged_episodes`) and `diverged`
+  episodes; `sha256` is null until the shard file is in place;
+- `complete`: every shard written.
+
+A shard counts as finished only if the manifest holds its checksum and the file's
+bytes match it; anything else (missing, truncated, corrupt) is redone on resume.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import zipfile
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hipmdp.data import FORMAT_VERSION, ParameterTable, Transitions, atomic_write
+
+Array = np.ndarray
+
+FORMAT = "hipmdp-shards/1"
+MANIFEST = "manifest.json"
+#: A fixed member date (the zip epoch) keeps archives byte-reproducible.
+ZIP_DATE = (1980, 1, 1, 0, 0, 0)
+
+
+def shard_name(index: int) -> str:
+    """File name of shard `index`: `shard-00007.npz`."""
+    return f"shard-{index:05d}.npz"
+
+
+def shard_bytes(transitions: Transitions, table: ParameterTable) -> bytes:
+    """An `.npz` archive with the arrays `Transitions.save(path, table)` writes.
+
+    Members are `.npy` files stored uncompressed with the date `ZIP_DATE`, so equal
+    inputs give equal bytes.
+    """
+    arrays: dict[str, Array] = {
+        "format_version": np.array(FORMAT_VERSION),
+        "states": transitions.states,
+        "actions": transitions.actions,
+        "next_states": transitions.next_states,
+        "instances": transitions.instances,
+        "angle_dims": np.array(transitions.angle_dims, dtype=np.int64),
+    }
+    if transitions.rewards is not None:
+        arrays["rewards"] = transitions.rewards
+    if transitions.dones is not None:
+        arrays["dones"] = transitions.dones
+    arrays["table_instances"] = table.instances
+    arrays["table_names"] = np.array(table.names, dtype=np.str_)
+    arrays["table_values"] = table.values
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_STORED) as archive:
+        for key, value in arrays.items():
+            member = io.BytesIO()
+            np.lib.format.write_array(member, np.asarray(value), allow_pickle=False)
+            info = zipfile.ZipInfo(f"{key}.npy", date_time=ZIP_DATE)
+            info.external_attr = 0o644 << 16
+            archive.writestr(info, member.getvalue())
+    return buffer.getvalue()
+
+
+def sha256(data: bytes) -> str:
+    """Hex SHA-256 of `data`."""
+    return hashlib.sha256(data).hexdigest()
+
+
+def write_shard(directory: Path, index: int, data: bytes) -> str:
+    """Write shard `index` atomically; returns its SHA-256."""
+    atomic_write(Path(directory) / shard_name(index), lambda fh: fh.write(data))
+    return sha256(data)
+
+
+def shard_is_valid(directory: Path, entry: Mapping[str, Any]) -> bool:
+    """Whether the manifest `entry` has a checksum and its file matches it."""
+    path = Path(directory) / entry["file"]
+    if entry.get("sha256") is None or not path.is_file():
+        return False
+    return sha256(path.read_bytes()) == entry["sha256"]
+
+
+def read_manifest(directory: Path) -> dict[str, Any] | None:
+    """The manifest in `directory`, or None if there is none.
+
+    Raises:
+        ValueError: if `manifest.json` exists but is not a manifest of this format.
+    """
+    path = Path(directory) / MANIFEST
+    if not path.is_file():
+        return None
+    try:
+        manifest = json.loads(path.read_text())
+    except json.JSONDecodeError as error:
+        raise ValueError(f"{path} is not valid JSON ({error})") from None
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+        raise ValueError(f"{path} is not a {FORMAT} manifest")
+    return manifest
+
+
+def write_manifest(directory: Path, manifest: Mapping[str, Any]) -> Path:
+    """Write `manifest.json` atomically (sorted keys, so equal content, equal bytes)."""
+    text = json.dumps(manifest, indent=1, sort_keys=True) + "\n"
+    return atomic_write(Path(directory) / MANIFEST, lambda fh: fh.write(text.encode()))
+
+
+def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
+    """Keys whose values differ between two manifest configs, as `key: old -> new`."""
+    keys = sorted(set(old) | set(new))
+    return [
+        f"{k}: {old.get(k)!r} -> {new.get(k)!r}"
+        for k in keys
+        if old.get(k) != new.get(k)
+    ]
+
+
+def remove_temporaries(directory: Path) -> list[Path]:
+    """Delete the temporary files a killed `atomic_write` left (`.NAME.*.tmp` for
+    the manifest and shards); returns them."""
+    found = [
+        p
+        for p in Path(directory).glob(".*.tmp")
+        if p.name.startswith((f".{MANIFEST}.", ".shard-"))
+    ]
+    for path in found:
+        path.unlink()
+    return found
+
+
+class Dataset:
+    """A sharded run read lazily: the manifest now, shards when asked for.
+
+    Attributes:
+        directory: the run directory.
+        manifest: the parsed manifest.
+
+    Raises:
+        ValueError: if there is no manifest of this format at `path`.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        path = Path(path)
+        self.directory = path.parent if path.name == MANIFEST else path
+        manifest = read_manifest(self.directory)
+        if manifest is None:
+            raise ValueError(f"no {MANIFEST} in {self.directory}")
+        self.manifest = manifest
+
+    @property
+    def complete(self) -> bool:
+        return bool(self.manifest["complete"])
+
+    @property
+    def instances(self) -> Array:
+        """Every instance id `b` of the run, in shard order, shape `(B,)`."""
+        ids = [b for entry in self.manifest["shards"] for b in entry["instances"]]
+        return np.array(ids, dtype=np.int64)
+
+    @property
+    def parameters(self) -> ParameterTable:
+        """The parameters of every instance (from the manifest, no shard read)."""
+        rows = [r for entry in self.manifest["shards"] for r in entry["parameters"]]
+        return ParameterTable(
+            instances=self.instances,
+            names=tuple(self.manifest["parameter_names"]),
+            values=np.array(rows, dtype=float).reshape(len(rows), -1),
+        )
+
+    @property
+    def n_transitions(self) -> int:
+        """Transitions in the finished shards."""
+        entries = self.manifest["shards"]
+        return sum(e["counts"]["transitions"] for e in entries if e["counts"])
+
+    def load(self, instances: int | Iterable[int] | None = None) -> Transitions:
+        """The transitions of `instances` (default all), reading only their shards,
+        each checked against its checksum.
+
+        Raises:
+            ValueError: for an id not in the run, or a needed shard that is not
+                finished or does not match its checksum.
+        """
+        wanted = None if instances is None else np.atleast_1d(np.asarray(instances))
+        if wanted is not None:
+            unknown = np.setdiff1d(wanted, self.instances)
+            if unknown.size:
+                raise ValueError(
+                    f"instances {unknown.tolist()[:10]} are not in the run"
+                )
+        parts = []
+        for entry in self.manifest["shards"]:
+            if wanted is not None and not np.isin(entry["instances"], wanted).any():
+                continue
+            data = self._read(entry)
+            part = Transitions.load(io.BytesIO(data))
+            parts.append(part if wanted is None else part.select(instances=wanted))
+        return Transitions.concatenate(parts)
+
+    def _read(self, entry: Mapping[str, Any]) -> bytes:
+        path = self.directory / entry["file"]
+        if entry.get("sha256") is None or not path.is_file():
+            raise ValueError(
+                f"shard {entry['file']} is not finished; continue the run with --resume"
+            )
+        data = path.read_bytes()
+        if sha256(data) != entry["sha256"]:
+            raise ValueError(
+                f"shard {entry['file']} does not match its checksum (corrupt or "
+                "truncated); redo it with --resume"
+            )
+        return data
+
+
+def load_dataset(path: str | Path) -> Transitions | Dataset:
+    """One shard (or any `.npz` dataset) as `Transitions`, or a run directory (or
+    its `manifest.json`) as a lazy `Dataset` (`.instances`, `.parameters`,
+    `.load(instances=...)`)."""
+    path = Path(path)
+    if path.suffix == ".npz":
+        return Transitions.load(path)
+    return Dataset(path)
