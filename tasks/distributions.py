@@ -23,7 +23,8 @@ Splits (`split`):
 - `interpolation`: held-out points inside `I` — for `uniform`/`relative-normal`
   independent draws restricted to `I` (a separate stream, so they are not the
   training points); for `grid` the grid points inside `I` are split like a
-  checkerboard: index sum even → `train`, odd → `interpolation`;
+  checkerboard: index sum even → `train`, odd → `interpolation` (points on the
+  boundary of `I`, to 1e-9 of the width, count as inside);
 - `extrapolation`: `O \\ I`, points with at least one coordinate outside `I` (drawn in
   `O` and rejected while inside `I`; for `grid`, the grid points outside `I`).
 """
@@ -201,8 +202,10 @@ def draw(
     return Instances(params, values, varied)
 
 
-def in_box(points: Array, lows: Array, highs: Array) -> Array:
-    """Whether each row of `points` `(n, p)` lies in the closed box; shape `(n,)`."""
+def in_box(points: Array, lows: Array, highs: Array, tol: float | Array = 0.0) -> Array:
+    """Whether each row of `points` `(n, p)` lies in the closed box widened by
+    `tol` on every side; shape `(n,)`."""
+    lows, highs = np.asarray(lows) - tol, np.asarray(highs) + tol
     return np.all((points >= lows) & (points <= highs), axis=1)
 
 
@@ -218,7 +221,8 @@ def _grid(distribution: Distribution) -> Array:
     points = np.stack([axis[indices[:, j]] for j, axis in enumerate(axes)], axis=1)
     if distribution.split == "all":
         return points
-    inside = in_box(points, *distribution.inner_box())
+    # Grid points on the inner boundary count as inside despite rounding.
+    inside = in_box(points, *distribution.inner_box(), tol=1e-9 * distribution.widths)
     even = indices.sum(axis=1) % 2 == 0
     keep = {
         "train": inside & even,

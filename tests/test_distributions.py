@@ -1,0 +1,140 @@
+"""Instance distributions: the grid and its splits partition it, draws land where
+each split says, the relative normal is the truncated normal (not clipped), and bad
+ranges stop with a message."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from tasks.acrobot import AcrobotParams
+from tasks.cartpole import CartpoleParams
+from tasks.distributions import Distribution, draw, in_box
+
+MASSES = {"link_mass_1": (0.6, 1.4), "link_mass_2": (0.8, 1.2)}
+
+
+def dist(**kwargs):
+    return Distribution(AcrobotParams, kwargs.pop("vary", MASSES), **kwargs)
+
+
+def test_grid_splits_partition_the_grid_like_a_checkerboard():
+    full = draw(dist(kind="grid", grid=5), None, rng=np.random.default_rng(0)).varied
+    assert full.shape == (25, 2)
+    np.testing.assert_allclose(full[:5, 1], np.linspace(0.8, 1.2, 5))  # last fastest
+    parts = {
+        split: draw(dist(kind="grid", grid=5, split=split), None, rng=None).varied
+        for split in ("train", "interpolation", "extrapolation")
+    }
+    joined = np.concatenate(list(parts.values()))
+    assert sorted(map(tuple, joined)) == sorted(map(tuple, full))  # a partition
+    # Inner box: the central half, [0.8, 1.2] x [0.9, 1.1]: the 3 x 3 middle points.
+    inner = dist(kind="grid", grid=5).inner_box()
+    np.testing.assert_allclose(inner, [[0.8, 0.9], [1.2, 1.1]])
+    assert len(parts["train"]) == 5 and len(parts["interpolation"]) == 4
+    # Some points lie on the inner boundary: compare with a rounding tolerance.
+    assert in_box(parts["train"], *inner, tol=1e-9).all()
+    assert in_box(parts["interpolation"], *inner, tol=1e-9).all()
+    assert not in_box(parts["extrapolation"], *inner, tol=1e-9).any()
+    # Interpolation points sit between training points: the centre is training,
+    # its four neighbours are held out.
+    np.testing.assert_allclose(parts["train"][2], [1.0, 1.0])
+    np.testing.assert_allclose(
+        parts["interpolation"], [[0.8, 1.0], [1.0, 0.9], [1.0, 1.1], [1.2, 1.0]]
+    )
+
+
+@pytest.mark.parametrize("kind", ["uniform", "relative-normal"])
+def test_random_splits_land_in_their_regions(kind):
+    rng = np.random.default_rng(1)
+    d = {s: dist(kind=kind, split=s, sigma=0.3) for s in ("train", "interpolation")}
+    train = draw(d["train"], 500, rng=np.random.default_rng(2)).varied
+    held_out = draw(d["interpolation"], 500, rng=np.random.default_rng(2)).varied
+    outside = draw(dist(kind=kind, split="extrapolation", sigma=0.3), 500, rng=rng)
+    inner = d["train"].inner_box()
+    assert in_box(train, *inner).all() and in_box(held_out, *inner).all()
+    assert not np.isin(held_out, train).any()  # same seed, yet other points
+    assert not in_box(outside.varied, *inner).any()
+    assert in_box(outside.varied, [0.6, 0.8], [1.4, 1.2]).all()
+    # Every instance keeps the unvaried lengths nominal.
+    np.testing.assert_array_equal(outside.values[:, 2:], 1.0)
+    assert outside.params[0] == AcrobotParams(*outside.values[0])
+
+
+def test_uniform_extrapolation_is_uniform_on_the_outer_minus_inner_box():
+    """Outer box [0.6, 1.4] x [0.8, 1.2] with inner [0.8, 1.2] x [0.9, 1.1]: in
+    units of the widths the ring has area 1 - 1/4 = 3/4, of which the part with the
+    first coordinate inside its inner interval (and the second outside) has area
+    1/2 · 1/2 = 1/4, so P = 1/3; 4 standard errors of a binomial proportion."""
+    n = 4000
+    points = draw(dist(split="extrapolation"), n, rng=np.random.default_rng(3)).varied
+    share = np.mean((points[:, 0] >= 0.8) & (points[:, 0] <= 1.2))
+    assert abs(share - 1 / 3) < 4 * np.sqrt((1 / 3) * (2 / 3) / n)
+
+
+def test_relative_normal_is_the_truncated_normal_around_the_nominal():
+    """Pole mass ~ N(0.1, (0.5 · 0.1)²) truncated to [0.05, 0.3]: sample mean and
+    variance within 4 standard errors of scipy's truncated-normal moments, and no
+    point stacked on the lower bound (clipping would put ~16% there)."""
+    d = Distribution(
+        CartpoleParams, {"pole_mass": (0.05, 0.3)}, kind="relative-normal", sigma=0.5
+    )
+    n = 4000
+    x = draw(d, n, rng=np.random.default_rng(4)).varied[:, 0]
+    law = stats.truncnorm((0.05 - 0.1) / 0.05, (0.3 - 0.1) / 0.05, loc=0.1, scale=0.05)
+    assert abs(x.mean() - law.mean()) < 4 * law.std() / np.sqrt(n)
+    # Var of the sample variance ≈ (μ₄ - σ⁴) / n.
+    mu4 = law.expect(lambda v: (v - law.mean()) ** 4)
+    assert abs(x.var() - law.var()) < 4 * np.sqrt((mu4 - law.var() ** 2) / n)
+    assert x.min() > 0.05 and x.max() <= 0.3
+    assert np.mean(x < 0.051) < 0.01
+
+
+def test_same_rng_same_draws_and_a_degenerate_range_stays_put():
+    a = draw(dist(kind="relative-normal"), 10, rng=np.random.default_rng(7)).values
+    b = draw(dist(kind="relative-normal"), 10, rng=np.random.default_rng(7)).values
+    np.testing.assert_array_equal(a, b)
+    fixed = {"link_mass_1": (1.1, 1.1), "link_mass_2": (0.8, 1.2)}
+    for kind in ("uniform", "relative-normal"):
+        v = draw(dist(kind=kind, vary=fixed), 20, rng=np.random.default_rng(0)).varied
+        np.testing.assert_array_equal(v[:, 0], 1.1)
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"vary": {"pole_mass": (0.1, 0.2)}}, "not a parameter of AcrobotParams"),
+        ({"vary": {"link_mass_1": (1.2, 0.9)}}, "low > high"),
+        ({"vary": {"link_mass_1": (0.1, 1.0)}}, "lower bound 0.2"),
+        ({"vary": {"link_mass_1": (1.0, 9.0)}}, "upper bound 5.0"),
+        ({"vary": {}}, "at least one parameter"),
+        ({"kind": "grid"}, "grid (points per parameter K)"),
+        ({"kind": "uniform", "grid": 3}, "grid (points per parameter K)"),
+        ({"kind": "sobol"}, "kind must be one of"),
+        ({"split": "test"}, "split must be one of"),
+        ({"sigma": -1.0}, "sigma must be a positive"),
+        ({"inner_fraction": 0.0}, "inner_fraction must be in (0, 1)"),
+        (
+            {"vary": {"link_mass_1": (1.0, 1.0)}, "split": "extrapolation"},
+            "no point lies outside",
+        ),
+    ],
+)
+def test_impossible_distributions_are_rejected(kwargs, message):
+    with pytest.raises(ValueError) as error:
+        dist(**kwargs)
+    assert message in str(error.value)
+
+
+def test_draw_rejects_bad_counts_and_unreachable_regions():
+    with pytest.raises(ValueError, match="positive int"):
+        draw(dist(), 0, rng=np.random.default_rng(0))
+    with pytest.raises(ValueError, match="must be None for a grid"):
+        draw(dist(kind="grid", grid=2), 4, rng=np.random.default_rng(0))
+    with pytest.raises(ValueError, match="has no points"):
+        draw(dist(kind="grid", grid=2, split="train"), None, rng=None)
+    # σ = 0.1% of nominal: the truncated normal almost never leaves the inner box.
+    tight = dist(kind="relative-normal", sigma=0.001, split="extrapolation")
+    with pytest.raises(ValueError, match="too small"):
+        draw(tight, 5, rng=np.random.default_rng(0))
