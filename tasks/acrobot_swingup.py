@@ -1,0 +1,428 @@
+"""Acrobot swing-up transfer (the paper's acrobot experiment), the main job.
+
+    python -m tasks.acrobot_swingup                   # --preset quick, minutes
+    python -m tasks.acrobot_swingup --preset paper    # 16 test settings x 30 trials
+
+1. Batch data: on each of the 8 training mass settings, Sarsa(λ) agents with an
+   order-5 Fourier basis learn the swing-up; every transition they see is kept.
+2. Models: the HiP-MDP is fitted to the batch data; the average model is one GP on
+   all of it.
+3. Transfer (tasks/transfer.py): on each test setting, repeated trials of Sarsa with
+   model-based planning on the HiP-MDP (belief filtered after each episode, planning
+   on the posterior-mean model), on the average model and on the true simulator —
+   the same instances and seeds for all three.
+4. One-step prediction (tasks/prediction.py): MSE of Δs per dimension for the
+   HiP-MDP and the three GP baselines on the test settings, and the approximation
+   floor on training settings.
+
+Writes ``runs/<name>/``: config.json, metrics.json, report.md, learning_curves.png,
+weights.png, acrobot.rrd (``RERUN=off`` skips it), hipmdp_model.npz (read it with
+``hipmdp.load``) and batch.npz (``hipmdp.Transitions.load``).
+All randomness is spawned from ``--seed``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+from tqdm.auto import tqdm
+
+import hipmdp
+from hipmdp import baselines
+from hipmdp.data import Transitions
+from tasks import acrobot
+from tasks.acrobot import AcrobotParams
+from tasks.agents import ACROBOT, learn
+from tasks.experiment import (
+    first_episode_within,
+    mean_ci,
+    run_dir,
+    to_jsonable,
+    write_json,
+)
+from tasks.prediction import gather_split, score_instance, summarise
+from tasks.transfer import METHODS, TransferConfig, TrialJob, run_trial, set_models
+
+# The paper's settings (m1, m2); the test grid is DESIGN's corrected one.
+TRAIN_MASSES = (
+    (0.7, 0.7), (0.7, 1.3), (0.9, 0.7), (0.9, 1.1),
+    (1.1, 0.9), (1.1, 1.3), (1.3, 0.7), (1.3, 1.3),
+)  # fmt: skip
+TEST_MASSES = tuple(
+    (m1, m2) for m1 in (0.7, 0.9, 1.1, 1.3) for m2 in (0.7, 0.9, 1.1, 1.3)
+)
+# quick preset: four test settings that are not training settings, one per m1
+QUICK_TEST_MASSES = ((0.7, 0.9), (0.9, 1.3), (1.1, 0.7), (1.3, 1.1))
+DIM_NAMES = ("dtheta1", "dtheta2", "dtheta1_dot", "dtheta2_dot")
+
+
+def _params(m1: float, m2: float) -> AcrobotParams:
+    return AcrobotParams(
+        link_mass_1=m1, link_mass_2=m2, link_length_1=1.0, link_length_2=1.0
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class SwingupConfig:
+    """Everything a run depends on (written to config.json).
+
+    Attributes:
+        name: the run folder under ``runs/`` (unless ``out`` is given).
+        preset: the preset these values came from.
+        seed: the one seed every random stream is spawned from.
+        train_masses, test_masses: (m1, m2) settings, kg; lengths stay 1 m.
+        batch_repetitions, batch_episodes, batch_max_steps: Sarsa agents per
+            training setting, episodes per agent, step limit of those episodes.
+        fit: HiP-MDP settings.
+        average_n_max: transitions per action in the average-model GP.
+        n_trials: trials per test setting.
+        transfer: sizes of the transfer protocol.
+        mse_train, mse_test: transitions per instance for the prediction table.
+        n_floor_settings: training settings scored for the approximation floor.
+        workers: processes for batch data and trials.
+        record: write the rerun recording (``RERUN=off`` also disables it).
+        progress: progress bars.
+    """
+
+    name: str = "acrobot_swingup"
+    preset: str = "quick"
+    seed: int = 0
+    train_masses: tuple[tuple[float, float], ...] = TRAIN_MASSES
+    test_masses: tuple[tuple[float, float], ...] = QUICK_TEST_MASSES
+    batch_repetitions: int = 1
+    batch_episodes: int = 20
+    batch_max_steps: int = 500
+    fit: hipmdp.FitConfig = hipmdp.FitConfig(
+        n_support=300, n_sweeps=60, n_chains=1, progress=False
+    )
+    average_n_max: int = 1500
+    n_trials: int = 2
+    transfer: TransferConfig = TransferConfig(
+        n_episodes=8, planning_episodes=5, initial_planning_episodes=20
+    )
+    mse_train: int = 50
+    mse_test: int = 50
+    n_floor_settings: int = 2
+    workers: int = 2
+    record: bool = True
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        for name in ("train_masses", "test_masses"):
+            masses = tuple(tuple(float(v) for v in mm) for mm in getattr(self, name))
+            if not masses or any(len(mm) != 2 for mm in masses):
+                raise ValueError(f"{name}: expected (m1, m2) pairs, got {masses}")
+            for m1, m2 in masses:  # validated (bounds, finite) by AcrobotParams
+                _params(m1, m2)
+            object.__setattr__(self, name, masses)
+        if len(self.train_masses) < 2:
+            raise ValueError("train_masses: expected at least two settings")
+        for name in (
+            "batch_repetitions", "batch_episodes", "batch_max_steps",
+            "average_n_max", "n_trials", "mse_train", "mse_test", "workers",
+        ):  # fmt: skip
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name}: expected >= 1, got {getattr(self, name)}")
+        if not 0 <= self.n_floor_settings <= len(self.train_masses):
+            raise ValueError(
+                f"n_floor_settings: expected 0..{len(self.train_masses)}, "
+                f"got {self.n_floor_settings}"
+            )
+
+
+PRESETS: dict[str, SwingupConfig] = {
+    "quick": SwingupConfig(),
+    "paper": SwingupConfig(
+        preset="paper",
+        test_masses=TEST_MASSES,
+        batch_repetitions=5,
+        batch_episodes=30,
+        fit=hipmdp.FitConfig(n_support=1000, n_sweeps=250, n_chains=3, progress=False),
+        average_n_max=3000,
+        n_trials=30,
+        transfer=TransferConfig(
+            n_episodes=20, planning_episodes=5, initial_planning_episodes=50
+        ),
+        n_floor_settings=8,
+    ),
+}
+
+
+class Results(NamedTuple):
+    """What ``main`` returns: the run folder and the metrics written there."""
+
+    out: Path
+    metrics: dict[str, Any]
+
+
+def _batch_job(args) -> Transitions:
+    """Sarsa learning on one training setting, one repetition (a pool task)."""
+    instance, (m1, m2), seed, n_episodes, max_steps = args
+    entropy, spawn_key = seed
+    env_seed, agent_seed = np.random.SeedSequence(entropy, spawn_key=spawn_key).spawn(2)
+    env = acrobot.swingup(
+        _params(m1, m2), seed=np.random.default_rng(env_seed), max_steps=max_steps
+    )
+    out = learn(
+        env,
+        ACROBOT,
+        n_episodes,
+        rng=np.random.default_rng(agent_seed),
+        instance=instance,
+    )
+    return out.transitions
+
+
+def _pool(workers: int, initializer=None, initargs=()):
+    """A process pool, or None to run in this process (workers == 1)."""
+    if workers == 1:
+        if initializer is not None:
+            initializer(*initargs)
+        return None
+    return ProcessPoolExecutor(workers, initializer=initializer, initargs=initargs)
+
+
+def _map(pool, fn, jobs, desc: str, progress: bool) -> list:
+    it = map(fn, jobs) if pool is None else pool.map(fn, jobs)
+    return list(tqdm(it, total=len(jobs), desc=desc, disable=not progress))
+
+
+def _seed_of(ss: np.random.SeedSequence) -> tuple[int, tuple[int, ...]]:
+    return (int(ss.entropy), tuple(int(k) for k in ss.spawn_key))
+
+
+def gather_batch(config: SwingupConfig, ss: np.random.SeedSequence) -> Transitions:
+    """Sarsa transitions on every training setting; instance ids 0..B-1."""
+    seeds = ss.spawn(len(config.train_masses) * config.batch_repetitions)
+    jobs = [
+        (
+            i,
+            masses,
+            _seed_of(seeds[i * config.batch_repetitions + r]),
+            config.batch_episodes,
+            config.batch_max_steps,
+        )
+        for i, masses in enumerate(config.train_masses)
+        for r in range(config.batch_repetitions)
+    ]
+    pool = _pool(config.workers)
+    try:
+        parts = _map(pool, _batch_job, jobs, "batch data (Sarsa)", config.progress)
+    finally:
+        if pool is not None:
+            pool.shutdown()
+    return Transitions.concatenate(parts)
+
+
+def run_transfer(config, hip, average, ss: np.random.SeedSequence) -> list:
+    """Every (method, test setting, trial) trial; the seeds depend on (setting,
+    trial) only. Setting 0, trial 0 is traced for the recording."""
+    seeds = ss.spawn(len(config.test_masses) * config.n_trials)
+    jobs = [
+        TrialJob(
+            method=method,
+            setting=i,
+            trial=t,
+            params=_params(*masses),
+            seed=_seed_of(seeds[i * config.n_trials + t]),
+            record=config.record and i == 0 and t == 0,
+        )
+        for i, masses in enumerate(config.test_masses)
+        for t in range(config.n_trials)
+        for method in METHODS
+    ]
+    initargs = (ACROBOT, config.transfer, hip, average)
+    pool = _pool(config.workers, set_models, initargs)
+    try:
+        return _map(pool, run_trial, jobs, "transfer trials", config.progress)
+    finally:
+        if pool is not None:
+            pool.shutdown()
+
+
+def prediction_table(config, hip, average, batch, ss) -> dict[str, Any]:
+    """The one-step MSE table on test settings, and the floor on training ones."""
+    out = {}
+    groups = {
+        "test": config.test_masses,
+        "floor": config.train_masses[: config.n_floor_settings],
+    }
+    for (label, masses), s in zip(groups.items(), ss.spawn(2), strict=True):
+        scores = []
+        rngs = [np.random.default_rng(c) for c in s.spawn(len(masses))]
+        for (m1, m2), rng in zip(
+            tqdm(masses, desc=f"prediction ({label})", disable=not config.progress),
+            rngs,
+            strict=True,
+        ):
+            train, test = gather_split(
+                ACROBOT, _params(m1, m2), config.mse_train, config.mse_test, rng=rng
+            )
+            scores.append(score_instance(hip, average, batch, train, test, rng=rng))
+        out[label] = summarise(scores, DIM_NAMES) if scores else None
+    return out
+
+
+def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results:
+    """Run the whole experiment and write its artefacts; see the module docstring."""
+    from tasks import swingup_report
+
+    started = time.perf_counter()
+    path = run_dir(out, config.name)
+    write_json(path / "config.json", config)
+    ss_batch, ss_fit, ss_avg, ss_trials, ss_mse = np.random.SeedSequence(
+        config.seed
+    ).spawn(5)
+    timings: dict[str, float] = {}
+
+    t0 = time.perf_counter()
+    batch = gather_batch(config, ss_batch)
+    batch.save(path / "batch.npz", table=_table(config.train_masses))
+    timings["batch_data"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    fit_config = dataclasses.replace(config.fit, progress=config.progress)
+    hip = hipmdp.fit(batch, fit_config, rng=np.random.default_rng(ss_fit))
+    hip.save(path / "hipmdp_model.npz")
+    timings["fit"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    average = baselines.batch_only(
+        batch, rng=np.random.default_rng(ss_avg), n_max=config.average_n_max
+    )
+    timings["average_model"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    trials = run_transfer(config, hip, average, ss_trials)
+    timings["transfer"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    mse = prediction_table(config, hip, average, batch, ss_mse)
+    timings["prediction"] = time.perf_counter() - t0
+
+    metrics = transfer_metrics(config, trials)
+    metrics.update(
+        mse=mse["test"]["mse"],
+        loglik_difference=mse["test"]["loglik_difference"],
+        approximation_floor=mse["floor"]["mse"] if mse["floor"] else None,
+        n_latent_features=int(hip.n_features) - 1,
+        z=hip.z.astype(int).tolist(),
+        training_weights=np.asarray(hip.weights).tolist(),
+        n_batch_transitions=len(batch),
+    )
+    t0 = time.perf_counter()
+    swingup_report.write_artefacts(path, config, metrics, trials, hip)
+    timings["artefacts"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - started
+    metrics["seconds"] = timings
+    write_json(path / "metrics.json", metrics)
+    swingup_report.write_report(path, config, metrics)
+    return Results(path, to_jsonable(metrics))
+
+
+def _table(masses) -> hipmdp.data.ParameterTable:
+    names = tuple(f.name for f in dataclasses.fields(AcrobotParams))
+    values = [dataclasses.astuple(_params(*mm)) for mm in masses]
+    return hipmdp.data.ParameterTable(
+        instances=np.arange(len(masses)), names=names, values=values
+    )
+
+
+def transfer_metrics(config: SwingupConfig, trials: list) -> dict[str, Any]:
+    """Per-episode mean returns with intervals, and episodes to near-optimal."""
+    curves, per_method = {}, {}
+    for method in METHODS:
+        returns = np.array([r.returns for r in trials if r.method == method])
+        per_method[method] = returns
+        curves[method] = mean_ci(returns, axis=0)
+    target = float(curves["true"]["mean"][-1])
+    episodes_to = {
+        m: first_episode_within(curves[m]["mean"], target, margin=0.1) for m in METHODS
+    }
+    return {
+        "episodes_to_near_optimal": episodes_to,
+        "near_optimal_target": {"true_model_final_mean_return": target, "margin": 0.1},
+        "returns": {
+            m: {k: np.atleast_1d(v) for k, v in c.items() if k != "n"}
+            | {"n_trials": c["n"]}
+            for m, c in curves.items()
+        },
+        "test_belief_means": {
+            str(i): np.mean(
+                [
+                    r.weight_means[-1]
+                    for r in trials
+                    if r.method == "hipmdp" and r.setting == i
+                ],
+                axis=0,
+            ).tolist()
+            for i in range(len(config.test_masses))
+        },  # fmt: skip
+    }
+
+
+def parse_args(argv: list[str] | None = None) -> tuple[SwingupConfig, str | None]:
+    parser = argparse.ArgumentParser(
+        prog="python -m tasks.acrobot_swingup",
+        description=__doc__.split("\n\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="Artefacts: config.json, metrics.json, report.md, PNG figures, "
+        "acrobot.rrd (open with `rerun <file>`), the fitted model.",
+    )
+    parser.add_argument(
+        "--preset", choices=sorted(PRESETS), default="quick",
+        help="quick: minutes on two cores (default); paper: the paper's sizes",
+    )  # fmt: skip
+    parser.add_argument("--seed", type=int, default=0, help="the one seed (default 0)")
+    parser.add_argument(
+        "--out", default=None, help="output folder (default runs/acrobot_swingup)"
+    )
+    parser.add_argument(
+        "--workers", type=int, default=None,
+        help="processes for batch data and trials (default: the preset's, 2)",
+    )  # fmt: skip
+    parser.add_argument("--trials", type=int, default=None, help="trials per setting")
+    parser.add_argument("--episodes", type=int, default=None, help="real episodes")
+    parser.add_argument("--no-record", action="store_true", help="skip acrobot.rrd")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    args = parser.parse_args(argv)
+    config = PRESETS[args.preset]
+    changes: dict[str, Any] = {"seed": args.seed}
+    if args.workers is not None:
+        changes["workers"] = args.workers
+    if args.trials is not None:
+        changes["n_trials"] = args.trials
+    if args.episodes is not None:
+        changes["transfer"] = dataclasses.replace(
+            config.transfer, n_episodes=args.episodes
+        )
+    if args.no_record:
+        changes["record"] = False
+    if args.no_progress:
+        changes["progress"] = False
+    try:
+        config = dataclasses.replace(config, **changes)
+    except ValueError as err:
+        parser.error(str(err))
+    return config, args.out
+
+
+def cli(argv: list[str] | None = None) -> int:
+    config, out = parse_args(argv)
+    results = main(config, out)
+    m = results.metrics
+    print(f"wrote {results.out}/ (report.md, metrics.json, figures, recording)")
+    print("episodes to within 10% of the true model:", m["episodes_to_near_optimal"])
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

@@ -1,0 +1,236 @@
+"""Model-based transfer to a new instance (DESIGN §4): the per-trial protocol.
+
+For one test instance, one trial and one method:
+
+1. The agent (Sarsa(λ), Fourier basis, fresh weights) starts from
+   ``initial_planning_episodes`` simulated episodes on the method's model: the
+   prior-mean model for the HiP-MDP, the average model, or the true simulator.
+2. Then, for each of ``n_episodes`` real episodes: act and learn on the real
+   instance; filter the HiP-MDP weight belief with every transition of the episode
+   (one transition at a time, as online filtering during the episode); then run
+   ``planning_episodes`` simulated episodes on the model with the posterior-mean
+   weights (the average and true models stay as they are).
+
+Simulated episodes start from initial states of real episodes (the instance's own
+start distribution): the planning start states are the first states of every real
+episode so far plus ``n_start_states`` states drawn from the task's reset.
+
+Methods are compared on the same instances and seeds: the environment's seed and the
+agent's exploration stream depend only on (setting, trial), never on the method.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from hipmdp.data import Transitions
+from hipmdp.planning import LearnedModel, plan
+from hipmdp.sarsa import init_state
+from tasks.agents import Domain, SimulatorModel, episode_transitions, run_episode
+
+Array = np.ndarray
+
+METHODS = ("true", "average", "hipmdp")
+
+
+@dataclass(frozen=True)
+class TransferConfig:
+    """Sizes of the protocol.
+
+    Attributes:
+        n_episodes: real episodes per trial.
+        planning_episodes: simulated episodes after each real episode (paper: 5).
+        initial_planning_episodes: simulated episodes before the first real one.
+        n_start_states: reset states added to the planning start states.
+        max_steps: step limit of a real episode.
+        planning_max_steps: step limit of a simulated episode.
+    """
+
+    n_episodes: int = 10
+    planning_episodes: int = 5
+    initial_planning_episodes: int = 30
+    n_start_states: int = 20
+    max_steps: int = 500
+    planning_max_steps: int = 500
+
+    def __post_init__(self) -> None:
+        for name in ("n_episodes", "n_start_states", "max_steps", "planning_max_steps"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name}: expected >= 1, got {getattr(self, name)}")
+        for name in ("planning_episodes", "initial_planning_episodes"):
+            if int(getattr(self, name)) < 0:
+                raise ValueError(f"{name}: expected >= 0, got {getattr(self, name)}")
+
+
+class TrialJob(NamedTuple):
+    """One unit of work: ``method`` on test setting ``setting`` (params), ``trial``;
+    ``seed`` is the (setting, trial) seed sequence's entropy and spawn key."""
+
+    method: str
+    setting: int
+    trial: int
+    params: Any
+    seed: tuple[int, tuple[int, ...]]
+    record: bool
+
+
+class EpisodeTrace(NamedTuple):
+    """What the recording shows of one real episode (``T`` steps, ``K`` weights).
+
+    states: ``s_0..s_T``, shape (T + 1, D). predicted: the model's one-step
+    prediction of ``s_{t+1}`` from ``s_t`` with the model as it stood at step ``t``,
+    shape (T, D). belief_mean, belief_std: the weight belief after ``t`` transitions,
+    shape (T + 1, K) (HiP-MDP only, else None).
+    """
+
+    states: Array
+    predicted: Array
+    belief_mean: Array | None
+    belief_std: Array | None
+
+
+class TrialResult(NamedTuple):
+    """Returns and steps per real episode, shape (E,); the belief mean after each
+    episode, shape (E + 1, K) (HiP-MDP only); traces of recorded trials."""
+
+    method: str
+    setting: int
+    trial: int
+    returns: Array
+    steps: Array
+    weight_means: Array | None
+    traces: list[EpisodeTrace] | None
+
+
+# The fitted models, set once per worker process (see `set_models`): shipping them
+# with every job would copy them once per trial.
+_MODELS: dict[str, Any] = {}
+
+
+def set_models(domain: Domain, config: TransferConfig, hipmdp_model, average_model):
+    """Install what every trial needs in this process (a pool initializer)."""
+    _MODELS.update(
+        domain=domain, config=config, hipmdp=hipmdp_model, average=average_model
+    )
+
+
+def _belief_moments(belief) -> tuple[Array, Array]:
+    return np.asarray(belief.mean), np.sqrt(np.diag(np.asarray(belief.cov)))
+
+
+def run_trial(job: TrialJob) -> TrialResult:
+    """Run the protocol of the module docstring for one job."""
+    domain: Domain = _MODELS["domain"]
+    config: TransferConfig = _MODELS["config"]
+    hip = _MODELS["hipmdp"]
+    if job.method not in METHODS:
+        raise ValueError(f"method: expected one of {METHODS}, got {job.method!r}")
+    entropy, spawn_key = job.seed
+    env_seed, start_seed, agent_seed = np.random.SeedSequence(
+        entropy, spawn_key=spawn_key
+    ).spawn(3)
+    rng = np.random.default_rng(agent_seed)
+    env = domain.make_env(
+        job.params, seed=np.random.default_rng(env_seed), max_steps=config.max_steps
+    )
+    start_env = domain.make_env(job.params, seed=np.random.default_rng(start_seed))
+    starts = [
+        start_env.reset().observation["state"] for _ in range(config.n_start_states)
+    ]
+    task = domain.planning_task(job.params, config.planning_max_steps)
+    basis, sarsa = domain.basis(), domain.sarsa
+
+    belief = hip.prior() if job.method == "hipmdp" else None
+
+    def model_now():
+        if job.method == "true":
+            return SimulatorModel(domain, job.params)
+        if job.method == "average":
+            return LearnedModel(_MODELS["average"], None, domain.angle_dims)
+        return LearnedModel(hip, belief, domain.angle_dims)
+
+    model = model_now()
+    state = init_state(domain.n_actions, basis.n_features, domain.initial_value)
+    state = plan(
+        state, basis, sarsa, model, task, np.array(starts),
+        config.initial_planning_episodes, rng=rng,
+    ).state  # fmt: skip
+
+    returns, steps, weight_means, traces = [], [], [], []
+    if belief is not None:
+        weight_means.append(_belief_moments(belief)[0])
+    for episode_index in range(config.n_episodes):
+        episode = run_episode(env, basis, sarsa, state, rng=rng)
+        state = episode.state
+        returns.append(float(episode.rewards.sum()))
+        steps.append(int(episode.actions.shape[0]))
+        starts.append(episode.states[0])
+        data = episode_transitions(episode, episode_index, domain.angle_dims)
+        belief, trace = _filter_episode(model, hip, belief, data, episode, job)
+        if trace is not None:
+            traces.append(trace)
+        if belief is not None:
+            weight_means.append(_belief_moments(belief)[0])
+        model = model_now()
+        state = plan(
+            state, basis, sarsa, model, task, np.array(starts),
+            config.planning_episodes, rng=rng,
+        ).state  # fmt: skip
+    return TrialResult(
+        job.method,
+        job.setting,
+        job.trial,
+        np.array(returns),
+        np.array(steps),
+        np.array(weight_means) if weight_means else None,
+        traces if job.record else None,
+    )
+
+
+def _filter_episode(model, hip, belief, data: Transitions, episode, job: TrialJob):
+    """Filter the belief with an episode's transitions; trace it if recording.
+
+    Unrecorded trials take one batched update (equal to one update per transition,
+    see tests/test_filter.py); recorded trials filter transition by transition so the
+    recording shows the belief and the one-step predictions at every step.
+
+    Returns the belief after the episode and an :class:`EpisodeTrace` (or None).
+    """
+    if not job.record:
+        return (hip.update(belief, data) if belief is not None else None), None
+    predicted = np.empty_like(data.next_states)
+    means, stds = [], []
+    if belief is not None:
+        m, s = _belief_moments(belief)
+        means.append(m)
+        stds.append(s)
+    for t in range(len(data)):
+        predicted[t] = model.predict(data.states[t : t + 1], data.actions[t : t + 1])
+        if belief is not None:
+            belief = hip.update(belief, _row(data, t))
+            model = LearnedModel(hip, belief, model.angle_dims)
+            m, s = _belief_moments(belief)
+            means.append(m)
+            stds.append(s)
+    trace = EpisodeTrace(
+        states=episode.states,
+        predicted=predicted,
+        belief_mean=np.array(means) if means else None,
+        belief_std=np.array(stds) if stds else None,
+    )
+    return belief, trace
+
+
+def _row(data: Transitions, t: int) -> Transitions:
+    """Transition ``t`` alone."""
+    sl = slice(t, t + 1)
+    return Transitions(
+        states=data.states[sl],
+        actions=data.actions[sl],
+        next_states=data.next_states[sl],
+        instances=data.instances[sl],
+        angle_dims=data.angle_dims,
+    )

@@ -1,0 +1,110 @@
+"""Smoke test: the swing-up experiment's main runs in-process on a tiny config and
+writes every artefact with the documented schema."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import hipmdp
+from tasks.acrobot_swingup import PRESETS, SwingupConfig, main, parse_args
+from tasks.recording import rrd_contents
+from tasks.transfer import METHODS, TransferConfig
+
+TINY = SwingupConfig(
+    name="tiny",
+    train_masses=((0.7, 0.7), (1.3, 1.3), (0.7, 1.3)),
+    test_masses=((0.9, 1.1),),
+    batch_episodes=2,
+    batch_max_steps=150,
+    fit=hipmdp.FitConfig(
+        n_support=40,
+        n_sweeps=3,
+        n_chains=1,
+        n_candidates=200,
+        n_hyper=100,
+        n_smooth=150,
+        n_w=50,
+        progress=False,
+    ),  # fmt: skip
+    average_n_max=150,
+    n_trials=1,
+    transfer=TransferConfig(
+        n_episodes=2,
+        planning_episodes=1,
+        initial_planning_episodes=1,
+        n_start_states=2,
+        max_steps=60,
+        planning_max_steps=60,
+    ),  # fmt: skip
+    mse_train=15,
+    mse_test=15,
+    n_floor_settings=1,
+    workers=1,
+    progress=False,
+)
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    return main(TINY, out=tmp_path_factory.mktemp("swingup"))
+
+
+def test_artefacts_exist(run):
+    names = {p.name for p in run.out.iterdir()}
+    expected = {
+        "config.json", "metrics.json", "report.md", "learning_curves.png",
+        "weights.png", "acrobot.rrd", "hipmdp_model.npz", "batch.npz",
+    }  # fmt: skip
+    assert expected <= names
+    assert not [n for n in names if n.endswith(".tmp")]
+
+
+def test_metrics_schema(run):
+    m = json.loads((run.out / "metrics.json").read_text())
+    assert set(m["episodes_to_near_optimal"]) == set(METHODS)
+    for method in METHODS:
+        curve = m["returns"][method]
+        assert len(curve["mean"]) == TINY.transfer.n_episodes
+        assert np.all(np.array(curve["low"]) <= np.array(curve["mean"]))
+        # returns are -steps, bounded by the step limit
+        assert all(-TINY.transfer.max_steps <= r <= -1 for r in curve["mean"])
+    for method in ("hipmdp", "batch only", "train only", "batch + train"):
+        assert set(m["mse"][method]) == {
+            "dtheta1", "dtheta2", "dtheta1_dot", "dtheta2_dot"
+        }  # fmt: skip
+        assert all(v["mean"] >= 0 for v in m["mse"][method].values())
+    assert m["n_latent_features"] == len(m["z"]) - 1
+    assert json.loads((run.out / "config.json").read_text())["seed"] == 0
+
+
+def test_model_file_loads_and_predicts(run):
+    model = hipmdp.load(run.out / "hipmdp_model.npz")
+    batch = hipmdp.Transitions.load(run.out / "batch.npz")
+    mean, var = model.predict(batch.states[:5], batch.actions[:5], model.prior())
+    assert mean.shape == (5, 4) and np.all(var > 0)
+
+
+def test_recording_has_the_panels(run):
+    rows = rrd_contents(run.out / "acrobot.rrd")
+    metrics = json.loads((run.out / "metrics.json").read_text())
+    for m in METHODS:
+        assert rows[f"/returns/{m}"] == TINY.transfer.n_episodes
+    # every step of the traced trial: T + 1 poses per episode, + 1 static style row
+    hip_steps = -np.array(metrics["returns"]["hipmdp"]["mean"])  # one trial: exact
+    assert rows["/rollout/hipmdp/real"] == int(hip_steps.sum()) + len(hip_steps) + 1
+    has_belief = any(e.startswith("/belief/w") for e in rows)
+    assert has_belief == (metrics["n_latent_features"] > 0)
+
+
+def test_cli_presets_and_bad_options(capsys):
+    config, out = parse_args(["--preset", "paper", "--seed", "3", "--workers", "1"])
+    assert config.seed == 3 and config.workers == 1 and len(config.test_masses) == 16
+    assert PRESETS["quick"].preset == "quick" and out is None
+    with pytest.raises(SystemExit):
+        parse_args(["--workers", "0"])
+    assert "workers: expected >= 1" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="link_mass_1"):
+        SwingupConfig(test_masses=((0.0, 1.0),))
