@@ -28,27 +28,25 @@ import dataclasses
 import os
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
-from tqdm.auto import tqdm
 
 import hipmdp
 from hipmdp import baselines
-from hipmdp.data import Transitions
-from tasks import acrobot
 from tasks.acrobot import AcrobotParams
-from tasks.agents import ACROBOT, learn
+from tasks.agents import ACROBOT
+from tasks.batch import gather_batch
 from tasks.experiment import (
     first_episode_within,
     mean_ci,
+    pool_map,
     run_dir,
     to_jsonable,
     write_json,
 )
-from tasks.prediction import gather_split, score_instance, summarise
+from tasks.prediction import score_settings, summarise
 from tasks.transfer import METHODS, TransferConfig, TrialJob, run_trial, set_models
 
 # The paper's settings (m1, m2); the test grid is DESIGN's corrected one.
@@ -163,63 +161,8 @@ class Results(NamedTuple):
     metrics: dict[str, Any]
 
 
-def _batch_job(args) -> Transitions:
-    """Sarsa learning on one training setting, one repetition (a pool task)."""
-    instance, (m1, m2), seed, n_episodes, max_steps = args
-    entropy, spawn_key = seed
-    env_seed, agent_seed = np.random.SeedSequence(entropy, spawn_key=spawn_key).spawn(2)
-    env = acrobot.swingup(
-        _params(m1, m2), seed=np.random.default_rng(env_seed), max_steps=max_steps
-    )
-    out = learn(
-        env,
-        ACROBOT,
-        n_episodes,
-        rng=np.random.default_rng(agent_seed),
-        instance=instance,
-    )
-    return out.transitions
-
-
-def _pool(workers: int, initializer=None, initargs=()):
-    """A process pool, or None to run in this process (workers == 1)."""
-    if workers == 1:
-        if initializer is not None:
-            initializer(*initargs)
-        return None
-    return ProcessPoolExecutor(workers, initializer=initializer, initargs=initargs)
-
-
-def _map(pool, fn, jobs, desc: str, progress: bool) -> list:
-    it = map(fn, jobs) if pool is None else pool.map(fn, jobs)
-    return list(tqdm(it, total=len(jobs), desc=desc, disable=not progress))
-
-
 def _seed_of(ss: np.random.SeedSequence) -> tuple[int, tuple[int, ...]]:
     return (int(ss.entropy), tuple(int(k) for k in ss.spawn_key))
-
-
-def gather_batch(config: SwingupConfig, ss: np.random.SeedSequence) -> Transitions:
-    """Sarsa transitions on every training setting; instance ids 0..B-1."""
-    seeds = ss.spawn(len(config.train_masses) * config.batch_repetitions)
-    jobs = [
-        (
-            i,
-            masses,
-            _seed_of(seeds[i * config.batch_repetitions + r]),
-            config.batch_episodes,
-            config.batch_max_steps,
-        )
-        for i, masses in enumerate(config.train_masses)
-        for r in range(config.batch_repetitions)
-    ]
-    pool = _pool(config.workers)
-    try:
-        parts = _map(pool, _batch_job, jobs, "batch data (Sarsa)", config.progress)
-    finally:
-        if pool is not None:
-            pool.shutdown()
-    return Transitions.concatenate(parts)
 
 
 def run_transfer(config, hip, average, ss: np.random.SeedSequence) -> list:
@@ -239,34 +182,26 @@ def run_transfer(config, hip, average, ss: np.random.SeedSequence) -> list:
         for t in range(config.n_trials)
         for method in METHODS
     ]
-    initargs = (ACROBOT, config.transfer, hip, average)
-    pool = _pool(config.workers, set_models, initargs)
-    try:
-        return _map(pool, run_trial, jobs, "transfer trials", config.progress)
-    finally:
-        if pool is not None:
-            pool.shutdown()
+    return pool_map(
+        run_trial, jobs, workers=config.workers, desc="transfer trials",
+        progress=config.progress, initializer=set_models,
+        initargs=(ACROBOT, config.transfer, hip, average),
+    )  # fmt: skip
 
 
 def prediction_table(config, hip, average, batch, ss) -> dict[str, Any]:
     """The one-step MSE table on test settings, and the floor on training ones."""
-    out = {}
     groups = {
         "test": config.test_masses,
         "floor": config.train_masses[: config.n_floor_settings],
     }
-    for (label, masses), s in zip(groups.items(), ss.spawn(2), strict=True):
-        scores = []
-        rngs = [np.random.default_rng(c) for c in s.spawn(len(masses))]
-        for (m1, m2), rng in zip(
-            tqdm(masses, desc=f"prediction ({label})", disable=not config.progress),
-            rngs,
-            strict=True,
-        ):
-            train, test = gather_split(
-                ACROBOT, _params(m1, m2), config.mse_train, config.mse_test, rng=rng
-            )
-            scores.append(score_instance(hip, average, batch, train, test, rng=rng))
+    out = {}
+    for (label, masses), seed in zip(groups.items(), ss.spawn(2), strict=True):
+        scores = score_settings(
+            ACROBOT, hip, average, batch, [_params(*mm) for mm in masses],
+            n_train=config.mse_train, n_test=config.mse_test, seed=seed,
+            desc=f"prediction ({label})", progress=config.progress,
+        )  # fmt: skip
         out[label] = summarise(scores, DIM_NAMES) if scores else None
     return out
 
@@ -284,7 +219,12 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
     timings: dict[str, float] = {}
 
     t0 = time.perf_counter()
-    batch = gather_batch(config, ss_batch)
+    batch = gather_batch(
+        "acrobot", [_params(*mm) for mm in config.train_masses],
+        repetitions=config.batch_repetitions, episodes=config.batch_episodes,
+        max_steps=config.batch_max_steps, seed=ss_batch, workers=config.workers,
+        progress=config.progress,
+    )  # fmt: skip
     batch.save(path / "batch.npz", table=_table(config.train_masses))
     timings["batch_data"] = time.perf_counter() - t0
 

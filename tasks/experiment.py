@@ -125,3 +125,35 @@ def fmt_ci(ci: dict, digits: int = 3) -> str:
 def spawn_rngs(seed_seq: np.random.SeedSequence, n: int) -> list[np.random.Generator]:
     """``n`` independent generators from one seed sequence."""
     return [np.random.default_rng(s) for s in seed_seq.spawn(n)]
+
+
+def pool_map(
+    fn,
+    jobs: Sequence[Any],
+    *,
+    workers: int,
+    desc: str,
+    progress: bool,
+    initializer=None,
+    initargs: tuple = (),
+) -> list:
+    """``[fn(job) for job in jobs]`` in order, with a progress bar.
+
+    ``workers == 1`` runs in this process (``initializer`` called here); otherwise a
+    process pool of ``workers`` runs the jobs. Results never depend on ``workers``:
+    every job carries its own seed.
+    """
+    from concurrent.futures import ProcessPoolExecutor
+
+    from tqdm.auto import tqdm
+
+    if workers == 1:
+        if initializer is not None:
+            initializer(*initargs)
+        it = map(fn, jobs)
+        return list(tqdm(it, total=len(jobs), desc=desc, disable=not progress))
+    with ProcessPoolExecutor(
+        workers, initializer=initializer, initargs=initargs
+    ) as pool:
+        it = pool.map(fn, jobs)
+        return list(tqdm(it, total=len(jobs), desc=desc, disable=not progress))

@@ -129,3 +129,31 @@ def summarise(
         if m != "hipmdp"
     }
     return {"mse": mse, "loglik_difference": diff, "n_instances": len(scores)}
+
+
+def score_settings(
+    domain: Domain,
+    hip,
+    average: baselines.GPBaseline,
+    batch: Transitions,
+    instances: Sequence[Any],
+    *,
+    n_train: int,
+    n_test: int,
+    seed: np.random.SeedSequence,
+    desc: str = "prediction",
+    progress: bool = False,
+) -> list[InstanceScores]:
+    """:func:`gather_split` and :func:`score_instance` on each instance in turn,
+    each with its own stream spawned from ``seed``."""
+    from tqdm.auto import tqdm
+
+    scores = []
+    streams = seed.spawn(len(instances))
+    for params, stream in zip(
+        tqdm(instances, desc=desc, disable=not progress), streams, strict=True
+    ):
+        rng = np.random.default_rng(stream)
+        train, test = gather_split(domain, params, n_train, n_test, rng=rng)
+        scores.append(score_instance(hip, average, batch, train, test, rng=rng))
+    return scores

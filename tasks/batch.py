@@ -1,0 +1,68 @@
+"""Batch data as the paper gathers it: Sarsa(λ) agents learning on each training
+instance, every transition they see kept (``tasks.collect.collect_sarsa``).
+
+Each (instance, repetition) is one job with its own seed spawned from one
+``SeedSequence``, so the data do not depend on how many worker processes ran them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from hipmdp.data import Transitions
+from tasks.collect import collect_sarsa
+from tasks.experiment import pool_map
+
+
+def _job(args) -> Transitions:
+    domain, instance, params, seed, n_episodes, max_steps = args
+    entropy, spawn_key = seed
+    rng = np.random.default_rng(np.random.SeedSequence(entropy, spawn_key=spawn_key))
+    out = collect_sarsa(
+        domain, [params], episodes_per_instance=n_episodes, rng=rng,
+        instance_ids=[instance], max_steps=max_steps,
+    )  # fmt: skip
+    if out.diverged:
+        raise RuntimeError(f"{domain} instance {instance} diverged: {out.diverged}")
+    return out.transitions
+
+
+def gather_batch(
+    domain: str,
+    instances: Sequence[Any],
+    *,
+    repetitions: int,
+    episodes: int,
+    max_steps: int,
+    seed: np.random.SeedSequence,
+    workers: int = 1,
+    progress: bool = False,
+) -> Transitions:
+    """Sarsa transitions on every instance; instance ids ``0..B-1`` in order.
+
+    Args:
+        domain: ``"acrobot"`` or ``"cartpole"``.
+        instances: the parameter dataclasses of the training instances.
+        repetitions: independent agents per instance (paper: 5).
+        episodes: episodes per agent (paper: 30); max_steps: their step limit.
+        seed: all streams are spawned from it; workers: processes.
+    """
+    seeds = seed.spawn(len(instances) * repetitions)
+    jobs = [
+        (
+            domain,
+            b,
+            params,
+            (int(s.entropy), tuple(int(k) for k in s.spawn_key)),
+            episodes,
+            max_steps,
+        )  # fmt: skip
+        for b, params in enumerate(instances)
+        for s in seeds[b * repetitions : (b + 1) * repetitions]
+    ]
+    parts = pool_map(_job, jobs, workers=workers, desc="batch data (Sarsa)",
+                     progress=progress)  # fmt: skip
+    return Transitions.concatenate(parts)
