@@ -218,3 +218,27 @@ class DiscreteActionTask(base.Task):
 
     def get_observation(self, physics: StatePhysics) -> collections.OrderedDict:
         return collections.OrderedDict([(STATE_OBSERVATION, physics.state())])
+
+
+def pose_points(
+    model: mujoco.MjModel, states: Array, bodies: tuple[str, ...], site: str
+) -> Array:
+    """World positions of `bodies` (their frames) and `site`, posed from states.
+
+    Args:
+        model: the compiled instance; states: `(N, 2 nq)` states `(qpos, qvel)`
+        (only `qpos` is used); bodies, site: names in the model.
+
+    Returns:
+        `(N, len(bodies) + 1, 3)`, from `mj_kinematics` for each state.
+    """
+    data = mujoco.MjData(model)
+    ids = [model.body(name).id for name in bodies]
+    tip = model.site(site).id
+    out = np.empty((states.shape[0], len(ids) + 1, 3))
+    for n, state in enumerate(states):
+        data.qpos[:] = state[: model.nq]
+        mujoco.mj_kinematics(model, data)
+        out[n, :-1] = data.xpos[ids]
+        out[n, -1] = data.site_xpos[tip]
+    return out

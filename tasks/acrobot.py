@@ -43,6 +43,7 @@ from tasks._common import (
     check_params,
     load_spec,
     parameter,
+    pose_points,
     set_link,
     validate_parameters,
 )
@@ -159,19 +160,8 @@ def link_points(states: Array, params: AcrobotParams | None = None) -> Array:
     Returns:
         `(N, 3, 3)`: per state the world positions of the shoulder, elbow and tip.
     """
-    params = _check_params(params)
     states = np.atleast_2d(_check_states(states))
-    model = make_model(params)
-    data = mujoco.MjData(model)
-    bodies = [model.body("link_1").id, model.body("link_2").id]
-    tip = model.site("tip").id
-    out = np.empty((states.shape[0], 3, 3))
-    for n, state in enumerate(states):
-        data.qpos[:] = state[:2]
-        mujoco.mj_kinematics(model, data)
-        out[n, :2] = data.xpos[bodies]
-        out[n, 2] = data.site_xpos[tip]
-    return out
+    return pose_points(make_model(params), states, ("link_1", "link_2"), "tip")
 
 
 class SwingUp(DiscreteActionTask):

@@ -36,6 +36,7 @@ from tasks._common import (
     check_params,
     load_spec,
     parameter,
+    pose_points,
     set_link,
     validate_parameters,
 )
@@ -99,6 +100,21 @@ def make_model(params: CartpoleParams | None = None) -> mujoco.MjModel:
     set_link(spec.body("pole"), spec.geom("pole"), m, length, m * length**2 / 12, 1)
     spec.site("tip").pos = [0.0, 0.0, length]
     return spec.compile()
+
+
+def link_points(states: Array, params: CartpoleParams | None = None) -> Array:
+    """Cart centre, pole pivot and pole tip positions posed by MuJoCo's kinematics.
+
+    Args:
+        states: `(N, 4)` states `(x, θ, ẋ, θ̇)`; params: the instance.
+
+    Returns:
+        `(N, 3, 3)` world positions.
+    """
+    states = np.atleast_2d(np.asarray(states, dtype=float))
+    if states.shape[-1] != 4:
+        raise ValueError(f"states must have shape (N, 4), got {states.shape}")
+    return pose_points(make_model(params), states, ("cart", "pole"), "tip")
 
 
 class Physics(StatePhysics):

@@ -177,3 +177,18 @@ def test_episode_is_truncated_at_the_step_limit():
     steps = [env.step(i % 2) for i in range(3)]
     assert [s.last() for s in steps] == [False, False, True]
     assert steps[-1].discount == 1.0
+
+
+def test_link_points_follow_the_classic_kinematics():
+    from tasks.cartpole import CartpoleParams, link_points
+
+    params = CartpoleParams(cart_mass=1.0, pole_mass=0.2, pole_half_length=0.7)
+    rng = np.random.default_rng(4)
+    states = rng.uniform(-2, 2, size=(15, 4))
+    pts = link_points(states, params)
+    x, th = states[:, 0], states[:, 1]
+    np.testing.assert_allclose(pts[:, 0], np.c_[x, 0 * x, 0 * x], atol=1e-12)
+    np.testing.assert_allclose(pts[:, 1], pts[:, 0], atol=1e-12)  # pivot on the cart
+    # θ > 0 leans toward +x; the tip is 2l from the pivot
+    tip = np.c_[x + 1.4 * np.sin(th), 0 * x, 1.4 * np.cos(th)]
+    np.testing.assert_allclose(pts[:, 2], tip, atol=1e-12)
