@@ -37,7 +37,7 @@ from collections.abc import Mapping
 from typing import Any, NamedTuple
 
 import numpy as np
-from scipy import stats
+from scipy import special
 
 Array = np.ndarray
 
@@ -273,8 +273,10 @@ def _draw_box(
     """`n` draws of the distribution restricted to the box `[lows, highs]`, `(n, p)`.
 
     Uniform: `θ_j ~ U[low_j, high_j]`. Relative normal: with `μ = θ₀`, `s = σ θ₀`,
-    `θ_j = μ_j + s_j Φ⁻¹(u)`, `u ~ U[Φ(a_j), Φ(b_j)]`, `a = (low - μ) / s`,
-    `b = (high - μ) / s` — the truncated normal on `[low_j, high_j]` exactly.
+    `a = (low - μ) / s`, `b = (high - μ) / s`, `θ_j = μ_j + s_j Φ⁻¹(u)` with
+    `u ~ U[Φ(a_j), Φ(b_j)]`: the normal truncated to `[low_j, high_j]` exactly. An
+    interval above the mean is drawn as the mirror image of `[-b, -a]`, where `Φ`
+    keeps its precision (small values, not values close to 1).
     """
     if distribution.kind == "uniform":
         return rng.uniform(lows, highs, size=(n, len(lows)))
@@ -282,7 +284,10 @@ def _draw_box(
     scale = distribution.sigma * mu
     u = rng.uniform(size=(n, len(lows)))
     a, b = (lows - mu) / scale, (highs - mu) / scale
-    point = highs == lows  # a range of one point: truncnorm needs a < b
-    points = stats.truncnorm.ppf(u, a, np.where(point, a + 1, b), loc=mu, scale=scale)
-    points = np.where(point, lows, points)
+    flip = a > 0
+    a, b = np.where(flip, -b, a), np.where(flip, -a, b)
+    cdf_a, cdf_b = special.ndtr(a), special.ndtr(b)
+    z = special.ndtri(cdf_a + u * (cdf_b - cdf_a))
+    points = mu + scale * np.where(flip, -z, z)
+    points = np.where(highs == lows, lows, points)  # a range of one point
     return np.clip(points, lows, highs)  # guards the last ulp of the inverse CDF

@@ -340,7 +340,10 @@ def executor_for(workers: int, scheduler: str | None) -> Iterator[cf.Executor]:
     elif workers == 1:
         yield InlineExecutor()
     else:
-        context = multiprocessing.get_context("spawn")  # no forked MuJoCo state
+        # A fresh server process imports this module once and forks the workers:
+        # no threads or MuJoCo state of the caller are copied, no import per worker.
+        context = multiprocessing.get_context("forkserver")
+        context.set_forkserver_preload(["tasks.generate"])
         with cf.ProcessPoolExecutor(workers, mp_context=context) as pool:
             yield pool
 

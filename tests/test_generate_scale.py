@@ -1,0 +1,190 @@
+"""Generation at scale: the open-loop `mujoco.rollout` path is the environment bit
+for bit; a killed run resumes to the same bytes; corrupt shards are redone; the
+bytes do not depend on the workers (process pool, Dask); another run's directory
+is refused untouched."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from tasks import acrobot, cartpole, collect, generate, rollout, shards
+from tasks._common import wrap_scalar_angle
+
+CARTPOLES = [cartpole.CartpoleParams(), cartpole.CartpoleParams(0.5, 0.3, 0.8)]
+ACROBOTS = [acrobot.AcrobotParams(), acrobot.AcrobotParams(1.3, 0.7, 0.9, 1.1)]
+RUN = [
+    "--domain", "cartpole", "--policy", "open-loop", "--instances", "6",
+    "--shard-size", "2", "--episodes-per-instance", "3", "--seed", "11",
+    "--no-progress",
+]  # fmt: skip
+
+
+def files(directory):
+    """Every file of a run directory by name, with its bytes."""
+    return {p.name: p.read_bytes() for p in sorted(directory.iterdir())}
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    out = tmp_path_factory.mktemp("reference")
+    generate.main([*RUN, "--out", str(out)])
+    return out
+
+
+@pytest.mark.parametrize(
+    "domain, instances", [("acrobot", ACROBOTS), ("cartpole", CARTPOLES)]
+)
+def test_open_loop_equals_stepping_the_environment(domain, instances):
+    """`collect_open_loop` on instance `i` is the environment seeded with the
+    first stream of `rng.spawn(B)[i]` stepped with the actions of the second:
+    same states, actions, rewards and episode ends, exactly."""
+    spec, e_per, steps = collect.get_domain(domain), 3, 120
+    got = rollout.collect_open_loop(
+        domain,
+        instances,
+        episodes_per_instance=e_per,
+        rng=np.random.default_rng(9),
+        instance_ids=[4, 7],
+        max_steps=steps,
+        chunk=7,  # episodes end inside and across chunks
+    )
+    rows = {k: [] for k in ("states", "actions", "next_states", "rewards", "dones")}
+    for params, stream in zip(
+        instances, np.random.default_rng(9).spawn(2), strict=True
+    ):
+        init_rng, action_rng = stream.spawn(2)
+        env = spec.make_env(params, seed=init_rng, max_steps=steps)
+        actions = action_rng.integers(spec.n_actions, size=(e_per, steps))
+        for episode in range(e_per):
+            step = env.reset()
+            for a in actions[episode]:
+                s = step.observation["state"]
+                step = env.step(int(a))
+                for key, value in zip(
+                    rows,
+                    (s, a, step.observation["state"], step.reward, step.last()),
+                    strict=True,
+                ):
+                    rows[key].append(value)
+                if step.last():
+                    break
+    t = got.transitions
+    for key, values in rows.items():
+        np.testing.assert_array_equal(getattr(t, key), np.array(values), err_msg=key)
+    assert got.n_episodes == 6 and not got.diverged
+    np.testing.assert_array_equal(np.unique(t.instances), [4, 7])
+    if domain == "cartpole":  # random forces topple the pole: early ends are tested
+        assert np.count_nonzero(t.dones) == 6 and len(t) < 6 * steps
+
+
+def test_open_loop_drops_a_diverging_episode():
+    """A velocity of 1e150 makes MuJoCo reset the data (time goes back): the
+    episode is reported as diverged at its first step, its neighbours are not."""
+    s0 = np.array([[0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1e150, 0.0], [0.1, 0, 0, 0]])
+    result = rollout.rollout_episodes(
+        "acrobot", ACROBOTS, np.array([0, 0, 1]), s0, np.ones((3, 10), int), chunk=4
+    )
+    np.testing.assert_array_equal(result.diverged, [-1, 0, -1])
+    assert np.isfinite(result.states[[0, 2]]).all()
+
+
+def test_wrap_matches_the_environment_scalar_wrap():
+    x = np.array([-7.0, -np.pi, np.pi, 3 * np.pi, 1e6, -1e-300, 2 * np.pi, 5.5])
+    expected = [wrap_scalar_angle(v) for v in x]
+    np.testing.assert_array_equal(rollout.wrap(x), expected)
+
+
+def test_killed_run_resumes_to_the_bytes_of_an_uninterrupted_run(tmp_path):
+    argv = [
+        "--domain", "acrobot", "--instances", "24", "--shard-size", "1",
+        "--episodes-per-instance", "1", "--max-steps", "200", "--no-progress",
+    ]  # fmt: skip
+    killed = tmp_path / "killed"
+    run = subprocess.Popen(
+        [sys.executable, "-m", "tasks.generate", *argv, "--out", str(killed)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    deadline = time.monotonic() + 300  # a guard against hanging, not a timing check
+    while not (killed / "shard-00000.npz").exists():
+        assert run.poll() is None and time.monotonic() < deadline
+        time.sleep(0.005)
+    run.send_signal(signal.SIGKILL)
+    run.wait()
+    manifest = json.loads((killed / "manifest.json").read_text())
+    finished = [e["index"] for e in manifest["shards"] if e["sha256"]]
+    assert not manifest["complete"] and len(finished) < 24  # really interrupted
+    resumed = generate.main([*argv, "--out", str(killed), "--resume"])
+    assert set(resumed.redone) == set(range(24)) - set(finished)
+    generate.main([*argv, "--out", str(tmp_path / "whole")])
+    assert files(killed) == files(tmp_path / "whole")
+
+
+def test_corrupt_truncated_and_missing_shards_are_detected_and_redone(
+    reference, tmp_path
+):
+    run = tmp_path / "run"
+    shutil.copytree(reference, run)
+    whole = (run / "shard-00000.npz").read_bytes()
+    (run / "shard-00000.npz").write_bytes(whole[: len(whole) // 2])  # truncated
+    flipped = bytearray((run / "shard-00001.npz").read_bytes())
+    flipped[-100] ^= 1  # one bit of the last array's data
+    (run / "shard-00001.npz").write_bytes(bytes(flipped))
+    (run / "shard-00002.npz").unlink()
+    dataset = shards.Dataset(run)
+    with pytest.raises(ValueError, match="does not match its checksum"):
+        dataset.load(instances=[2])
+    with pytest.raises(ValueError, match="is not finished"):
+        dataset.load(instances=[4])
+    resumed = generate.main([*RUN, "--out", str(run), "--resume"])
+    assert resumed.redone == (0, 1, 2)
+    assert files(run) == files(reference)
+    again = generate.main([*RUN, "--out", str(run), "--resume"])
+    assert again.redone == ()
+
+
+def test_process_pool_gives_the_same_bytes(reference, tmp_path):
+    generate.main([*RUN, "--out", str(tmp_path), "--workers", "2"])
+    assert files(tmp_path) == files(reference)
+
+
+def test_dask_cluster_gives_the_same_bytes(reference, tmp_path):
+    distributed = pytest.importorskip("distributed")
+    with distributed.Client(
+        processes=False, n_workers=2, threads_per_worker=1, dashboard_address=None
+    ) as client:
+        generate.main(
+            [*RUN, "--out", str(tmp_path), "--scheduler", client.scheduler.address]
+        )
+    assert files(tmp_path) == files(reference)
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--seed", "12"], "holds a different run (seed: 11 -> 12)"),
+        (["--policy", "random"], "policy: 'open-loop' -> 'random'"),
+        ([], "pass --resume to continue it"),
+    ],
+)
+def test_another_runs_directory_is_refused_untouched(
+    reference, tmp_path, capsys, extra, message
+):
+    run = tmp_path / "run"
+    shutil.copytree(reference, run)
+    before = {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in run.iterdir()}
+    with pytest.raises(SystemExit) as stopped:
+        generate.main(
+            [*RUN, *extra, "--out", str(run)] + (["--resume"] if extra else [])
+        )
+    assert stopped.value.code == 2 and message in capsys.readouterr().err
+    after = {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in run.iterdir()}
+    assert after == before
