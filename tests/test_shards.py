@@ -1,0 +1,107 @@
+"""Shard files and the lazy dataset: shards hold what `Transitions.save` writes, with
+reproducible bytes; a run loads by instance reading only the shards it needs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hipmdp import Transitions
+from hipmdp.data import ParameterTable
+from tasks import generate, shards
+
+
+def small_batch():
+    rng = np.random.default_rng(0)
+    transitions = Transitions(
+        states=rng.normal(size=(5, 4)),
+        actions=np.array([0, 1, 1, 0, 1]),
+        next_states=rng.normal(size=(5, 4)),
+        instances=np.array([3, 3, 3, 8, 8]),
+        rewards=rng.normal(size=5),
+        dones=np.array([0, 0, 1, 0, 1], dtype=bool),
+        angle_dims=(1,),
+    )
+    table = ParameterTable(np.array([3, 8]), ("a", "b"), rng.uniform(size=(2, 2)))
+    return transitions, table
+
+
+def test_shard_bytes_hold_what_save_writes_and_are_reproducible(tmp_path):
+    transitions, table = small_batch()
+    data = shards.shard_bytes(transitions, table)
+    assert data == shards.shard_bytes(*small_batch())
+    (tmp_path / "shard.npz").write_bytes(data)
+    transitions.save(tmp_path / "saved.npz", table)
+    with (
+        np.load(tmp_path / "shard.npz", allow_pickle=False) as ours,
+        np.load(tmp_path / "saved.npz", allow_pickle=False) as saved,
+    ):
+        assert sorted(ours.files) == sorted(saved.files)
+        for key in saved.files:
+            np.testing.assert_array_equal(ours[key], saved[key])
+            assert ours[key].dtype == saved[key].dtype
+    loaded = shards.load_dataset(tmp_path / "shard.npz")
+    np.testing.assert_array_equal(loaded.next_states, transitions.next_states)
+    assert loaded.angle_dims == (1,)
+    np.testing.assert_array_equal(
+        ParameterTable.load(tmp_path / "shard.npz").values, table.values
+    )
+    assert shards.write_shard(tmp_path, 4, data) == shards.sha256(data)
+    assert (tmp_path / "shard-00004.npz").read_bytes() == data
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("run")
+    argv = ["--domain", "cartpole", "--policy", "open-loop", "--instances", "5"]
+    argv += ["--shard-size", "2", "--no-progress", "--out", str(out)]
+    generate.main(argv)
+    return out
+
+
+def test_dataset_loads_by_instance_reading_only_the_needed_shards(run, tmp_path):
+    dataset = shards.load_dataset(run / "manifest.json")
+    assert isinstance(dataset, shards.Dataset) and dataset.complete
+    np.testing.assert_array_equal(dataset.instances, [0, 1, 2, 3, 4])
+    everything = dataset.load()
+    assert len(everything) == dataset.n_transitions
+    np.testing.assert_array_equal(everything.instance_ids, [0, 1, 2, 3, 4])
+    part = dataset.load(instances=[1, 4])
+    expected = everything.select(instances=[1, 4])
+    for name in ("states", "actions", "next_states", "instances", "rewards", "dones"):
+        np.testing.assert_array_equal(getattr(part, name), getattr(expected, name))
+    # Without shard 1 (instances 2, 3), the others still load and it is named.
+    lazy = shards.Dataset(run)
+    lazy.directory = tmp_path
+    for name in ("manifest.json", "shard-00000.npz", "shard-00002.npz"):
+        (tmp_path / name).write_bytes((run / name).read_bytes())
+    assert len(lazy.load(instances=[0, 4])) == len(everything.select(instances=[0, 4]))
+    with pytest.raises(ValueError, match="shard-00001.npz is not finished"):
+        lazy.load(instances=3)
+    with pytest.raises(ValueError, match=r"instances \[9\] are not in the run"):
+        dataset.load(instances=[0, 9])
+
+
+def test_parameters_in_the_manifest_match_the_shards(run):
+    table = shards.Dataset(run).parameters
+    for index, ids in enumerate([[0, 1], [2, 3], [4]]):
+        stored = ParameterTable.load(run / shards.shard_name(index))
+        np.testing.assert_array_equal(stored.instances, ids)
+        np.testing.assert_array_equal(stored.values, table.values[ids])
+        assert stored.names == table.names
+
+
+def test_temporaries_are_removed_and_foreign_manifests_refused(tmp_path):
+    for name in (".shard-00001.npz.x1.tmp", ".manifest.json.y2.tmp", ".other.tmp"):
+        (tmp_path / name).write_bytes(b"partial")
+    removed = shards.remove_temporaries(tmp_path)
+    assert sorted(p.name for p in removed) == [
+        ".manifest.json.y2.tmp",
+        ".shard-00001.npz.x1.tmp",
+    ]
+    assert [p.name for p in tmp_path.iterdir()] == [".other.tmp"]
+    with pytest.raises(ValueError, match="no manifest.json"):
+        shards.load_dataset(tmp_path)
+    (tmp_path / "manifest.json").write_text('{"format": "something else"}')
+    with pytest.raises(ValueError, match="not a hipmdp-shards/1 manifest"):
+        shards.Dataset(tmp_path)
