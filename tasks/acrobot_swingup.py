@@ -198,7 +198,7 @@ def prediction_table(config, hip, average, batch, ss) -> dict[str, Any]:
     out = {}
     for (label, masses), seed in zip(groups.items(), ss.spawn(2), strict=True):
         scores = score_settings(
-            ACROBOT, hip, average, batch, [_params(*mm) for mm in masses],
+            ACROBOT, [hip], average, batch, [_params(*mm) for mm in masses],
             n_train=config.mse_train, n_test=config.mse_test, seed=seed,
             desc=f"prediction ({label})", progress=config.progress,
         )  # fmt: skip

@@ -6,7 +6,9 @@ gathered), split them at random into ``n_train`` transitions that the methods ma
 use and ``n_test`` held-out ones, and score each method's predicted ``Δs`` on the
 held-out ones:
 
-- ``hipmdp``: the weight belief filtered on the train transitions;
+- ``hipmdp``: the weight belief filtered on the train transitions (with several
+  independently fitted models — the paper's repeated MCMC runs — the scores are
+  averaged over them; feature labels differ between runs, scores do not);
 - ``batch only``: one GP on all batch data (the average model; the same for every
   instance);
 - ``train only``: one GP on the instance's train transitions (its own
@@ -45,6 +47,14 @@ class InstanceScores(NamedTuple):
     loglik: dict[str, float]
 
 
+class Split(NamedTuple):
+    """Train and held-out test transitions of one instance, and all gathered ones."""
+
+    train: Transitions
+    test: Transitions
+    episodes: Transitions
+
+
 def gather_split(
     domain: Domain,
     params: Any,
@@ -54,10 +64,11 @@ def gather_split(
     rng: np.random.Generator,
     n_episodes: int = 3,
     max_steps: int | None = None,
-) -> tuple[Transitions, Transitions]:
+) -> Split:
     """Transitions along Sarsa trajectories on ``params``, split at random.
 
-    Returns ``(train, test)`` with ``n_train`` and ``n_test`` disjoint transitions.
+    Returns a :class:`Split`: ``n_train`` and ``n_test`` disjoint transitions and
+    all the gathered transitions (``episodes``, in time order).
     """
     env_seed, agent_seed, split_seed = np.random.SeedSequence(
         int(rng.integers(2**63))
@@ -75,11 +86,13 @@ def gather_split(
             f" gathered in {n_episodes} episodes; raise n_episodes"
         )
     order = np.random.default_rng(split_seed).permutation(len(data))
-    return data.take(order[:n_train]), data.take(order[n_train : n_train + n_test])
+    return Split(
+        data.take(order[:n_train]), data.take(order[n_train : n_train + n_test]), data
+    )
 
 
 def score_instance(
-    hip,
+    hips: Sequence,
     average: baselines.GPBaseline,
     batch: Transitions,
     train: Transitions,
@@ -88,26 +101,39 @@ def score_instance(
     rng: np.random.Generator,
     n_max: int = 2000,
 ) -> InstanceScores:
-    """MSE per dimension and test log-likelihood of every method on ``test``."""
-    belief = hip.update(hip.prior(), train)
-    train_gp = baselines.train_only(train, rng=rng, n_actions=hip.n_actions)
+    """MSE per dimension and test log-likelihood of every method on ``test``.
+
+    ``hips``: one or more fitted HiP-MDPs; their scores are averaged.
+    """
+    train_gp = baselines.train_only(train, rng=rng, n_actions=average.n_actions)
     both_gp = baselines.batch_plus_train(
         batch, train, rng=rng, hyper=average.hyper, n_max=n_max
     )
+    beliefs = [hip.update(hip.prior(), train) for hip in hips]
     predictions = {
-        "hipmdp": hip.predict(test.states, test.actions, belief)[0],
         "batch only": average.predict(test.states, test.actions)[0],
         "train only": train_gp.predict(test.states, test.actions)[0],
         "batch + train": both_gp.predict(test.states, test.actions)[0],
     }
     loglik = {
-        "hipmdp": float(hip.log_likelihood(test, belief)),
+        "hipmdp": float(
+            np.mean(
+                [h.log_likelihood(test, b) for h, b in zip(hips, beliefs, strict=True)]
+            )
+        ),
         "batch only": float(average.log_likelihood(test)),
         "train only": float(train_gp.log_likelihood(test)),
         "batch + train": float(both_gp.log_likelihood(test)),
     }
     deltas = test.deltas
     mse = {m: np.mean((p - deltas) ** 2, axis=0) for m, p in predictions.items()}
+    mse["hipmdp"] = np.mean(
+        [
+            np.mean((h.predict(test.states, test.actions, b)[0] - deltas) ** 2, axis=0)
+            for h, b in zip(hips, beliefs, strict=True)
+        ],
+        axis=0,
+    )
     return InstanceScores(mse=mse, loglik=loglik)
 
 
@@ -133,7 +159,7 @@ def summarise(
 
 def score_settings(
     domain: Domain,
-    hip,
+    hips: Sequence,
     average: baselines.GPBaseline,
     batch: Transitions,
     instances: Sequence[Any],
@@ -154,6 +180,8 @@ def score_settings(
         tqdm(instances, desc=desc, disable=not progress), streams, strict=True
     ):
         rng = np.random.default_rng(stream)
-        train, test = gather_split(domain, params, n_train, n_test, rng=rng)
-        scores.append(score_instance(hip, average, batch, train, test, rng=rng))
+        split = gather_split(domain, params, n_train, n_test, rng=rng)
+        scores.append(
+            score_instance(hips, average, batch, split.train, split.test, rng=rng)
+        )
     return scores

@@ -1,0 +1,84 @@
+"""Smoke test: the cartpole prediction experiment's main runs in-process on a tiny
+config and writes every artefact with the documented schema."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import hipmdp
+from tasks.cartpole_prediction import DIM_NAMES, PredictionConfig, main, parse_args
+from tasks.prediction import PREDICTION_METHODS
+from tasks.recording import rrd_contents
+
+TINY = PredictionConfig(
+    train_settings=((0.1, 0.4), (0.3, 0.6), (0.2, 0.5)),
+    test_settings=((0.15, 0.45), (0.25, 0.55)),
+    batch_repetitions=1,
+    batch_episodes=3,
+    batch_max_steps=100,
+    n_runs=2,
+    fit=hipmdp.FitConfig(
+        n_support=40,
+        n_sweeps=3,
+        n_chains=1,
+        n_candidates=200,
+        n_hyper=100,
+        n_smooth=150,
+        n_w=50,
+        progress=False,
+    ),  # fmt: skip
+    average_n_max=150,
+    n_train=10,
+    n_test=10,
+    gather_episodes=3,
+    workers=1,
+    progress=False,
+)
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    return main(TINY, out=tmp_path_factory.mktemp("cartpole"))
+
+
+def test_artefacts_and_schema(run):
+    names = {p.name for p in run.out.iterdir()}
+    expected = {"config.json", "metrics.json", "report.md", "weights.png"}
+    expected |= {"cartpole.rrd", "hipmdp_run0.npz", "hipmdp_run1.npz", "batch.npz"}
+    assert expected <= names
+    m = json.loads((run.out / "metrics.json").read_text())
+    for method in PREDICTION_METHODS:
+        assert set(m["mse"][method]) == set(DIM_NAMES)
+        per_setting = np.array(m["per_setting_mse"][method])
+        assert per_setting.shape == (2, 4) and np.all(per_setting >= 0)
+        # the table's mean is the mean over settings
+        np.testing.assert_allclose(
+            [m["mse"][method][d]["mean"] for d in DIM_NAMES], per_setting.mean(0)
+        )
+    assert len(m["n_latent_features"]) == 2 and len(m["z"]) == 2
+    assert set(m["mse_ratio_to_best_baseline"]) == set(DIM_NAMES)
+
+
+def test_same_seed_same_metrics(run, tmp_path):
+    again = main(TINY, out=tmp_path)
+    a = json.loads((run.out / "metrics.json").read_text())
+    b = json.loads((again.out / "metrics.json").read_text())
+    a.pop("seconds"), b.pop("seconds")
+    assert a == b
+
+
+def test_recording(run):
+    rows = rrd_contents(run.out / "cartpole.rrd")
+    assert rows["/mse/3/hipmdp"] == len(TINY.test_settings)
+    assert rows["/belief/true/pole_mass"] == len(TINY.test_settings) * (
+        TINY.n_train + 1
+    )
+
+
+def test_cli_bad_option(capsys):
+    with pytest.raises(SystemExit):
+        parse_args(["--runs", "0"])
+    assert "n_runs: expected >= 1" in capsys.readouterr().err
