@@ -164,7 +164,7 @@ def smooth_onto_support(
         idx = idx[subsample(len(idx), n_smooth, rng=rng)]
         for d in range(D):
             post = condition(data.states[idx], deltas[idx, d], hyper.get(a, d))
-            Y[a, d, bi] = post.predict(support)[0]
+            Y[a, d, bi] = post.predict_mean(support)
     return Y
 
 

@@ -165,6 +165,11 @@ class GPPosterior(NamedTuple):
     L: Array
     hyper: GPHyper
 
+    def predict_mean(self, Xs: Array) -> Array:
+        """Predictive mean K(Xs, X) α at Xs (n_s, D), shape (n_s,)."""
+        h = self.hyper
+        return se_kernel(Xs, self.X, h.lengthscales, h.signal_var) @ self.alpha
+
     def predict(self, Xs: Array, include_noise: bool = False) -> tuple[Array, Array]:
         """Predictive mean and variance at Xs (n_s, D).
 
