@@ -1,0 +1,181 @@
+"""Export a sharded run's episodes to Minari's dataset format (Arrow storage).
+
+    python -m tasks.minari_export runs/data --out runs/minari
+
+Writes `OUT/<dataset_id>/data/` as Minari's `ArrowStorage` lays it out (Minari ≥ 0.5,
+`data_format: "arrow"`), so `minari.MinariDataset("OUT/<dataset_id>/data")` reads it
+(or copy `OUT/<dataset_id>` into Minari's datasets folder for `minari.load_dataset`):
+
+- `data/metadata.json`: `dataset_id` (default `<domain>-<policy>-v0`),
+  `minari_version` (`>=0.5.0`), `data_format`, `total_episodes`, `total_steps`, and
+  the observation space `Box(-inf, inf, (D,), float64)` and action space
+  `Discrete(A)` serialised as Minari does;
+- per episode `e`, `data/<e>/part-0.arrow` (an Arrow IPC file) with the columns
+  `observations` (`T + 1` rows, `s_0 … s_T`), `actions`, `rewards`, `terminations`
+  and `truncations` (`T` rows padded with one zero row, as Minari stores them);
+- `data/<e>/metadata.json`: `id`, `total_steps`, and the episode's `instance` id
+  and its `parameters` (`{name: value}`, from the run's manifest).
+
+`terminations[-1]` is the task's terminal test on the last state (goal reached or
+failure); otherwise the episode was cut by the step limit (`truncations[-1]`).
+
+Needs `pyarrow` (installed with rerun-sdk, which the project already depends on);
+Minari itself is not needed, and is not installed in the project's environment, so
+the export is checked by reading it back the way Minari's `ArrowStorage` does
+(`tests/test_minari_export.py`), not with Minari itself. The export is built in a
+temporary folder and renamed into place; an existing dataset is never overwritten.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from tasks import agents, shards
+from tasks.collect import get_domain
+
+Array = np.ndarray
+
+MINARI_VERSION = ">=0.5.0"
+
+
+def export(run: str | Path, out: str | Path, *, dataset_id: str | None = None) -> Path:
+    """Write the episodes of the finished run in `run` as a Minari dataset.
+
+    Args:
+        run: a run directory (or its `manifest.json`) from `tasks.generate`.
+        out: the folder to hold `<dataset_id>/data/`.
+        dataset_id: Minari's `(env_name-)(dataset_name)-v(version)`.
+
+    Returns:
+        The `data` folder written.
+
+    Raises:
+        ValueError: if the run is not complete or a shard fails its checksum, or if
+            `out/<dataset_id>` exists already (nothing is written then).
+    """
+    import pyarrow as pa
+
+    dataset = shards.Dataset(run)
+    if not dataset.complete:
+        raise ValueError(
+            f"{dataset.directory} is not a finished run; --resume it first"
+        )
+    config = dataset.manifest["config"]
+    domain = config["domain"]
+    dataset_id = dataset_id or f"{domain}-{config['policy']}-v0"
+    target = Path(out) / dataset_id
+    if target.exists():
+        raise ValueError(f"{target} exists; choose another --out or dataset id")
+    spec = get_domain(domain)
+    max_steps = config["max_steps"] or agents.DOMAINS[domain].max_steps
+    table = dataset.parameters
+    building = Path(out) / f".{dataset_id}.tmp"
+    if building.exists():
+        shutil.rmtree(building)  # a previous export killed mid-way
+    data = building / "data"
+    data.mkdir(parents=True)
+    episode, steps = 0, 0
+    for entry in dataset.manifest["shards"]:
+        transitions = dataset.load(instances=entry["instances"])
+        ends = np.flatnonzero(transitions.dones) + 1
+        for start, stop in zip(np.r_[0, ends[:-1]], ends, strict=True):
+            b = int(transitions.instances[start])
+            params = spec.params_type(**table.row(b))
+            task = agents.DOMAINS[domain].planning_task(params, max_steps)
+            last = transitions.next_states[stop - 1]
+            terminal = bool(task.terminal(last[None])[0])
+            columns = _episode_columns(transitions, start, stop, terminal)
+            folder = data / str(episode)
+            folder.mkdir()
+            batch = pa.RecordBatch.from_pydict(columns)
+            with pa.OSFile(str(folder / "part-0.arrow"), "wb") as sink:
+                with pa.ipc.new_file(sink, batch.schema) as writer:
+                    writer.write_batch(batch)
+            _write_json(
+                folder / "metadata.json",
+                {
+                    "id": episode,
+                    "total_steps": int(stop - start),
+                    "instance": b,
+                    "parameters": table.row(b),
+                },
+            )
+            episode, steps = episode + 1, steps + int(stop - start)
+    _write_json(
+        data / "metadata.json",
+        {
+            "dataset_id": dataset_id,
+            "minari_version": MINARI_VERSION,
+            "data_format": "arrow",
+            "total_episodes": episode,
+            "total_steps": steps,
+            "observation_space": json.dumps(
+                {
+                    "type": "Box",
+                    "dtype": "float64",
+                    "shape": [spec.state_dim],
+                    "low": [-np.inf] * spec.state_dim,
+                    "high": [np.inf] * spec.state_dim,
+                }
+            ),
+            "action_space": json.dumps(
+                {"type": "Discrete", "dtype": "int64", "start": 0, "n": spec.n_actions}
+            ),
+            "hipmdp_manifest": dataset.manifest["config"],
+        },
+    )
+    building.rename(target)
+    return target / "data"
+
+
+def _episode_columns(transitions, start: int, stop: int, terminal: bool) -> dict:
+    """Minari's Arrow columns for transitions `[start, stop)`: `T + 1` rows each."""
+    import pyarrow as pa
+
+    n = stop - start
+    observations = np.concatenate(
+        [transitions.states[start:stop], transitions.next_states[stop - 1 : stop]]
+    )
+    ends = np.zeros(n + 1, dtype=bool)
+    terminations, truncations = ends.copy(), ends.copy()
+    (terminations if terminal else truncations)[n - 1] = True
+    width = observations.shape[1]
+    return {
+        "observations": pa.FixedSizeListArray.from_arrays(
+            observations.reshape(-1), type=pa.list_(pa.float64(), list_size=width)
+        ),
+        "actions": pa.array(np.r_[transitions.actions[start:stop], 0], pa.int32()),
+        "rewards": pa.array(np.r_[transitions.rewards[start:stop], 0.0]),
+        "terminations": pa.array(terminations),
+        "truncations": pa.array(truncations),
+    }
+
+
+def _write_json(path: Path, content: dict) -> None:
+    path.write_text(json.dumps(content, indent=1) + "\n")
+
+
+def main(argv: Sequence[str] | None = None) -> Path:
+    parser = argparse.ArgumentParser(
+        prog="python -m tasks.minari_export", description=__doc__.splitlines()[0]
+    )
+    parser.add_argument("run", type=Path, help="run directory of tasks.generate")
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--dataset-id", default=None)
+    args = parser.parse_args(argv)
+    try:
+        path = export(args.run, args.out, dataset_id=args.dataset_id)
+    except (ValueError, ImportError) as error:
+        parser.error(str(error))
+    print(f"wrote {path}")
+    return path
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,94 @@
+"""Minari export: read back the way Minari's ArrowStorage reads (pyarrow.dataset over
+each episode folder), the episodes are the run's transitions, the ends are labelled
+by the task, and each episode carries its instance's parameters."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from tasks import cartpole, generate, minari_export, shards
+
+pa_dataset = pytest.importorskip("pyarrow.dataset")
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("run")
+    argv = ["--domain", "cartpole", "--policy", "open-loop", "--instances", "3"]
+    argv += ["--episodes-per-instance", "2", "--max-steps", "30", "--shard-size", "2"]
+    generate.main([*argv, "--no-progress", "--out", str(out)])
+    return out
+
+
+def read_episode(data, episode):
+    """What `minari.dataset._storages.arrow_storage.ArrowStorage.get_episodes`
+    does for one episode (without gymnasium's space decoding)."""
+    table = pa_dataset.dataset(
+        f"{data}/{episode}", format="arrow", ignore_prefixes=["_", ".", "metadata.json"]
+    ).to_table()
+    return {
+        "observations": np.stack(table["observations"].to_numpy(zero_copy_only=False)),
+        "actions": np.asarray(table["actions"])[:-1],
+        "rewards": np.asarray(table["rewards"])[:-1],
+        "terminations": np.asarray(table["terminations"])[:-1],
+        "truncations": np.asarray(table["truncations"])[:-1],
+    }
+
+
+def test_episodes_match_the_run_and_carry_their_parameters(run, tmp_path):
+    data = minari_export.main([str(run), "--out", str(tmp_path)])
+    assert data == tmp_path / "cartpole-open-loop-v0" / "data"
+    meta = json.loads((data / "metadata.json").read_text())
+    transitions = shards.load_dataset(run).load()
+    assert meta["data_format"] == "arrow" and meta["total_episodes"] == 6
+    assert meta["total_steps"] == len(transitions)
+    assert json.loads(meta["action_space"]) == {
+        "type": "Discrete", "dtype": "int64", "start": 0, "n": 2,
+    }  # fmt: skip
+    assert json.loads(meta["observation_space"])["shape"] == [4]
+    ends = np.flatnonzero(transitions.dones) + 1
+    table = shards.load_dataset(run).parameters
+    failures = cartpole.failed(transitions.next_states[ends - 1])
+    assert failures.any() and not failures.all()  # both kinds of ends occur
+    for e, (start, stop) in enumerate(zip(np.r_[0, ends[:-1]], ends, strict=True)):
+        episode = read_episode(data, e)
+        np.testing.assert_array_equal(
+            episode["observations"],
+            np.r_[
+                transitions.states[start:stop], transitions.next_states[stop - 1 :][:1]
+            ],
+        )
+        np.testing.assert_array_equal(
+            episode["actions"], transitions.actions[start:stop]
+        )
+        np.testing.assert_array_equal(
+            episode["rewards"], transitions.rewards[start:stop]
+        )
+        # The end is a failure (terminal) or the 30-step limit (truncation).
+        failed = bool(cartpole.failed(transitions.next_states[stop - 1]))
+        assert episode["terminations"][-1] == failed
+        assert episode["truncations"][-1] == (not failed)
+        if not failed:
+            assert stop - start == 30
+        assert not episode["terminations"][:-1].any()
+        assert not episode["truncations"][:-1].any()
+        info = json.loads((data / str(e) / "metadata.json").read_text())
+        b = int(transitions.instances[start])
+        assert info == {
+            "id": e,
+            "total_steps": int(stop - start),
+            "instance": b,
+            "parameters": table.row(b),
+        }
+
+
+def test_an_existing_export_is_not_overwritten(run, tmp_path):
+    minari_export.export(run, tmp_path, dataset_id="cartpole-mine-v1")
+    before = (tmp_path / "cartpole-mine-v1" / "data" / "metadata.json").read_bytes()
+    with pytest.raises(ValueError, match="exists"):
+        minari_export.export(run, tmp_path, dataset_id="cartpole-mine-v1")
+    after = (tmp_path / "cartpole-mine-v1" / "data" / "metadata.json").read_bytes()
+    assert after == before
