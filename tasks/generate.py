@@ -264,11 +264,16 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
 
     Raises:
         ValueError: if `config.out` holds a manifest of another run (listing the
-            differences), or of this run without `config.resume`.
+            differences), or of this run without `config.resume`, or shard files
+            without a manifest.
     """
     fresh = plan(config)
     old = shards.read_manifest(config.out)
     if old is None:
+        if any(config.out.glob("shard-*.npz")):
+            raise ValueError(
+                f"{config.out} holds shard files but no manifest; choose another --out"
+            )
         return fresh, [e["index"] for e in fresh["shards"]]
     differences = shards.config_differences(old["config"], fresh["config"])
     if differences:

@@ -167,6 +167,17 @@ def test_dask_cluster_gives_the_same_bytes(reference, tmp_path):
     assert files(tmp_path) == files(reference)
 
 
+def test_shards_without_a_manifest_are_refused_untouched(reference, tmp_path, capsys):
+    run = tmp_path / "run"
+    shutil.copytree(reference, run)
+    (run / "manifest.json").unlink()
+    before = files(run)
+    with pytest.raises(SystemExit):
+        generate.main([*RUN, "--out", str(run)])
+    assert "holds shard files but no manifest" in capsys.readouterr().err
+    assert files(run) == before
+
+
 @pytest.mark.parametrize(
     "extra, message",
     [
