@@ -169,15 +169,16 @@ def rollout_episodes(
             rewards[active[rows], t0:t1] = r.reshape(-1, t1 - t0)
             term = tasks[b].terminal(np.nan_to_num(s[rows]).reshape(-1, spec.state_dim))
             done[rows] = term.reshape(-1, t1 - t0)
-        finished = np.zeros(len(active), dtype=bool)
-        for i, e in enumerate(active):
-            first_bad = np.flatnonzero(bad[i])
-            first_done = np.flatnonzero(done[i])
-            end = first_done[0] if first_done.size else None
-            if first_bad.size and (end is None or first_bad[0] <= end):
-                diverged[e], finished[i] = t0 + first_bad[0], True
-            elif end is not None:
-                lengths[e], finished[i] = t0 + end + 1, True
+        # An episode ends at its first terminal step unless it diverged before.
+        never = t1 - t0
+        first_bad = np.where(bad.any(axis=1), bad.argmax(axis=1), never)
+        first_done = np.where(done.any(axis=1), done.argmax(axis=1), never)
+        broke = first_bad < never
+        broke &= first_bad <= first_done
+        ended = (first_done < never) & ~broke
+        diverged[active[broke]] = t0 + first_bad[broke]
+        lengths[active[ended]] = t0 + first_done[ended] + 1
+        finished = broke | ended
         physics[active] = out[:, -1]
         active = active[~finished]
         if active.size == 0:
