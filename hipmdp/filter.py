@@ -26,7 +26,7 @@ from scipy import linalg
 Array = np.ndarray
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Belief:
     """Gaussian belief over the latent weights in information form.
 
