@@ -264,8 +264,8 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
 
     Raises:
         ValueError: if `config.out` holds a manifest of another run (listing the
-            differences), or of this run without `config.resume`, or shard files
-            without a manifest.
+            differences), or of this run unfinished without `config.resume`, or
+            shard files without a manifest. (This run finished: nothing to do.)
     """
     fresh = plan(config)
     old = shards.read_manifest(config.out)
@@ -281,15 +281,21 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
             f"{config.out} holds a different run ({'; '.join(differences)}); "
             "choose another --out"
         )
-    if not config.resume:
+    layout = [(e["instances"], e["parameters"]) for e in old["shards"]]
+    if layout != [(e["instances"], e["parameters"]) for e in fresh["shards"]]:
         raise ValueError(
-            f"{config.out} already holds this run; pass --resume to continue it"
+            f"{config.out} holds this configuration but other instances (made by "
+            "another version of the code?); choose another --out"
         )
     todo = []
     for entry in old["shards"]:
         if not shards.shard_is_valid(config.out, entry):
             entry.update(sha256=None, counts=None, diverged=[])
             todo.append(entry["index"])
+    if todo and not config.resume:
+        raise ValueError(
+            f"{config.out} holds this run, unfinished; pass --resume to continue it"
+        )
     return old, todo
 
 
@@ -363,6 +369,8 @@ def generate(config: Config, *, executor: cf.Executor | None = None) -> Generate
     """
     manifest, todo = prepare(config)
     out = config.out
+    if not todo and manifest["complete"]:  # finished already: touch nothing
+        return Generated(out / shards.MANIFEST, manifest, ())
     out.mkdir(parents=True, exist_ok=True)
     shards.remove_temporaries(out)
     path = shards.write_manifest(out, manifest)

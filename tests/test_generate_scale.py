@@ -179,23 +179,33 @@ def test_shards_without_a_manifest_are_refused_untouched(reference, tmp_path, ca
 
 
 @pytest.mark.parametrize(
-    "extra, message",
+    "extra, unfinished, message",
     [
-        (["--seed", "12"], "holds a different run (seed: 11 -> 12)"),
-        (["--policy", "random"], "policy: 'open-loop' -> 'random'"),
-        ([], "pass --resume to continue it"),
+        (["--seed", "12"], False, "holds a different run (seed: 11 -> 12)"),
+        (["--policy", "random", "--resume"], False, "policy: 'open-loop' -> 'random'"),
+        ([], True, "unfinished; pass --resume to continue"),
     ],
 )
-def test_another_runs_directory_is_refused_untouched(
-    reference, tmp_path, capsys, extra, message
+def test_another_or_unfinished_run_is_refused_untouched(
+    reference, tmp_path, capsys, extra, unfinished, message
 ):
     run = tmp_path / "run"
     shutil.copytree(reference, run)
+    if unfinished:
+        (run / "shard-00001.npz").unlink()
     before = {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in run.iterdir()}
     with pytest.raises(SystemExit) as stopped:
-        generate.main(
-            [*RUN, *extra, "--out", str(run)] + (["--resume"] if extra else [])
-        )
+        generate.main([*RUN, *extra, "--out", str(run)])
     assert stopped.value.code == 2 and message in capsys.readouterr().err
+    after = {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in run.iterdir()}
+    assert after == before
+
+
+def test_a_finished_run_is_left_as_it_is(reference, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(reference, run)
+    before = {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in run.iterdir()}
+    for resume in ([], ["--resume"]):
+        assert generate.main([*RUN, *resume, "--out", str(run)]).redone == ()
     after = {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in run.iterdir()}
     assert after == before
