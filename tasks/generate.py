@@ -24,8 +24,9 @@ every shard. Streams: the instance parameters come from
 `SeedSequence(seed, spawn_key=(0, split))`, shard `k`'s episodes from
 `SeedSequence(seed, spawn_key=(1, split, k))`, so the files are the same whatever
 `--workers` or `--scheduler`. `--resume` keeps the shards whose file matches its
-checksum and redoes the others; an `OUT` holding another run's manifest is an error
-and nothing is overwritten.
+checksum and redoes the others (an unfinished run in `OUT` needs it; a finished one
+is left as it is); an `OUT` holding another run's manifest, or shards without a
+manifest, is an error and nothing is overwritten.
 
 Execution (`concurrent.futures`): in-process (`--workers 1`), a local process pool
 (`--workers N`), or a Dask cluster (`--scheduler ADDRESS`, needs
