@@ -235,6 +235,18 @@ def sarsa_update_batch(
         The new state and ``δ``, shape ``(N,)`` (zero for inactive episodes).
     """
     weights, traces = state
+    if phi.shape[0] == 1:  # one episode: the cheaper single update, same numbers
+        if not active[0]:
+            return SarsaStep(state, np.zeros(1))
+        one = sarsa_update(
+            SarsaState(weights, traces[0]), phi[0], int(actions[0]),
+            float(rewards[0]), None if terminal[0] else phi_next[0],
+            int(actions_next[0]), step_sizes, config,
+        )  # fmt: skip
+        return SarsaStep(
+            SarsaState(one.state.weights, one.state.traces[None]),
+            np.array([one.td_error]),
+        )
     rows = np.arange(phi.shape[0])
     q = np.einsum("nf,nf->n", weights[actions], phi)
     q_next = np.einsum("nf,nf->n", weights[actions_next], phi_next)

@@ -63,6 +63,15 @@ def test_learned_model_adds_mean_delta_and_wraps_angles() -> None:
     np.testing.assert_allclose(got, states + 0.5)
 
 
+def test_learned_model_prefers_a_mean_only_path() -> None:
+    class MeanOnly(PlainModel):
+        def predict_mean(self, states, actions):
+            return np.full_like(states, -1.0)
+
+    got = LearnedModel(MeanOnly()).predict(np.zeros((2, 3)), np.array([0, 1]))
+    np.testing.assert_array_equal(got, -1.0)
+
+
 def test_learned_model_rejects_bad_shapes() -> None:
     model = LearnedModel(PlainModel())
     with pytest.raises(ValueError, match="actions"):

@@ -94,6 +94,27 @@ def test_batch_update_with_one_episode_equals_single_update(kind: str) -> None:
         single, batch = one.state, many.state
 
 
+def test_batch_update_of_identical_episodes_equals_single_update() -> None:
+    """N copies of one episode: the mean step is the single step (general path)."""
+    rng = np.random.default_rng(6)
+    config = SarsaConfig(alpha=0.05, lam=0.9, gamma=0.95)
+    weights, trace = rng.normal(size=(2, 5)), rng.uniform(-1, 1, size=(2, 5))
+    phi, phi2 = rng.uniform(-1, 1, size=(2, 5))
+    alphas = np.full(5, config.alpha)
+    one = sarsa_update(SarsaState(weights, trace.copy()), phi, 1, 0.3, phi2, 0,
+                       alphas, config)  # fmt: skip
+    n = 3
+    many = sarsa_update_batch(
+        SarsaState(weights, np.tile(trace, (n, 1, 1))), np.tile(phi, (n, 1)),
+        np.ones(n, dtype=int), np.full(n, 0.3), np.tile(phi2, (n, 1)),
+        np.zeros(n, dtype=int), np.zeros(n, dtype=bool), np.ones(n, dtype=bool),
+        alphas, config,
+    )  # fmt: skip
+    np.testing.assert_allclose(many.state.weights, one.state.weights, atol=1e-12)
+    for j in range(n):
+        np.testing.assert_allclose(many.state.traces[j], one.state.traces, atol=1e-12)
+
+
 def test_batch_update_averages_active_episodes_and_ignores_inactive_ones() -> None:
     rng = np.random.default_rng(3)
     config = SarsaConfig(alpha=0.05, lam=0.9, gamma=0.95)
