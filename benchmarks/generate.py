@@ -16,8 +16,11 @@ Measured side by side in one run, in MuJoCo steps (`mj_step` calls) per second:
   instance, the paper's data).
 
 Each figure is the median of `--repeats` measurements, the kinds interleaved, so
-load from other processes hits all of them alike. Prints the ratios: open-loop /
-raw per core (target ≥ 0.5), 2 workers / 1 core (target ≥ 1.8), sarsa / raw.
+load from other processes hits all of them alike; each is given per wall-clock
+second and per CPU second of the processes doing the work (less sensitive to other
+load). Prints the ratios: open-loop / raw per core (target ≥ 0.5), 2 workers /
+1 core (target ≥ 1.8; wall-clock, and projected from CPU time: what 2 free cores
+would give), random / raw and sarsa / raw.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ import dataclasses
 import multiprocessing
 import os
 import time
+from typing import NamedTuple
 
 import mujoco
 import numpy as np
@@ -37,17 +41,35 @@ from tasks.collect import get_domain
 from tasks.rollout import MODULES
 
 
-def raw_steps_per_second(domain: str, n_control: int, *, rng) -> float:
-    """MuJoCo steps per second of plain `mj_step(model, data, n)` calls."""
+class Rate(NamedTuple):
+    """MuJoCo steps per wall-clock second and per CPU second (CPU time of the
+    processes that did the work: less sensitive to other load on the machine)."""
+
+    wall: float
+    cpu: float
+
+
+def raw_rate(domain: str, n_control: int, *, rng) -> Rate:
+    """Plain `mj_step(model, data, n)` calls with the control set each step."""
     module = MODULES[domain]
     model = module.make_model()
     data = mujoco.MjData(model)
     controls = module.ACTIONS[rng.integers(len(module.ACTIONS), size=n_control)]
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     for u in controls:
         data.ctrl[0] = u
         mujoco.mj_step(model, data, module.N_SUB_STEPS)
-    return n_control * module.N_SUB_STEPS / (time.perf_counter() - start)
+    steps = n_control * module.N_SUB_STEPS
+    return Rate(
+        steps / (time.perf_counter() - start), steps / (time.process_time() - cpu)
+    )
+
+
+def timed_run_shard(job: generate.ShardJob) -> tuple[int, float]:
+    """`run_shard` in a worker: the shard's transitions and the CPU seconds used."""
+    cpu = time.process_time()
+    output = generate.run_shard(job)
+    return output.counts["transitions"], time.process_time() - cpu
 
 
 def jobs(args, policy: str, n_shards: int, first: int = 0) -> list[generate.ShardJob]:
@@ -71,13 +93,14 @@ def jobs(args, policy: str, n_shards: int, first: int = 0) -> list[generate.Shar
     ]
 
 
-def shard_steps_per_second(batch, submit) -> float:
-    """MuJoCo steps per second of computing `batch` through `submit`."""
+def shard_rate(batch, submit) -> Rate:
+    """Computing `batch` through `submit` (which runs `timed_run_shard`)."""
     n_sub = MODULES[batch[0].domain].N_SUB_STEPS
     start = time.perf_counter()
     outputs = [f.result() for f in [submit(job) for job in batch]]
     elapsed = time.perf_counter() - start
-    return sum(o.counts["transitions"] for o in outputs) * n_sub / elapsed
+    steps = sum(n for n, _ in outputs) * n_sub
+    return Rate(steps / elapsed, steps / sum(cpu for _, cpu in outputs))
 
 
 def main(argv=None) -> None:
@@ -94,41 +117,40 @@ def main(argv=None) -> None:
     inline = generate.InlineExecutor()
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload(["tasks.generate"])
-    results: dict[str, list[float]] = {}
+    results: dict[str, list[Rate]] = {}
     with cf.ProcessPoolExecutor(2, mp_context=context) as pool:
         # Warm up both workers (imports, first compile) before any timing.
-        list(pool.map(generate.run_shard, jobs(args, "open-loop", 2, first=1000)))
+        list(pool.map(timed_run_shard, jobs(args, "open-loop", 2, first=1000)))
 
         def in_process(job):
-            return inline.submit(generate.run_shard, job)
+            return inline.submit(timed_run_shard, job)
 
         def in_pool(job):
-            return pool.submit(generate.run_shard, job)
+            return pool.submit(timed_run_shard, job)
 
         for r in range(args.repeats):
             for name, value in [
-                ("raw", raw_steps_per_second(args.domain, args.raw_steps, rng=rng)),
+                ("raw", raw_rate(args.domain, args.raw_steps, rng=rng)),
                 (
                     "open-loop 1 core",
-                    shard_steps_per_second(jobs(args, "open-loop", 1, r), in_process),
+                    shard_rate(jobs(args, "open-loop", 1, r), in_process),
                 ),
                 (
                     "open-loop 2 workers",
-                    shard_steps_per_second(
-                        jobs(args, "open-loop", 4, 10 + 4 * r), in_pool
-                    ),
+                    shard_rate(jobs(args, "open-loop", 4, 10 + 4 * r), in_pool),
                 ),
                 (
                     "random 1 core",
-                    shard_steps_per_second(jobs(args, "random", 1, r), in_process),
+                    shard_rate(jobs(args, "random", 1, r), in_process),
                 ),
                 (
                     "sarsa 1 core",
-                    shard_steps_per_second(jobs(args, "sarsa", 1, r), in_process),
+                    shard_rate(jobs(args, "sarsa", 1, r), in_process),
                 ),
             ]:
                 results.setdefault(name, []).append(value)
-    median = {name: float(np.median(v)) for name, v in results.items()}
+    wall = {name: float(np.median([r.wall for r in v])) for name, v in results.items()}
+    cpu = {name: float(np.median([r.cpu for r in v])) for name, v in results.items()}
     n_sub = MODULES[args.domain].N_SUB_STEPS
     print(
         f"{args.domain}: {n_sub} mj_step per control step; shards of "
@@ -138,15 +160,30 @@ def main(argv=None) -> None:
         f"{load[0]:.1f}/{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores "
         "(other processes make every figure noisy, the 2-worker one most)"
     )
-    for name, value in median.items():
-        spread = ", ".join(f"{v:.0f}" for v in results[name])
-        print(f"  {name:<20} {value:>10.0f} mj_step/s   ({spread})")
-    raw, one = median["raw"], median["open-loop 1 core"]
-    two = median["open-loop 2 workers"]
-    print(f"  open-loop 1 core / raw        {one / raw:5.2f}   (target >= 0.5)")
-    print(f"  open-loop 2 workers / 1 core  {two / one:5.2f}   (target >= 1.8)")
-    print(f"  random 1 core / raw           {median['random 1 core'] / raw:5.2f}")
-    print(f"  sarsa 1 core / raw            {median['sarsa 1 core'] / raw:5.2f}")
+    print(f"  {'mj_step/s':<20} {'wall':>10} {'per CPU s':>10}   (wall per repeat)")
+    for name in results:
+        spread = ", ".join(f"{r.wall:.0f}" for r in results[name])
+        print(f"  {name:<20} {wall[name]:>10.0f} {cpu[name]:>10.0f}   ({spread})")
+    one, two = "open-loop 1 core", "open-loop 2 workers"
+    print(f"  {'ratios':<32} {'wall':>6} {'CPU':>6}")
+    for label, top, bottom, target in [
+        ("open-loop 1 core / raw", one, "raw", "   (target >= 0.5)"),
+        ("random 1 core / raw", "random 1 core", "raw", ""),
+        ("sarsa 1 core / raw", "sarsa 1 core", "raw", ""),
+    ]:
+        print(
+            f"  {label:<32} {wall[top] / wall[bottom]:>6.2f} "
+            f"{cpu[top] / cpu[bottom]:>6.2f}{target}"
+        )
+    print(
+        f"  {'open-loop 2 workers / 1 core':<32} {wall[two] / wall[one]:>6.2f} "
+        f"{2 * cpu[two] / cpu[one]:>6.2f}   (target >= 1.8)"
+    )
+    print(
+        f"  the 2 workers got {wall[two] / cpu[two]:.2f} CPUs on average; the CPU "
+        "column is 2 x (2-worker rate per CPU second) / (1-core rate per CPU "
+        "second): the scaling with 2 free cores, if the per-CPU rate holds"
+    )
 
 
 if __name__ == "__main__":
