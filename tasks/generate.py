@@ -39,6 +39,7 @@ import argparse
 import concurrent.futures as cf
 import contextlib
 import dataclasses
+import importlib.util
 import json
 import multiprocessing
 from collections.abc import Iterator, Sequence
@@ -181,6 +182,11 @@ def _validate(args: argparse.Namespace) -> Config:
     for name in ("shard_size", "workers"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
+    if args.scheduler is not None:
+        if args.workers != 1:
+            raise ValueError("--workers and --scheduler are exclusive (Dask decides)")
+        if importlib.util.find_spec("distributed") is None:
+            raise ValueError('--scheduler needs Dask: pip install -e ".[dask]"')
     names = [f.name for f in dataclasses.fields(spec.params_type)]
     vary = dict(DEFAULT_VARY[args.domain])
     if args.vary:

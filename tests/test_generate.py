@@ -151,6 +151,10 @@ def test_other_policies_write_chained_episodes(tmp_path, policy):
         (["--domain", "acrobot", "--policy", "greedy"], "invalid choice"),
         (["--domain", "acrobot", "--workers", "0"], "--workers must be >= 1"),
         (["--domain", "acrobot", "--shard-size", "0"], "--shard-size must be >= 1"),
+        (
+            ["--domain", "acrobot", "--workers", "2", "--scheduler", "tcp://x:1"],
+            "--workers and --scheduler are exclusive",
+        ),
     ],
 )
 def test_bad_options_stop_with_a_message_and_write_nothing(
