@@ -53,11 +53,20 @@ def test_sarsa_swings_up_the_nominal_acrobot() -> None:
     np.testing.assert_array_equal(result.returns, -result.steps)
 
 
-@pytest.mark.parametrize("domain", [CARTPOLE, ACROBOT], ids=lambda d: d.name)
-def test_simulator_model_steps_exactly_as_the_environment(domain) -> None:
+@pytest.mark.parametrize(
+    ("domain", "params"),
+    [
+        (CARTPOLE, None),
+        (CARTPOLE, cartpole.CartpoleParams(pole_mass=0.3, pole_half_length=0.4)),
+        (ACROBOT, None),
+        (ACROBOT, acrobot.AcrobotParams(link_mass_1=1.3, link_mass_2=0.7)),
+    ],
+    ids=["cartpole", "cartpole-heavy-short", "acrobot", "acrobot-1.3-0.7"],
+)
+def test_simulator_model_steps_exactly_as_the_environment(domain, params) -> None:
     rng = np.random.default_rng(1)
-    env = domain.make_env(None, seed=1)
-    model = SimulatorModel(domain)
+    env = domain.make_env(params, seed=1)
+    model = SimulatorModel(domain, params)
     time_step = env.reset()
     states, actions, next_states = [], [], []
     while not time_step.last() and len(actions) < 60:
@@ -71,6 +80,9 @@ def test_simulator_model_steps_exactly_as_the_environment(domain) -> None:
     # The environment's qpos keeps unwrapped angles, the model starts from wrapped
     # ones: the trigonometry differs by round-off only.
     np.testing.assert_allclose(got, np.array(next_states), rtol=0, atol=1e-12)
+    if params is not None:  # the instance matters: the nominal model differs
+        nominal = SimulatorModel(domain).predict(states, actions)
+        assert np.abs(nominal - got).max() > 1e-4
     # a batch is the same as its rows one at a time
     for n in (0, len(actions) - 1):
         np.testing.assert_array_equal(got[n], model.step(states[n], int(actions[n])))
