@@ -131,27 +131,34 @@ class Generated(NamedTuple):
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m tasks.generate",
-        description="Gather transitions from instances of a domain into shards.",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add = parser.add_argument
     add("--domain", required=True, choices=sorted(DOMAINS))
     add("--instances", type=int, default=None, help="instances drawn (default 4)")
     add("--episodes-per-instance", type=int, default=2)
-    add("--seed", type=int, default=0)
+    add("--seed", type=int, default=0, help="the one seed of every stream")
     add("--out", type=Path, default=Path("runs/data"), help="run directory")
     add("--vary", action="append", metavar="NAME=LOW:HIGH", help="repeatable")
-    add("--distribution", choices=KINDS, default=None, help="default uniform")
+    add("--distribution", choices=KINDS, default=None, help="default: uniform")
     add("--grid", type=int, metavar="K", help="K points per parameter (grid)")
     add("--sigma", type=float, default=0.1, help="relative-normal: std / nominal")
-    add("--split", choices=SPLITS, default="all")
-    add("--inner-fraction", type=float, default=0.5, help="inner box share")
-    add("--policy", choices=sorted(POLICIES), default="random")
-    add("--max-steps", type=int, default=None, help="step limit per episode")
+    add(
+        "--split",
+        choices=SPLITS,
+        default="all",
+        help="train: inner box; interpolation: held-out points inside it; "
+        "extrapolation: outside it; all (default): the whole box",
+    )
+    add("--inner-fraction", type=float, default=0.5, help="inner box share per range")
+    add("--policy", choices=sorted(POLICIES), default="random", help="default: random")
+    add("--max-steps", type=int, default=None, help="step limit (default: task's)")
     add("--shard-size", type=int, default=16, help="instances per shard")
     add("--workers", type=int, default=1, help="local worker processes")
     add("--scheduler", metavar="ADDRESS", help="Dask scheduler (tcp://host:port)")
     add("--resume", action="store_true", help="continue the run in --out")
-    add("--no-progress", action="store_true")
+    add("--no-progress", action="store_true", help="no progress bar")
     return parser
 
 
