@@ -48,11 +48,21 @@ class GPBaseline:
     def state_dim(self) -> int:
         return self.hyper.signal_var.shape[1]
 
+    def predict_mean(self, states: Array, actions: Array) -> Array:
+        """Predictive mean of Δs only, (n, D): O(n) per state against the variance's
+        O(n²). states: (n, D); actions: (n,)."""
+        return self._predict(states, actions, with_var=False)[0]
+
     def predict(self, states: Array, actions: Array) -> tuple[Array, Array]:
         """Predictive mean and variance (noise included) of Δs, each (n, D).
 
         states: (n, D); actions: (n,) integers in [0, n_actions).
         """
+        return self._predict(states, actions, with_var=True)
+
+    def _predict(
+        self, states: Array, actions: Array, with_var: bool
+    ) -> tuple[Array, Array]:
         states = np.asarray(states, dtype=float)
         actions = np.asarray(actions)
         D = self.state_dim
@@ -73,6 +83,8 @@ class GPBaseline:
                 h = self.hyper.get(a, d)
                 if post is None:
                     var[idx, d] = h.signal_var + h.noise_var
+                elif not with_var:
+                    mean[idx, d] = post.predict_mean(states[idx])
                 else:
                     mean[idx, d], var[idx, d] = post.predict(
                         states[idx], include_noise=True

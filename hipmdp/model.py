@@ -180,6 +180,12 @@ class HipMDP:
         noise = self.hyper.noise_var[np.asarray(actions, dtype=int)]
         return predictive(belief, F[..., 1:], F[..., 0], noise)
 
+    def predict_mean(self, states: Array, actions: Array, belief: Belief) -> Array:
+        """Predicted Δs only, f_1(s) + F(s) μ, shape (n, D)."""
+        self._check_belief(belief)
+        F = self.basis(states, actions)
+        return F[..., 0] + F[..., 1:] @ belief.mean
+
     def log_likelihood(self, data: Transitions, belief: Belief) -> float:
         """Σ_i Σ_d log N(Δ[i,d]; mean[i,d], var[i,d]) under the predictive of `predict`
         (each transition and dimension scored on its own marginal)."""

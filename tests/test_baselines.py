@@ -50,6 +50,7 @@ def test_prediction_is_the_dense_gp_formula():
             )
             dense_var = h.signal_var + h.noise_var - k @ np.linalg.solve(C, k)
             assert var[i, d] == pytest.approx(dense_var, abs=1e-8)
+    np.testing.assert_allclose(model.predict_mean(Xs, acts), mean, atol=1e-12)
     r = deltas - model.predict(batch.states, batch.actions)[0]
     v = model.predict(batch.states, batch.actions)[1]
     dense_ll = np.sum(-0.5 * r**2 / v - 0.5 * np.log(2 * np.pi * v))

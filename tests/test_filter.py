@@ -106,6 +106,8 @@ def test_batch_update_equals_single_updates_and_conjugate_posterior():
     pm, pv = model.predict(data.states[:3], data.actions[:3], batch)
     noise = model.hyper.noise_var[data.actions[:3]].reshape(-1)
     np.testing.assert_allclose(pm.reshape(-1), f1[:6] + X[:6] @ mean, atol=1e-9)
+    pm_only = model.predict_mean(data.states[:3], data.actions[:3], batch)
+    np.testing.assert_allclose(pm_only, pm, atol=1e-12)
     np.testing.assert_allclose(
         pv.reshape(-1), noise + np.einsum("ik,kj,ij->i", X[:6], cov, X[:6]), atol=1e-9
     )
