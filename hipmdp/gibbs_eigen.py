@@ -101,8 +101,11 @@ def f_posterior(Yt_r: Array, W: Array, lam: Array, noise: float) -> FPosterior:
 
     Yt_r: (B, m); W: (B, k); lam: (m,); noise: σ². O(k B m + k³).
     """
-    gamma, V = np.linalg.eigh(W.T @ W)
-    gamma = np.maximum(gamma, 0.0)[:, None]
+    if W.shape[1] == 1:  # one feature: γ = ‖w‖², V = [[1]]
+        gamma, V = np.array([[float(W[:, 0] @ W[:, 0])]]), np.ones((1, 1))
+    else:
+        gamma, V = np.linalg.eigh(W.T @ W)
+        gamma = np.maximum(gamma, 0.0)[:, None]
     denom = gamma * lam + noise
     mean_g = lam / denom * (V.T @ (W.T @ Yt_r))
     return FPosterior(V @ mean_g, V, lam * noise / denom)
