@@ -135,34 +135,57 @@ def w_posterior(
     return cov @ h, 0.5 * (cov + cov.T)
 
 
+SMALL = 1e-5  # γλ/σ² at most this: the direction's terms are series-summed (new_llr)
+
+
 def new_llr(Et: Array, W: Array, lam: Array, noise: float) -> Array:
     """log N(Ẽ; 0, W_n W_nᵀ ⊗ Λ + σ²I) − log N(Ẽ; 0, σ²I) for each draw W_n (B, k).
 
     With W_nᵀW_n = V diag(γ) Vᵀ the covariance has eigenvalues γ_i λ_j + σ² along
-    (W_n v_i/√γ_i) ⊗ u_j and σ² elsewhere, so with A = Vᵀ W_nᵀ Ẽ (k, m):
+    (W_n v_i/√γ_i) ⊗ u_j and σ² elsewhere, so with c = λ/σ², a_i = W_n v_i (B,) and
+    A_ij = a_iᵀ Ẽ[:, j]:
 
-        llr = ½ Σ_ij A_ij² λ_j / (σ² (γ_i λ_j + σ²)) − ½ Σ_ij log(1 + γ_i λ_j / σ²)
+        llr = ½ Σ_ij A_ij² c_j / (σ² (1 + γ_i c_j)) − ½ Σ_ij log(1 + γ_i c_j)
+
+    The projection for all draws is one (n·k, B) × (B, m) product. Eigen-directions
+    with x = γ_max c_j ≤ SMALL (for a smooth kernel many of them) are summed in
+    closed form by the series 1/(1+x) = 1 − x + x² and log(1+x) = x − x²/2 + x³/3,
+    relative error ≤ x³ ≤ 1e-15:
+    Σ_j A_ij² c_j/(1+γc_j) ≈ a_iᵀ(M₁ − γ_i M₂ + γ_i² M₃)a_i, M_p = Ẽ_s diag(c_sᵖ) Ẽ_sᵀ
+    (B, B), and Σ_j log(1+γc_j) ≈ γ_i S₁ − γ_i² S₂/2 + γ_i³ S₃/3, S_p = Σ c_jᵖ.
+    That makes a draw O(B² + B m_big) instead of O(B m).
 
     Et: residual in eigen-coordinates (B, m); W: (n, B, k); lam (m,). Returns (n,).
-    The projection W_nᵀẼ for all draws is one (n·k, B) × (B, m) product.
     """
     n, B, k = W.shape
-    A = (W.transpose(0, 2, 1).reshape(n * k, B) @ Et).reshape(n, k, -1)
-    if W.shape[2] == 1:
-        gamma = np.einsum("nb,nb->n", W[:, :, 0], W[:, :, 0])[:, None, None]
+    if k == 1:
+        gamma = np.einsum("nb,nb->n", W[:, :, 0], W[:, :, 0])[:, None]
+        a = W  # (n, B, 1)
     else:
         gamma, V = np.linalg.eigh(np.einsum("nbk,nbl->nkl", W, W))
-        A = np.swapaxes(V, 1, 2) @ A
-        gamma = np.maximum(gamma, 0.0)[:, :, None]
-    c = lam / noise  # λ_j/σ², so the terms are A² c/(σ²(1 + γc)) and log(1 + γc)
-    D = gamma * c
-    D += 1.0
+        gamma = np.maximum(gamma, 0.0)
+        a = W @ V  # columns a_i = W v_i
+    c = lam / noise
+    small = c * max(float(gamma.max(initial=0.0)), 1e-300) <= SMALL
+    cb = c[~small]
+    # large eigenvalues: exact terms, A = aᵀẼ_big (n, k, m_big)
+    A = (a.transpose(0, 2, 1).reshape(n * k, B) @ Et[:, ~small]).reshape(n, k, -1)
+    Dm = gamma[:, :, None] * cb
+    Dm += 1.0
     A *= A
-    A *= c / noise
-    A /= D
+    A *= cb / noise
+    A /= Dm
     quad = A.sum(axis=(1, 2))
-    np.log(D, out=D)  # log(1 + γc) vs log1p: absolute error < 1e-16 per term
-    return 0.5 * (quad - D.sum(axis=(1, 2)))
+    np.log(Dm, out=Dm)  # log(1 + γc) vs log1p: absolute error < 1e-16 per term
+    logdet = Dm.sum(axis=(1, 2))
+    if small.any():  # small eigenvalues: closed-form series sums
+        Es, cs = Et[:, small], c[small]
+        q = [np.einsum("nbi,bc,nci->ni", a, (Es * cs**p) @ Es.T, a) for p in (1, 2, 3)]
+        S = [np.sum(cs**p) for p in (1, 2, 3)]
+        quad += np.sum(q[0] - gamma * q[1] + gamma**2 * q[2], axis=1) / noise
+        g = gamma
+        logdet += np.sum(g * S[0] - g**2 * S[1] / 2 + g**3 * S[2] / 3, axis=1)
+    return 0.5 * (quad - logdet)
 
 
 def z_llr(Et: Array, w: Array, lam: Array, noise: float) -> float:

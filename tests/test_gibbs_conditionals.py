@@ -82,6 +82,27 @@ def test_new_feature_llr_matches_dense(k):
     np.testing.assert_allclose(got, want, atol=TOL, rtol=TOL)
 
 
+@pytest.mark.parametrize("k", [1, 2])
+def test_new_feature_llr_near_singular_kernel_matches_dense(k):
+    """A smooth SE kernel on 40 close points: most eigenvalues fall below SMALL and
+    take the closed-form path of new_llr; it still equals the dense value."""
+    rng = np.random.default_rng(20 + k)
+    X = rng.uniform(-1, 1, size=(40, 2))
+    K = np.exp(-0.5 * ((X[:, None] - X[None]) ** 2).sum(-1) / 1.5**2)
+    data = GibbsData(rng.normal(size=(1, 3, 40)), K[None], np.array([0.05]))
+    cache = fast.prepare(data)
+    W = rng.normal(size=(5, 3, k))
+    gmax = np.linalg.eigvalsh(np.swapaxes(W, 1, 2) @ W).max()
+    n_small = np.sum(cache.lam[0] / 0.05 * gmax <= fast.SMALL)
+    assert 10 <= n_small < 40  # both paths are exercised
+    E = rng.normal(size=(3, 40))
+    got = fast.new_llr(E @ cache.U[0], W, cache.lam[0], 0.05)
+    # the dense reference with the same (floored) spectrum
+    K_eff = cache.U[0] @ np.diag(cache.lam[0]) @ cache.U[0].T
+    want = [dense.marginal_llr(E, Wn, K_eff, 0.05) for Wn in W]
+    np.testing.assert_allclose(got, want, atol=TOL, rtol=TOL)
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_log_joint_and_marginal_match_dense(seed):
     data, st, _ = random_problem(seed)
