@@ -128,10 +128,11 @@ def rollout_episodes(
     qpos_at = mujoco.mj_stateSize(models[0], mujoco.mjtState.mjSTATE_TIME)
     data = mujoco.MjData(models[0])
     physics = np.zeros((n_episodes, mujoco.mj_stateSize(models[0], STATE_SPEC)))
+    scratch = [mujoco.MjData(model) for model in models]  # MjData is costly to make
     for e, (b, s0) in enumerate(zip(episode_instance, initial_states, strict=True)):
-        full = mujoco.MjData(models[b])
-        full.qpos[:], full.qvel[:] = s0[:nq], s0[nq:]
-        mujoco.mj_getState(models[b], full, physics[e], STATE_SPEC)
+        mujoco.mj_resetData(models[b], scratch[b])  # what env.reset() starts from
+        scratch[b].qpos[:], scratch[b].qvel[:] = s0[:nq], s0[nq:]
+        mujoco.mj_getState(models[b], scratch[b], physics[e], STATE_SPEC)
 
     states = np.zeros((n_episodes, n_steps + 1, spec.state_dim))
     states[:, 0] = initial_states
@@ -235,39 +236,28 @@ def collect_open_loop(
         chunk=chunk,
     )
     actions = np.concatenate(actions)
-    parts, diverged = [], []
-    for e, b in enumerate(episode_instance):
-        if result.diverged[e] >= 0:
-            step = int(result.diverged[e])
-            diverged.append(Divergence(ids[b], e % e_per, step, "MuJoCo reset or NaN"))
-            continue
-        n = int(result.lengths[e])
-        dones = np.zeros(n, dtype=bool)
-        dones[-1] = True
-        parts.append(
-            Transitions(
-                states=result.states[e, :n],
-                actions=actions[e, :n],
-                next_states=result.states[e, 1 : n + 1],
-                instances=np.full(n, ids[b]),
-                rewards=result.rewards[e, :n],
-                dones=dones,
-                angle_dims=spec.angle_dims,
-            )
+    diverged = [
+        Divergence(
+            ids[episode_instance[e]], e % e_per, int(step), "MuJoCo reset or NaN"
         )
-    if parts:
-        transitions = Transitions.concatenate(parts)
-    else:
-        empty = np.zeros((0, spec.state_dim))
-        transitions = Transitions(
-            empty,
-            np.zeros(0, int),
-            empty,
-            np.zeros(0, int),
-            np.zeros(0),
-            np.zeros(0, bool),
-            angle_dims=spec.angle_dims,
-        )
+        for e, step in enumerate(result.diverged)
+        if step >= 0
+    ]
+    # Step t of episode e is kept if t < length and e did not diverge; boolean
+    # indexing keeps the episodes in order and each one's steps in order.
+    t = np.arange(n_steps)[None, :]
+    kept = (t < result.lengths[:, None]) & (result.diverged[:, None] < 0)
+    transitions = Transitions(
+        states=result.states[:, :-1][kept],
+        actions=actions[kept],
+        next_states=result.states[:, 1:][kept],
+        instances=np.broadcast_to(np.array(ids)[episode_instance][:, None], kept.shape)[
+            kept
+        ],
+        rewards=result.rewards[kept],
+        dones=(t == result.lengths[:, None] - 1)[kept],
+        angle_dims=spec.angle_dims,
+    )
     table = ParameterTable(
         instances=np.array(ids),
         names=parameter_names(spec.params_type),
