@@ -17,7 +17,15 @@ from scipy.special import expit
 
 from hipmdp import gibbs_dense as dense
 from hipmdp import gibbs_eigen as fast
-from hipmdp.gibbs import GibbsData, GibbsPriors, init_state, prepare, run_chains
+from hipmdp.gibbs import (
+    GibbsData,
+    GibbsPriors,
+    init_state,
+    log_joint,
+    log_marginal,
+    prepare,
+    run_chains,
+)
 from hipmdp.gibbs_model import harmonic, sample_mu_w
 from hipmdp.gibbs_sweep import z_step_row
 
@@ -186,6 +194,10 @@ def test_same_seed_same_chain():
         np.testing.assert_array_equal(
             getattr(runs[0].best, name), getattr(runs[1].best, name)
         )
+    # the kept state is the one scored (not aliased by later sweeps)
+    best = runs[0].best
+    assert log_joint(best, data, priors) == pytest.approx(runs[0].best_log_joint)
+    assert log_marginal(best, data, priors) == pytest.approx(runs[0].best_score)
     other = run_chains(
         data,
         priors,
