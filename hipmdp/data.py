@@ -13,8 +13,10 @@ can travel in the same file.
 
 from __future__ import annotations
 
+import io
 import os
 import tempfile
+import zipfile
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +26,8 @@ import numpy as np
 Array = np.ndarray
 
 FORMAT_VERSION = 1
+#: Every archive member gets this date (the zip epoch), so files are reproducible.
+ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 
 
 def wrap_angle(x: Array | float) -> Array:
@@ -47,12 +51,34 @@ def atomic_write(path: str | os.PathLike, write) -> Path:
             write(fh)
             fh.flush()
             os.fsync(fh.fileno())
+        # mkstemp creates 0600; give the file the mode a plain open() would
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
     return path
+
+
+def npz_bytes(arrays: dict[str, Array]) -> bytes:
+    """An ``.npz`` archive of ``arrays`` whose bytes depend only on the arrays.
+
+    ``np.savez`` stamps the current time into every member; here members are
+    stored uncompressed with the date ``ZIP_DATE``, so equal data give equal bytes
+    (and equal checksums). Readable by ``np.load(..., allow_pickle=False)``.
+    """
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_STORED) as archive:
+        for key, value in arrays.items():
+            member = io.BytesIO()
+            np.lib.format.write_array(member, np.asarray(value), allow_pickle=False)
+            info = zipfile.ZipInfo(f"{key}.npy", date_time=ZIP_DATE)
+            info.external_attr = 0o644 << 16
+            archive.writestr(info, member.getvalue())
+    return buffer.getvalue()
 
 
 def _finite_float(name: str, x, shape_desc: str, ndim: int) -> Array:
@@ -316,16 +342,11 @@ class Transitions:
 
     # -- files ---------------------------------------------------------------------
 
-    def save(
-        self, path: str | os.PathLike, table: ParameterTable | None = None
-    ) -> Path:
-        """Write an ``.npz`` (no pickle) atomically; optionally with the parameters.
+    def arrays(self, table: ParameterTable | None = None) -> dict[str, Array]:
+        """The arrays of the file format (what :meth:`save` writes).
 
         Every instance in the data must have a row in ``table`` if one is given.
         """
-        path = Path(path)
-        if path.suffix != ".npz":
-            raise ValueError(f"path: expected a .npz file name, got {path.name!r}")
         arrays: dict[str, Array] = {
             "format_version": np.array(FORMAT_VERSION),
             "states": self.states,
@@ -347,11 +368,47 @@ class Transitions:
                     f"table: no parameters for instances {missing.tolist()[:10]}"
                 )
             arrays.update(table._arrays())
-        return atomic_write(path, lambda fh: np.savez(fh, **arrays))
+        return arrays
+
+    def save(
+        self, path: str | os.PathLike, table: ParameterTable | None = None
+    ) -> Path:
+        """Write an ``.npz`` (no pickle) atomically; optionally with the parameters.
+
+        The bytes depend only on the data (see :func:`npz_bytes`).
+        """
+        path = Path(path)
+        if path.suffix != ".npz":
+            raise ValueError(f"path: expected a .npz file name, got {path.name!r}")
+        data = npz_bytes(self.arrays(table))
+        return atomic_write(path, lambda fh: fh.write(data))
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> Transitions:
-        """Read a file written by :meth:`save` (``allow_pickle=False``)."""
+    def load(
+        cls,
+        path: str | os.PathLike,
+        instances: int | Iterable[int] | None = None,
+    ) -> Transitions:
+        """Read a file written by :meth:`save` (``allow_pickle=False``), or a sharded
+        dataset (its directory or ``manifest.json``, see :mod:`hipmdp.shards`).
+
+        Args:
+            path: an ``.npz`` file (or an open binary file), a run directory or its
+                manifest.
+            instances: only these instance ids; a sharded dataset then reads only
+                the shards that hold them (each checked against its checksum).
+        """
+        if isinstance(path, str | os.PathLike):
+            path = Path(path)
+            if path.is_dir() or path.suffix == ".json":
+                from hipmdp.shards import Dataset  # shards builds on this module
+
+                return Dataset(path).load(instances=instances)
+        data = cls._load_file(path)
+        return data if instances is None else data.select(instances=instances)
+
+    @classmethod
+    def _load_file(cls, path) -> Transitions:
         with np.load(path, allow_pickle=False) as f:
             version = int(f["format_version"]) if "format_version" in f else None
             if version != FORMAT_VERSION:

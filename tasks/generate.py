@@ -17,7 +17,7 @@ Policies: `random` (uniform actions on the dm_control environment), `sarsa` (an
 ε-greedy Sarsa(λ) agent learning per instance, the paper's way) and `open-loop`
 (random action sequences, many instances at once with `mujoco.rollout`).
 
-Output (`tasks.shards`): `OUT/shard-XXXXX.npz`, one per `--shard-size` instances,
+Output (`hipmdp.shards`): `OUT/shard-XXXXX.npz`, one per `--shard-size` instances,
 each written to a temporary name and renamed, and `OUT/manifest.json` (config, seed,
 each shard's instances, parameters, counts and SHA-256), rewritten atomically after
 every shard. Streams: the instance parameters come from
@@ -30,7 +30,8 @@ manifest, is an error and nothing is overwritten.
 
 Execution (`concurrent.futures`): in-process (`--workers 1`), a local process pool
 (`--workers N`), or a Dask cluster (`--scheduler ADDRESS`, needs
-`pip install -e ".[dask]"`). Read the result with `tasks.shards.load_dataset(OUT)`.
+`pip install -e ".[dask]"`). Read the result with
+`hipmdp.Transitions.load(OUT, instances=...)` or `hipmdp.shards.Dataset(OUT)`.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from tqdm import tqdm
 
-from tasks import shards
+from hipmdp import shards
 from tasks.collect import DOMAINS, collect, collect_sarsa, get_domain
 from tasks.distributions import KINDS, SPLITS, Distribution, draw
 from tasks.rollout import collect_open_loop

@@ -36,7 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-from tasks import agents, shards
+from hipmdp import shards
+from tasks import agents
 from tasks.collect import get_domain
 
 Array = np.ndarray

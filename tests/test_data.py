@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -145,17 +147,18 @@ def test_bad_save_writes_nothing(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_failed_write_leaves_old_file_intact(tmp_path, monkeypatch):
-    t = make()
-    path = t.save(tmp_path / "d.npz")
+def test_failed_write_leaves_old_file_intact(tmp_path):
+    from hipmdp.data import atomic_write
+
+    path = make().save(tmp_path / "d.npz")
     before = path.read_bytes()
 
-    def boom(*args, **kwargs):
-        raise RuntimeError("disk full")
+    def dies_halfway(fh):
+        fh.write(b"half a file")
+        raise RuntimeError("killed")
 
-    monkeypatch.setattr(np, "savez", boom)
-    with pytest.raises(RuntimeError, match="disk full"):
-        make(seed=5).save(path)
+    with pytest.raises(RuntimeError, match="killed"):
+        atomic_write(path, dies_halfway)
     assert path.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["d.npz"]  # no temp file left
 
@@ -199,3 +202,32 @@ def test_take_by_mask_and_by_indices():
     assert len(t.head(5)) == 5 and len(t.head(50)) == 20
     with pytest.raises(ValueError, match="index: expected a mask"):
         t.take(np.ones(3, dtype=bool))
+
+
+def test_save_is_byte_reproducible_and_world_readable(tmp_path, monkeypatch):
+    import time
+    import zipfile
+
+    t = make(n=30)
+    a = t.save(tmp_path / "a.npz", table=table_for(t)).read_bytes()
+    # a later clock must not change the bytes (np.savez would stamp the time)
+    monkeypatch.setattr(
+        time, "localtime", lambda *_: time.struct_time((2031,) + (1,) * 8)
+    )
+    b = t.save(tmp_path / "b.npz", table=table_for(t)).read_bytes()
+    assert a == b
+    with zipfile.ZipFile(tmp_path / "a.npz") as z:
+        assert {i.date_time for i in z.infolist()} == {(1980, 1, 1, 0, 0, 0)}
+    umask = os.umask(0o022)
+    try:
+        mode = t.save(tmp_path / "c.npz").stat().st_mode & 0o777
+    finally:
+        os.umask(umask)
+    assert mode == 0o644
+
+
+def test_load_selects_instances(tmp_path):
+    t = make(n=40)
+    path = t.save(tmp_path / "d.npz")
+    u = Transitions.load(path, instances=[1, 3])
+    np.testing.assert_array_equal(u.states, t.select(instances=[1, 3]).states)

@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from hipmdp import Transitions
+from hipmdp import Transitions, shards
 from hipmdp.data import ParameterTable
-from tasks import collect, generate, shards
+from tasks import collect, generate
 from tasks.acrobot import AcrobotParams
 
 TINY = ["--instances", "3", "--episodes-per-instance", "2", "--max-steps", "10"]

@@ -15,7 +15,8 @@ import time
 import numpy as np
 import pytest
 
-from tasks import acrobot, cartpole, collect, generate, rollout, shards
+from hipmdp import shards
+from tasks import acrobot, cartpole, collect, generate, rollout
 from tasks._common import wrap_scalar_angle
 
 CARTPOLES = [cartpole.CartpoleParams(), cartpole.CartpoleParams(0.5, 0.3, 0.8)]

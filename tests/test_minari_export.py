@@ -9,7 +9,8 @@ import json
 import numpy as np
 import pytest
 
-from tasks import cartpole, generate, minari_export, shards
+from hipmdp import shards
+from tasks import cartpole, generate, minari_export
 
 pa_dataset = pytest.importorskip("pyarrow.dataset")
 

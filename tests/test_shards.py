@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hipmdp import Transitions
+from hipmdp import Transitions, shards
 from hipmdp.data import ParameterTable
-from tasks import generate, shards
+from tasks import generate
 
 
 def small_batch():
@@ -105,3 +105,12 @@ def test_temporaries_are_removed_and_foreign_manifests_refused(tmp_path):
     (tmp_path / "manifest.json").write_text('{"format": "something else"}')
     with pytest.raises(ValueError, match="not a hipmdp-shards/1 manifest"):
         shards.Dataset(tmp_path)
+
+
+def test_transitions_load_reads_a_run_directory_or_its_manifest(run):
+    everything = shards.Dataset(run).load()
+    np.testing.assert_array_equal(Transitions.load(run).states, everything.states)
+    some = Transitions.load(run / shards.MANIFEST, instances=[0, 4])
+    expected = everything.select(instances=[0, 4])
+    np.testing.assert_array_equal(some.states, expected.states)
+    np.testing.assert_array_equal(some.instances, expected.instances)

@@ -28,21 +28,18 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import zipfile
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from hipmdp.data import FORMAT_VERSION, ParameterTable, Transitions, atomic_write
+from hipmdp.data import ParameterTable, Transitions, atomic_write, npz_bytes
 
 Array = np.ndarray
 
 FORMAT = "hipmdp-shards/1"
 MANIFEST = "manifest.json"
-#: A fixed member date (the zip epoch) keeps archives byte-reproducible.
-ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 
 
 def shard_name(index: int) -> str:
@@ -51,35 +48,9 @@ def shard_name(index: int) -> str:
 
 
 def shard_bytes(transitions: Transitions, table: ParameterTable) -> bytes:
-    """An `.npz` archive with the arrays `Transitions.save(path, table)` writes.
-
-    Members are `.npy` files stored uncompressed with the date `ZIP_DATE`, so equal
-    inputs give equal bytes.
-    """
-    arrays: dict[str, Array] = {
-        "format_version": np.array(FORMAT_VERSION),
-        "states": transitions.states,
-        "actions": transitions.actions,
-        "next_states": transitions.next_states,
-        "instances": transitions.instances,
-        "angle_dims": np.array(transitions.angle_dims, dtype=np.int64),
-    }
-    if transitions.rewards is not None:
-        arrays["rewards"] = transitions.rewards
-    if transitions.dones is not None:
-        arrays["dones"] = transitions.dones
-    arrays["table_instances"] = table.instances
-    arrays["table_names"] = np.array(table.names, dtype=np.str_)
-    arrays["table_values"] = table.values
-    buffer = io.BytesIO()
-    with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_STORED) as archive:
-        for key, value in arrays.items():
-            member = io.BytesIO()
-            np.lib.format.write_array(member, np.asarray(value), allow_pickle=False)
-            info = zipfile.ZipInfo(f"{key}.npy", date_time=ZIP_DATE)
-            info.external_attr = 0o644 << 16
-            archive.writestr(info, member.getvalue())
-    return buffer.getvalue()
+    """The bytes `Transitions.save(path, table)` writes (reproducible, see
+    `hipmdp.data.npz_bytes`)."""
+    return npz_bytes(transitions.arrays(table))
 
 
 def sha256(data: bytes) -> str:
