@@ -251,3 +251,20 @@ def test_bad_priors_raise(field, bad):
     priors = GibbsPriors(alpha=1.0, sigma_w=1.0, sigma_w0=1.0, n_w=5)
     with pytest.raises(ValueError, match=field):
         init_state(data, priors._replace(**{field: bad}), rng=np.random.default_rng(0))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "field"),
+    [
+        ({"n_sweeps": 0}, "n_sweeps"),
+        ({"n_chains": 1.5}, "n_chains"),
+        ({"anneal": 5}, "anneal"),
+        ({"select": "mean"}, "select"),
+    ],
+)
+def test_bad_run_chains_arguments_raise(kwargs, field):
+    data, _ = small_problem(13)
+    priors = GibbsPriors(alpha=1.0, sigma_w=1.0, sigma_w0=1.0, n_w=5)
+    args = {"n_sweeps": 5, "n_chains": 1, "progress": False} | kwargs
+    with pytest.raises(ValueError, match=field):
+        run_chains(data, priors, rng=np.random.default_rng(0), **args)
