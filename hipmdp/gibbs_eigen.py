@@ -15,7 +15,8 @@ eigen-index j, so:
   WᵀW = V diag(γ) Vᵀ (k × k): variance λσ²/(γλ + σ²), O(k B m) per row;
 - z-decision: (w wᵀ) ⊗ K + σ²I has eigenvalues ‖w‖²λ_j + σ² along w/‖w‖ ⊗ u_j and
   σ² elsewhere: only the projection p = wᵀẼ (m,) of the residual is needed, O(B m);
-- new features: the same for each of N_w weight draws, reusing Ẽ: O(N_w B m);
+- new features: the same for each of N_w weight draws, reusing Ẽ: O(N_w B m), or
+  O(N_w B m_big) when eigen-directions with tiny λ are series-summed (`new_llr`);
 - w-block: inner products Σ_j f̃f̃ are rotation invariant; the precision is shared by
   all instances.
 

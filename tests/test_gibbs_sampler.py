@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.special import expit
+from scipy.stats import poisson
 
 from hipmdp import gibbs_dense as dense
 from hipmdp import gibbs_eigen as fast
@@ -27,7 +28,7 @@ from hipmdp.gibbs import (
     run_chains,
 )
 from hipmdp.gibbs_model import harmonic, sample_mu_w
-from hipmdp.gibbs_sweep import z_step_row
+from hipmdp.gibbs_sweep import new_feature_step, remove_unused, z_step_row
 
 N_DRAWS = 4000
 
@@ -268,3 +269,35 @@ def test_bad_run_chains_arguments_raise(kwargs, field):
     args = {"n_sweeps": 5, "n_chains": 1, "progress": False} | kwargs
     with pytest.raises(ValueError, match=field):
         run_chains(data, priors, rng=np.random.default_rng(0), **args)
+
+
+def test_new_feature_step_without_data_draws_poisson_singletons():
+    """With B = 0 every likelihood ratio is 1, so one new-feature step replaces row
+    r's singletons by k' ~ Poisson(α/N) new ones whatever it started from (here 2
+    singletons and one shared feature, which must survive)."""
+    R, m, alpha = 4, 3, 2.0
+    data = GibbsData(np.zeros((R, 0, m)), np.tile(np.eye(m), (R, 1, 1)), np.ones(R))
+    alg = fast.EigenAlgebra(prepare(data))
+    priors = GibbsPriors(alpha=alpha, sigma_w=1.0, sigma_w0=1.0, n_w=3)
+    z = np.array([[1, 1, 1, 1], [0, 1, 0, 0], [0, 1, 0, 0], [1, 1, 0, 0]], dtype=bool)
+    state = (z, np.zeros((4, 0)), np.zeros((4, R, m)), np.zeros(4))
+    rng = np.random.default_rng(14)
+    counts = []
+    for _ in range(N_DRAWS):
+        z2, *_ = new_feature_step(alg, 1, np.zeros((0, m)), state, priors, rng=rng)
+        assert z2[0].all() and any((col == z[3]).all() for col in z2[1:])
+        singles = (z2[1:, 1] & (z2[1:].sum(axis=1) == 1)).sum()
+        counts.append(singles)
+    counts = np.array(counts)
+    for j in range(3):
+        p = poisson.pmf(j, alpha / R)
+        assert abs(np.mean(counts == j) - p) < 4 * np.sqrt(p * (1 - p) / N_DRAWS)
+
+
+def test_remove_unused_keeps_feature_zero_and_used_features():
+    z = np.array([[1, 1], [0, 0], [1, 0], [0, 0]], dtype=bool)
+    w, f, mu = np.arange(8.0).reshape(4, 2), np.zeros((4, 2, 3)), np.arange(4.0)
+    z2, w2, _, mu2 = remove_unused(z, w, f, mu)
+    np.testing.assert_array_equal(z2, z[[0, 2]])
+    np.testing.assert_array_equal(w2, w[[0, 2]])
+    np.testing.assert_array_equal(mu2, [0.0, 2.0])
