@@ -3,7 +3,16 @@
 Symbols: ``N`` transitions, ``D`` state dimensions, ``b`` instance id, ``a`` discrete
 action index. The state convention is the simulator's physics state ``s`` (for MuJoCo
 ``(qpos, qvel)``) with angle dimensions wrapped to (-π, π]; the model predicts
-``Δs = s' - s`` with angle differences wrapped the same way.
+``Δs = s' - s``.
+
+Angle changes: a fast joint turns by more than π in one step (the acrobot's elbow
+reaches 30 rad/s, 6 rad per 0.2 s action), so wrapping ``θ' - θ`` to (-π, π] would
+make ``Δθ`` jump by 2π across the state space. Given the step ``dt``, the change is
+unwrapped around the trapezoid estimate from the velocities,
+``Δθ = v̄ dt + wrap(θ' - θ - v̄ dt)`` with ``v̄ = (θ̇ + θ̇')/2``, which is the true
+change whenever the estimate errs by less than π. The velocity of angle dimension
+``i`` is dimension ``i + D/2`` (the ``(qpos, qvel)`` layout of hinge and slide
+joints). Without ``dt`` the change is wrapped to (-π, π].
 
 Files are ``.npz`` archives read with ``allow_pickle=False`` and written atomically
 (temporary name in the same folder, then rename), so a crash never leaves a
@@ -188,7 +197,9 @@ class Transitions:
         instances: instance id ``b`` of each transition, shape (N,), integers.
         rewards: shape (N,), or None.
         dones: episode ended after this transition, bool shape (N,), or None.
-        angle_dims: state dimensions that are angles (wrapped in ``deltas``).
+        angle_dims: state dimensions that are angles.
+        dt: seconds per transition; if given, angle changes in ``deltas`` are
+            unwrapped with the velocities (see the module docstring).
     """
 
     states: Array
@@ -198,6 +209,7 @@ class Transitions:
     rewards: Array | None = None
     dones: Array | None = None
     angle_dims: tuple[int, ...] = ()
+    dt: float | None = None
 
     def __post_init__(self) -> None:
         s = _finite_float("states", self.states, "(N, D)", 2)
@@ -228,7 +240,18 @@ class Transitions:
             raise ValueError(
                 f"angle_dims: expected distinct indices in [0, {d}), got {angles}"
             )
+        dt = self.dt
+        if dt is not None:
+            dt = float(dt)
+            if not (np.isfinite(dt) and dt > 0):
+                raise ValueError(f"dt: expected a finite number > 0, got {self.dt}")
+            if d % 2 or any(i >= d // 2 for i in angles):
+                raise ValueError(
+                    f"dt: needs the (qpos, qvel) layout, an even state dimension with"
+                    f" angles in the first half; got D = {d}, angle_dims {angles}"
+                )
         for name, v in [
+            ("dt", dt),
             ("states", s),
             ("actions", a),
             ("next_states", s2),
@@ -264,11 +287,20 @@ class Transitions:
 
     @property
     def deltas(self) -> Array:
-        """``Δs = s' - s``, shape (N, D), angle dimensions wrapped to (-π, π]."""
+        """``Δs = s' - s``, shape (N, D).
+
+        Angle changes are unwrapped around ``v̄ dt`` if ``dt`` is set, else wrapped
+        to (-π, π] (module docstring).
+        """
         delta = self.next_states - self.states
         if self.angle_dims:
             idx = list(self.angle_dims)
-            delta[:, idx] = wrap_angle(delta[:, idx])
+            if self.dt is None:
+                delta[:, idx] = wrap_angle(delta[:, idx])
+            else:
+                vel = [i + self.state_dim // 2 for i in idx]
+                guess = 0.5 * (self.states[:, vel] + self.next_states[:, vel]) * self.dt
+                delta[:, idx] = guess + wrap_angle(delta[:, idx] - guess)
         return delta
 
     # -- selection and concatenation ---------------------------------------------------
@@ -286,6 +318,7 @@ class Transitions:
             rewards=None if self.rewards is None else self.rewards[mask],
             dones=None if self.dones is None else self.dones[mask],
             angle_dims=self.angle_dims,
+            dt=self.dt,
         )
 
     def select(
@@ -314,14 +347,14 @@ class Transitions:
         parts = list(parts)
         if not parts:
             raise ValueError("concatenate: expected at least one Transitions")
-        d, angles = parts[0].state_dim, parts[0].angle_dims
+        d, angles, dt = parts[0].state_dim, parts[0].angle_dims, parts[0].dt
         for i, p in enumerate(parts):
             if not isinstance(p, Transitions):
                 raise ValueError(f"concatenate: part {i} is {type(p).__name__}")
-            if p.state_dim != d or p.angle_dims != angles:
+            if p.state_dim != d or p.angle_dims != angles or p.dt != dt:
                 raise ValueError(
-                    f"concatenate: part {i} has state_dim {p.state_dim} and angle_dims"
-                    f" {p.angle_dims}, expected {d} and {angles}"
+                    f"concatenate: part {i} has state_dim {p.state_dim}, angle_dims"
+                    f" {p.angle_dims} and dt {p.dt}, expected {d}, {angles} and {dt}"
                 )
 
         def cat(name: str) -> Array | None:
@@ -338,6 +371,7 @@ class Transitions:
             rewards=cat("rewards"),
             dones=cat("dones"),
             angle_dims=angles,
+            dt=dt,
         )
 
     # -- files ---------------------------------------------------------------------
@@ -359,6 +393,8 @@ class Transitions:
             arrays["rewards"] = self.rewards
         if self.dones is not None:
             arrays["dones"] = self.dones
+        if self.dt is not None:
+            arrays["dt"] = np.array(self.dt)
         if table is not None:
             if not isinstance(table, ParameterTable):
                 raise ValueError(f"table: expected ParameterTable, got {type(table)}")
@@ -423,4 +459,5 @@ class Transitions:
                 rewards=f["rewards"] if "rewards" in f else None,
                 dones=f["dones"] if "dones" in f else None,
                 angle_dims=tuple(int(i) for i in f["angle_dims"]),
+                dt=float(f["dt"]) if "dt" in f else None,
             )

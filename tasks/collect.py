@@ -14,6 +14,7 @@ ends its episode; the whole episode is then dropped from the data and reported i
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
@@ -38,6 +39,7 @@ class Domain(NamedTuple):
     n_actions: int
     state_dim: int
     angle_dims: tuple[int, ...]
+    dt: float  # seconds per action (angle changes are unwrapped with it)
 
 
 DOMAINS = {
@@ -48,6 +50,7 @@ DOMAINS = {
         len(acrobot.ACTIONS),
         acrobot.STATE_DIM,
         acrobot.ANGLE_DIMS,
+        acrobot.CONTROL_TIMESTEP,
     ),
     "cartpole": Domain(
         "cartpole",
@@ -56,6 +59,7 @@ DOMAINS = {
         len(cartpole.ACTIONS),
         cartpole.STATE_DIM,
         cartpole.ANGLE_DIMS,
+        cartpole.CONTROL_TIMESTEP,
     ),
 }
 
@@ -163,7 +167,7 @@ def collect(
                 bar.update()
 
     transitions = Transitions(
-        **_stack(episodes, spec.state_dim), angle_dims=spec.angle_dims
+        **_stack(episodes, spec.state_dim), angle_dims=spec.angle_dims, dt=spec.dt
     )
     return Collection(
         transitions,
@@ -212,11 +216,13 @@ def collect_sarsa(
         except control.PhysicsError as error:
             diverged.append(Divergence(b, -1, -1, f"MuJoCo warning: {error}"))
             continue
-        parts.append(result.transitions)
+        parts.append(dataclasses.replace(result.transitions, dt=spec.dt))
     transitions = (
         Transitions.concatenate(parts)
         if parts
-        else Transitions(**_stack([], spec.state_dim), angle_dims=spec.angle_dims)
+        else Transitions(
+            **_stack([], spec.state_dim), angle_dims=spec.angle_dims, dt=spec.dt
+        )
     )
     return Collection(
         transitions,

@@ -24,6 +24,7 @@ error a method makes on instances it was fitted on.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
@@ -79,7 +80,7 @@ def gather_split(
         max_steps=max_steps or domain.max_steps,
     )
     data = learn(env, domain, n_episodes, rng=np.random.default_rng(agent_seed))
-    data = data.transitions
+    data = dataclasses.replace(data.transitions, dt=env.control_timestep())
     if len(data) < n_train + n_test:
         raise ValueError(
             f"n_train + n_test: {n_train + n_test} transitions asked, only {len(data)}"

@@ -257,6 +257,7 @@ def collect_open_loop(
         rewards=result.rewards[kept],
         dones=(t == result.lengths[:, None] - 1)[kept],
         angle_dims=spec.angle_dims,
+        dt=spec.dt,
     )
     table = ParameterTable(
         instances=np.array(ids),

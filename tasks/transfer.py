@@ -21,6 +21,7 @@ agent's exploration stream depend only on (setting, trial), never on the method.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -168,7 +169,10 @@ def run_trial(job: TrialJob) -> TrialResult:
         returns.append(float(episode.rewards.sum()))
         steps.append(int(episode.actions.shape[0]))
         starts.append(episode.states[0])
-        data = episode_transitions(episode, episode_index, domain.angle_dims)
+        data = dataclasses.replace(
+            episode_transitions(episode, episode_index, domain.angle_dims),
+            dt=env.control_timestep(),
+        )
         belief, trace = _filter_episode(model, hip, belief, data, episode, job)
         if trace is not None:
             traces.append(trace)
@@ -210,7 +214,7 @@ def _filter_episode(model, hip, belief, data: Transitions, episode, job: TrialJo
     for t in range(len(data)):
         predicted[t] = model.predict(data.states[t : t + 1], data.actions[t : t + 1])
         if belief is not None:
-            belief = hip.update(belief, _row(data, t))
+            belief = hip.update(belief, data.take([t]))
             model = LearnedModel(hip, belief, model.angle_dims)
             m, s = _belief_moments(belief)
             means.append(m)
@@ -222,15 +226,3 @@ def _filter_episode(model, hip, belief, data: Transitions, episode, job: TrialJo
         belief_std=np.array(stds) if stds else None,
     )
     return belief, trace
-
-
-def _row(data: Transitions, t: int) -> Transitions:
-    """Transition ``t`` alone."""
-    sl = slice(t, t + 1)
-    return Transitions(
-        states=data.states[sl],
-        actions=data.actions[sl],
-        next_states=data.next_states[sl],
-        instances=data.instances[sl],
-        angle_dims=data.angle_dims,
-    )

@@ -231,3 +231,35 @@ def test_load_selects_instances(tmp_path):
     path = t.save(tmp_path / "d.npz")
     u = Transitions.load(path, instances=[1, 3])
     np.testing.assert_array_equal(u.states, t.select(instances=[1, 3]).states)
+
+
+def test_fast_angle_changes_are_unwrapped_with_the_velocities():
+    # a joint spinning at 30 rad/s turns 6 rad in 0.2 s: more than π
+    rng = np.random.default_rng(7)
+    n, dt = 50, 0.2
+    theta0 = rng.uniform(-np.pi, np.pi, n)
+    omega = rng.uniform(-30, 30, n)
+    alpha = rng.uniform(-5, 5, n)  # constant acceleration: trapezoid is exact
+    theta1 = theta0 + omega * dt + 0.5 * alpha * dt**2
+    omega1 = omega + alpha * dt
+    s = np.c_[wrap_angle(theta0), omega]
+    s2 = np.c_[wrap_angle(theta1), omega1]
+    with_dt = Transitions(
+        s, np.zeros(n, int), s2, np.zeros(n, int), angle_dims=(0,), dt=dt
+    )
+    np.testing.assert_allclose(with_dt.deltas[:, 0], theta1 - theta0, atol=1e-12)
+    plain = Transitions(s, np.zeros(n, int), s2, np.zeros(n, int), angle_dims=(0,))
+    np.testing.assert_allclose(plain.deltas[:, 0], wrap_angle(theta1 - theta0))
+    assert np.any(np.abs(theta1 - theta0) > np.pi)  # the case the unwrapping is for
+
+
+def test_dt_is_kept_by_selection_files_and_checked(tmp_path):
+    t = make(n=10, dt=0.05)
+    assert t.take([1, 2]).dt == 0.05 and t.select(actions=0).dt == 0.05
+    assert Transitions.load(t.save(tmp_path / "d.npz")).dt == 0.05
+    with pytest.raises(ValueError, match="dt"):
+        Transitions.concatenate([t, make(n=10)])
+    with pytest.raises(ValueError, match="dt: expected a finite number > 0"):
+        make(dt=-1.0)
+    with pytest.raises(ValueError, match=r"dt: needs the \(qpos, qvel\) layout"):
+        make(d=3, dt=0.1, angle_dims=(0,))
