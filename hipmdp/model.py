@@ -13,6 +13,19 @@ and each basis function is interpolated from its support values with the GP mean
 
 the coefficients `c` being solved once at construction, so evaluating the basis at n
 states is a matrix product.
+
+Predictive variance. Between support points a basis function is known only up to
+its GP interpolation variance
+
+    v_ad(s) = k_ad(s, s) - k_ad(s, S*) (K_ad + σ²[a,d] I)⁻¹ k_ad(S*, s),
+
+and with independent basis functions the prediction's variance is
+
+    Var[Δs_d] = σ²[a,d] + F Σ_w Fᵀ + v_ad(s) (1 + Σ_k z[k,a,d] (μ_k² + Σ_w[k,k])).
+
+The paper ignores the last term; without it the variance of a deterministic
+simulator's dynamics is the fitted noise (~1e-8 here), and held-out log-likelihoods
+are meaningless. `predict_mean` (used for planning) skips the variance entirely.
 """
 
 from __future__ import annotations
@@ -102,6 +115,38 @@ class HipMDP:
         object.__setattr__(
             self, "_coef", interpolation_coefficients(self.support, self.hyper, self.f)
         )
+        object.__setattr__(self, "_factors", {})  # (a, d) -> Cholesky, on demand
+
+    def _factor(self, a: int, d: int):
+        """Cholesky factor of K_ad + σ²[a,d] I, computed on first use."""
+        if (a, d) not in self._factors:
+            h = self.hyper.get(a, d)
+            m = len(self.support)
+            Kss = se_kernel(self.support, self.support, h.lengthscales, h.signal_var)
+            self._factors[a, d] = linalg.cho_factor(
+                Kss + h.noise_var * np.eye(m), lower=True
+            )
+        return self._factors[a, d]
+
+    def interpolation_var(self, states: Array, actions: Array) -> Array:
+        """v_ad(s), the GP interpolation variance of a basis function, (n, D)."""
+        states, actions = self._check_inputs(states, actions)
+        out = np.zeros((len(states), self.state_dim))
+        for a in np.unique(actions):
+            idx = np.flatnonzero(actions == a)
+            for d in range(self.state_dim):
+                h = self.hyper.get(a, d)
+                Kx = se_kernel(states[idx], self.support, h.lengthscales, h.signal_var)
+                L, _ = self._factor(a, d)
+                V = linalg.solve_triangular(L, Kx.T, lower=True)
+                out[idx, d] = np.maximum(h.signal_var - (V * V).sum(0), 0.0)
+        return out
+
+    def __getstate__(self) -> dict:
+        # factors are a cache: not shipped to worker processes
+        state = dict(self.__dict__)
+        state["_factors"] = {}
+        return state
 
     # -- shape facts ---------------------------------------------------------------
     @property
@@ -174,11 +219,16 @@ class HipMDP:
     def predict(
         self, states: Array, actions: Array, belief: Belief
     ) -> tuple[Array, Array]:
-        """Predicted Δs and its variance (noise + weight uncertainty), each (n, D)."""
+        """Predicted Δs and its variance, each (n, D): noise, weight uncertainty and
+        basis interpolation variance (module docstring)."""
         self._check_belief(belief)
         F = self.basis(states, actions)
-        noise = self.hyper.noise_var[np.asarray(actions, dtype=int)]
-        return predictive(belief, F[..., 1:], F[..., 0], noise)
+        a = np.asarray(actions, dtype=int)
+        mean, var = predictive(belief, F[..., 1:], F[..., 0], self.hyper.noise_var[a])
+        # E[w_k²] for the active features of each (a, d); feature 0 has w = 1
+        w2 = np.concatenate([[1.0], belief.mean**2 + np.diag(belief.cov)])
+        scale = np.einsum("kad,k->ad", self.z, w2)[a]  # (n, D)
+        return mean, var + self.interpolation_var(states, actions) * scale
 
     def predict_mean(self, states: Array, actions: Array, belief: Belief) -> Array:
         """Predicted Δs only, f_1(s) + F(s) μ, shape (n, D)."""

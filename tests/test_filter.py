@@ -48,6 +48,17 @@ def _dense_basis(model, s, a):
     return out
 
 
+def _dense_interpolation_var(model, s, a):
+    """v[d] = k(s, s) - k(s, S*) (K + σ² I)⁻¹ k(S*, s), one state at a time."""
+    out = np.zeros(D)
+    for d in range(D):
+        h = model.hyper.get(a, d)
+        Kss = se_kernel(model.support, model.support, h.lengthscales, h.signal_var)
+        ks = se_kernel(s[None], model.support, h.lengthscales, h.signal_var)[0]
+        out[d] = h.signal_var - ks @ np.linalg.inv(Kss + h.noise_var * np.eye(M)) @ ks
+    return out
+
+
 def _data(model, w, n, rng):
     """n transitions of an instance with weights w (K - 1,), drawn from the model."""
     S = rng.uniform(-2, 2, size=(n, D))
@@ -108,9 +119,16 @@ def test_batch_update_equals_single_updates_and_conjugate_posterior():
     np.testing.assert_allclose(pm.reshape(-1), f1[:6] + X[:6] @ mean, atol=1e-9)
     pm_only = model.predict_mean(data.states[:3], data.actions[:3], batch)
     np.testing.assert_allclose(pm_only, pm, atol=1e-12)
-    np.testing.assert_allclose(
-        pv.reshape(-1), noise + np.einsum("ik,kj,ij->i", X[:6], cov, X[:6]), atol=1e-9
-    )
+    # Variance: σ² + F Σ Fᵀ + v(s) Σ_k z[k,a,d] E[w_k²], with w_0 = 1.
+    v = np.concatenate(
+        [_dense_interpolation_var(model, s, a) for s, a in zip(
+            data.states[:3], data.actions[:3], strict=True)]
+    )  # fmt: skip
+    ew2 = np.concatenate([[1.0], mean**2 + np.diag(cov)])
+    zs = np.concatenate([model.z[:, a, :].T for a in data.actions[:3]])  # (6, K)
+    expected = noise + np.einsum("ik,kj,ij->i", X[:6], cov, X[:6]) + v * (zs @ ew2)
+    np.testing.assert_allclose(pv.reshape(-1), expected, rtol=1e-9, atol=1e-12)
+    assert np.all(v > 0)  # the term is really exercised
 
 
 def test_filter_concentrates_on_true_weights():
