@@ -49,10 +49,14 @@ def _batch():
     )
 
 
+# Several chains: at this signal-to-noise a single chain can settle in a mode that
+# splits a feature in two. With 4 chains x 100 sweeps the fit found exactly the true
+# pattern for 6 of 8 generator seeds (0-7; both misses split row (0, 1)); 2 x 60
+# found it for 3 of 8. The seed of `fitted` predates this measurement.
 CONFIG = FitConfig(
     n_support=60,
-    n_sweeps=60,
-    n_chains=2,
+    n_sweeps=100,
+    n_chains=4,
     n_hyper=300,
     n_candidates=600,
     n_smooth=200,
@@ -65,11 +69,6 @@ def fitted():
     return fit(_batch(), CONFIG, rng=np.random.default_rng(1))
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="sampler mixing: the chains settle in a rotated mode (two features on rows "
-    "(0,0), (0,1), (1,0)) whose log marginal is ~150 below the truth's; see issue 3",
-)
 def test_fit_recovers_the_z_pattern(fitted):
     # One column of z per true latent parameter, no split or spurious features.
     rows = sorted(
