@@ -224,3 +224,9 @@ def test_bad_input_errors(no_work):
 def test_public_api():
     assert hipmdp.fit is fit and hipmdp.FitConfig is FitConfig
     assert hipmdp.load is load and hipmdp.HipMDP is HipMDP
+
+
+def test_unseen_instance_prior_is_centred_on_the_training_weights(fitted):
+    # flat-hyperprior limit of E[μ_w | w] (see hipmdp.fitting.fit)
+    np.testing.assert_allclose(fitted.mu_w[1:], fitted.weights[1:].mean(1))
+    np.testing.assert_allclose(fitted.prior().mean, fitted.weights[1:].mean(1))
