@@ -7,12 +7,13 @@ Each (instance, repetition) is one job with its own seed spawned from one
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
-from hipmdp.data import Transitions
+from hipmdp.data import ParameterTable, Transitions
 from tasks.collect import collect_sarsa
 from tasks.experiment import pool_map
 
@@ -66,3 +67,27 @@ def gather_batch(
     parts = pool_map(_job, jobs, workers=workers, desc="batch data (Sarsa)",
                      progress=progress)  # fmt: skip
     return Transitions.concatenate(parts)
+
+
+def parameter_table(instances: Sequence[Any]) -> ParameterTable:
+    """The parameters of ``instances`` (one domain's dataclasses), ids ``0..B-1``."""
+    names = tuple(f.name for f in dataclasses.fields(instances[0]))
+    values = [dataclasses.astuple(p) for p in instances]
+    return ParameterTable(
+        instances=np.arange(len(instances)), names=names, values=values
+    )
+
+
+def gather_and_save(
+    domain: str, instances: Sequence[Any], path, *, config, seed, progress: bool
+) -> Transitions:
+    """:func:`gather_batch` with an experiment config's sizes (``batch_repetitions``,
+    ``batch_episodes``, ``batch_max_steps``, ``workers``), saved with its parameter
+    table to ``path``."""
+    batch = gather_batch(
+        domain, instances, repetitions=config.batch_repetitions,
+        episodes=config.batch_episodes, max_steps=config.batch_max_steps,
+        seed=seed, workers=config.workers, progress=progress,
+    )  # fmt: skip
+    batch.save(path, table=parameter_table(instances))
+    return batch

@@ -23,7 +23,6 @@ report.md, weights.png, cartpole.rrd (``RERUN=off`` skips it), the fitted models
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import os
 import sys
@@ -35,11 +34,17 @@ import numpy as np
 
 import hipmdp
 from hipmdp import baselines
-from hipmdp.data import ParameterTable
 from tasks.agents import CARTPOLE
-from tasks.batch import gather_batch
+from tasks.batch import gather_and_save
 from tasks.cartpole import CartpoleParams
-from tasks.experiment import run_dir, to_jsonable, write_json
+from tasks.experiment import (
+    apply_common,
+    check_positive,
+    common_parser,
+    run_dir,
+    to_jsonable,
+    write_json,
+)
 from tasks.prediction import (
     PREDICTION_METHODS,
     gather_split,
@@ -111,12 +116,10 @@ class PredictionConfig:
             object.__setattr__(self, name, pairs)
         if len(self.train_settings) < 2:
             raise ValueError("train_settings: expected at least two settings")
-        for name in (
+        check_positive(self, (
             "batch_repetitions", "batch_episodes", "batch_max_steps", "n_runs",
             "average_n_max", "n_train", "n_test", "gather_episodes", "workers",
-        ):  # fmt: skip
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"{name}: expected >= 1, got {getattr(self, name)}")
+        ))  # fmt: skip
 
 
 PRESETS = {
@@ -151,13 +154,10 @@ def main(config: PredictionConfig, out: str | os.PathLike | None = None) -> Resu
     seconds: dict[str, float] = {}
 
     t0 = time.perf_counter()
-    batch = gather_batch(
-        "cartpole", [_params(*p) for p in config.train_settings],
-        repetitions=config.batch_repetitions, episodes=config.batch_episodes,
-        max_steps=config.batch_max_steps, seed=ss_batch, workers=config.workers,
-        progress=config.progress,
+    batch = gather_and_save(
+        "cartpole", [_params(*p) for p in config.train_settings], path / "batch.npz",
+        config=config, seed=ss_batch, progress=config.progress,
     )  # fmt: skip
-    batch.save(path / "batch.npz", table=_table(config.train_settings))
     seconds["batch_data"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -238,43 +238,14 @@ def _ratios(mse: dict) -> dict[str, float]:
     return out
 
 
-def _table(settings) -> ParameterTable:
-    names = tuple(f.name for f in dataclasses.fields(CartpoleParams))
-    values = [dataclasses.astuple(_params(*p)) for p in settings]
-    return ParameterTable(
-        instances=np.arange(len(settings)), names=names, values=values
-    )
-
-
 def parse_args(argv: list[str] | None = None) -> tuple[PredictionConfig, str | None]:
-    parser = argparse.ArgumentParser(
-        prog="python -m tasks.cartpole_prediction",
-        description=__doc__.split("\n\n")[0],
-    )
-    parser.add_argument(
-        "--preset", choices=sorted(PRESETS), default="quick",
-        help="quick: minutes on two cores (default); paper: the paper's sizes",
+    parser = common_parser(
+        "python -m tasks.cartpole_prediction", __doc__, PRESETS,
+        "runs/cartpole_prediction",
     )  # fmt: skip
-    parser.add_argument("--seed", type=int, default=0, help="the one seed (default 0)")
-    parser.add_argument("--out", default=None, help="default runs/cartpole_prediction")
-    parser.add_argument("--workers", type=int, default=None, help="processes")
     parser.add_argument("--runs", type=int, default=None, help="HiP-MDP fits")
-    parser.add_argument("--no-record", action="store_true", help="skip cartpole.rrd")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = parser.parse_args(argv)
-    changes: dict[str, Any] = {"seed": args.seed}
-    for key, value in (("workers", args.workers), ("n_runs", args.runs)):
-        if value is not None:
-            changes[key] = value
-    if args.no_record:
-        changes["record"] = False
-    if args.no_progress:
-        changes["progress"] = False
-    try:
-        config = dataclasses.replace(PRESETS[args.preset], **changes)
-    except ValueError as err:
-        parser.error(str(err))
-    return config, args.out
+    return apply_common(parser, args, PRESETS[args.preset], n_runs=args.runs), args.out
 
 
 def cli(argv: list[str] | None = None) -> int:

@@ -157,3 +157,88 @@ def pool_map(
     ) as pool:
         it = pool.map(fn, jobs)
         return list(tqdm(it, total=len(jobs), desc=desc, disable=not progress))
+
+
+def check_positive(config: Any, names: Sequence[str]) -> None:
+    """Raise ``ValueError`` naming the first of ``names`` that is not >= 1."""
+    for name in names:
+        value = getattr(config, name)
+        if int(value) < 1:
+            raise ValueError(f"{name}: expected >= 1, got {value}")
+
+
+def common_parser(prog: str, doc: str, presets: Sequence[str], out_default: str):
+    """The options every experiment has: --preset, --seed, --out, --workers,
+    --no-record, --no-progress."""
+    import argparse
+
+    parser = argparse.ArgumentParser(
+        prog=prog,
+        description=doc.split("\n\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=doc.split("\n\n", 1)[1] if "\n\n" in doc else None,
+    )
+    parser.add_argument(
+        "--preset", choices=sorted(presets), default="quick",
+        help="quick: minutes on two cores (default); paper: the paper's sizes",
+    )  # fmt: skip
+    parser.add_argument("--seed", type=int, default=0, help="the one seed (default 0)")
+    parser.add_argument("--out", default=None, help=f"output folder ({out_default})")
+    parser.add_argument("--workers", type=int, default=None, help="processes")
+    parser.add_argument("--no-record", action="store_true", help="no .rrd recording")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    return parser
+
+
+def apply_common(parser, args, preset: Any, **changes: Any) -> Any:
+    """The preset with the common options (and ``changes``) applied; a bad value
+    is reported through ``parser.error`` (exit status 2)."""
+    changes = {k: v for k, v in changes.items() if v is not None}
+    changes["seed"] = args.seed
+    if args.workers is not None:
+        changes["workers"] = args.workers
+    if args.no_record:
+        changes["record"] = False
+    if args.no_progress:
+        changes["progress"] = False
+    try:
+        return dataclasses.replace(preset, **changes)
+    except ValueError as err:
+        parser.error(str(err))
+
+
+def weights_figure(
+    file: str | os.PathLike,
+    train_params: Array,
+    train_w: Array,
+    test_params: Array,
+    test_w: Array,
+    labels: Sequence[str],
+    title: str,
+) -> Path:
+    """Each latent weight against each physical parameter, one panel per pair.
+
+    train_params (B, p) and train_w (K', B): training instances' posterior means;
+    test_params (T, p) and test_w (T, K'): test instances' filtered belief means.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    k, p = train_w.shape[0], len(labels)
+    rows = max(k, 1)
+    fig, axes = plt.subplots(rows, p, figsize=(3.5 * p, 2.4 * rows), squeeze=False)
+    for j in range(k):
+        for col, label in enumerate(labels):
+            ax = axes[j, col]
+            ax.scatter(train_params[:, col], train_w[j], label="training (posterior)")
+            ax.scatter(test_params[:, col], test_w[:, j], marker="x", label="test")
+            ax.set_xlabel(label)
+            ax.set_ylabel(f"w{j + 1}")
+    if k == 0:
+        axes[0, 0].text(0.1, 0.5, "no latent features were inferred")
+    axes[0, 0].legend(fontsize=7)
+    fig.suptitle(title)
+    fig.tight_layout()
+    return save_figure(fig, file)

@@ -10,7 +10,7 @@ import numpy as np
 from hipmdp.data import Transitions
 from hipmdp.planning import LearnedModel
 from tasks import cartpole
-from tasks.experiment import fmt_ci, markdown_table, save_figure, write_text
+from tasks.experiment import fmt_ci, markdown_table, weights_figure, write_text
 from tasks.prediction import PREDICTION_METHODS
 from tasks.recording import Recording
 
@@ -25,34 +25,16 @@ def write_artefacts(path: Path, config, metrics: dict, hip, splits) -> None:
 
 
 def _weights_figure(file: Path, config, metrics: dict) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    train_w = np.asarray(metrics["training_weights"][0])[1:]  # row 0: mean dynamics
-    test_w = np.asarray(metrics["test_belief_means"]).reshape(
-        len(config.test_settings), -1
+    n_test = len(config.test_settings)
+    weights_figure(
+        file,
+        np.array(config.train_settings),
+        np.asarray(metrics["training_weights"][0])[1:],  # row 0: mean dynamics
+        np.array(config.test_settings),
+        np.asarray(metrics["test_belief_means"]).reshape(n_test, -1),
+        ("pole mass (kg)", "pole half-length (m)"),
+        "Cart-pole latent weights against mass and length (run 0)",
     )
-    k = train_w.shape[0]
-    rows = max(k, 1)
-    fig, axes = plt.subplots(rows, 2, figsize=(7.0, 2.4 * rows), squeeze=False)
-    train_p, test_p = np.array(config.train_settings), np.array(config.test_settings)
-    for j in range(k):
-        for col, name in enumerate(("pole mass (kg)", "pole half-length (m)")):
-            ax = axes[j, col]
-            ax.scatter(train_p[:, col], train_w[j], label="training (posterior mean)")
-            ax.scatter(
-                test_p[:, col], test_w[:, j], marker="x", label="test (filtered)"
-            )
-            ax.set_xlabel(name)
-            ax.set_ylabel(f"w{j + 1}")
-    if k == 0:
-        axes[0, 0].text(0.1, 0.5, "no latent features were inferred")
-    axes[0, 0].legend(fontsize=7)
-    fig.suptitle("Cartpole latent weights against mass and length (run 0)")
-    fig.tight_layout()
-    save_figure(fig, file)
 
 
 def record(file: Path, config, metrics: dict, hip, splits) -> None:

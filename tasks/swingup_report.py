@@ -8,7 +8,13 @@ from typing import Any
 import numpy as np
 
 from tasks import acrobot
-from tasks.experiment import fmt_ci, markdown_table, save_figure, write_text
+from tasks.experiment import (
+    fmt_ci,
+    markdown_table,
+    save_figure,
+    weights_figure,
+    write_text,
+)
 from tasks.recording import Recording
 from tasks.transfer import METHODS
 
@@ -47,36 +53,17 @@ def _learning_curves(file: Path, metrics: dict) -> None:
 
 
 def _weights_figure(file: Path, config, metrics: dict, hip) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    train_w = np.asarray(hip.weights)[1:]  # feature 0 is the mean dynamics (w = 1)
-    test_w = np.array(
-        [metrics["test_belief_means"][str(i)] for i in range(len(config.test_masses))]
-    ).reshape(len(config.test_masses), -1)
-    k = train_w.shape[0]
-    fig, axes = plt.subplots(
-        max(k, 1), 2, figsize=(7.0, 2.4 * max(k, 1)), squeeze=False
+    n_test = len(config.test_masses)
+    test_w = [metrics["test_belief_means"][str(i)] for i in range(n_test)]
+    weights_figure(
+        file,
+        np.array(config.train_masses),
+        np.asarray(hip.weights)[1:],  # feature 0 is the mean dynamics (w = 1)
+        np.array(config.test_masses),
+        np.array(test_w).reshape(n_test, -1),
+        ("m1 (kg)", "m2 (kg)"),
+        "Latent weights against the true masses",
     )
-    train_m = np.array(config.train_masses)
-    test_m = np.array(config.test_masses)
-    for j in range(k):
-        for col, name in enumerate(("m1", "m2")):
-            ax = axes[j, col]
-            ax.scatter(train_m[:, col], train_w[j], label="training (posterior mean)")
-            ax.scatter(
-                test_m[:, col], test_w[:, j], marker="x", label="test (filtered)"
-            )
-            ax.set_xlabel(f"{name} (kg)")
-            ax.set_ylabel(f"w{j + 1}")
-    if k == 0:
-        axes[0, 0].text(0.1, 0.5, "no latent features were inferred")
-    axes[0, 0].legend(fontsize=7)
-    fig.suptitle("Latent weights against the true masses")
-    fig.tight_layout()
-    save_figure(fig, file)
 
 
 def record(file: Path, config, metrics: dict, trials: list) -> None:

@@ -42,6 +42,7 @@ TINY = SwingupConfig(
     mse_train=15,
     mse_test=15,
     n_floor_settings=1,
+    final_window=1,
     workers=1,
     progress=False,
 )
@@ -108,3 +109,5 @@ def test_cli_presets_and_bad_options(capsys):
     assert "workers: expected >= 1" in capsys.readouterr().err
     with pytest.raises(ValueError, match="link_mass_1"):
         SwingupConfig(test_masses=((0.0, 1.0),))
+    with pytest.raises(ValueError, match="final_window: expected <= "):
+        SwingupConfig(final_window=50)
