@@ -23,6 +23,11 @@ episodes start from the real episodes' initial states.
 
 from __future__ import annotations
 
+import os
+
+# one BLAS thread per process (see tasks/__init__.py), set before numpy loads
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 import argparse
 import time
 from collections.abc import Callable

@@ -25,6 +25,11 @@ would give), random / raw and sarsa / raw.
 
 from __future__ import annotations
 
+import os
+
+# one BLAS thread per process (see tasks/__init__.py), set before numpy loads
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 import argparse
 import concurrent.futures as cf
 import dataclasses

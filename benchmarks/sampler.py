@@ -1,7 +1,7 @@
 """Speed of the blocked Gibbs sampler: structured (eigenbasis) vs dense reference.
 
-Run:  OPENBLAS_NUM_THREADS=1 /work/venv/bin/python -m benchmarks.sampler   (~10 min)
-      OPENBLAS_NUM_THREADS=1 /work/venv/bin/python -m benchmarks.sampler --quick
+Run:  python -m benchmarks.sampler   (~10 min)
+      python -m benchmarks.sampler --quick
 
 (On a shared machine a multi-threaded BLAS spins against the other processes and
 is many times slower than one thread; drop the variable on an idle machine.)
@@ -24,6 +24,11 @@ Timings are wall-clock medians; the machine is shared, so they are noisy.
 """
 
 from __future__ import annotations
+
+import os
+
+# one BLAS thread per process (see tasks/__init__.py), set before numpy loads
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
 import time

@@ -16,6 +16,11 @@ and the ratio env / raw: the fraction of raw speed the environment keeps.
 
 from __future__ import annotations
 
+import os
+
+# one BLAS thread per process (see tasks/__init__.py), set before numpy loads
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 import argparse
 import time
 
