@@ -240,5 +240,5 @@ def weights_figure(
         axes[0, 0].text(0.1, 0.5, "no latent features were inferred")
     axes[0, 0].legend(fontsize=7)
     fig.suptitle(title)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.45 / fig.get_figheight()))  # room for it
     return save_figure(fig, file)
