@@ -124,19 +124,26 @@ def main() -> None:
         )
         for i in range(len(new))
     ]
-    t0 = time.perf_counter()
-    for one in singles:
-        belief = model.update(belief, one)
-        model.predict(one.states, one.actions, belief)
-    lat = (time.perf_counter() - t0) / len(singles)
-    print(f"filter update + predict, one transition: {lat * 1e3:8.3f} ms")
+    # predict = mean and variance (the variance needs an m x m triangular solve per
+    # state and (a, d)); predict_mean = what planning calls
+    for name in ("predict", "predict_mean"):
+        fn = getattr(model, name)
+        belief = model.prior()
+        t0 = time.perf_counter()
+        for one in singles:
+            belief = model.update(belief, one)
+            fn(one.states, one.actions, belief)
+        lat = (time.perf_counter() - t0) / len(singles)
+        print(f"filter update + {name}, one transition: {lat * 1e3:8.3f} ms")
 
     S = np.random.default_rng(6).normal(size=(100_000, D))
     acts = np.random.default_rng(7).integers(0, A, size=len(S))
-    _, t = timed(lambda: model.predict(S, acts, belief))
-    print(
-        f"batched predict: {len(S) / t:12.0f} states/s  ({len(S)} states in {t:.2f} s)"
-    )
+    for name in ("predict", "predict_mean"):
+        fn = getattr(model, name)
+        _, t = timed(lambda fn=fn: fn(S, acts, belief))
+        print(
+            f"batched {name}: {len(S) / t:12.0f} states/s  ({len(S)} states, {t:.2f} s)"
+        )
 
 
 if __name__ == "__main__":
