@@ -65,11 +65,19 @@ def gather_split(
     rng: np.random.Generator,
     n_episodes: int = 3,
     max_steps: int | None = None,
+    max_episodes: int = 500,
 ) -> Split:
     """Transitions along Sarsa trajectories on ``params``, split at random.
 
+    One agent learns for at least ``n_episodes`` episodes, and on (an episode at a
+    time) until it has seen ``n_train + n_test`` transitions: a fresh cart-pole
+    agent's first episodes last a dozen steps.
+
     Returns a :class:`Split`: ``n_train`` and ``n_test`` disjoint transitions and
     all the gathered transitions (``episodes``, in time order).
+
+    Raises:
+        ValueError: if ``max_episodes`` episodes are not enough.
     """
     env_seed, agent_seed, split_seed = np.random.SeedSequence(
         int(rng.integers(2**63))
@@ -79,13 +87,20 @@ def gather_split(
         seed=np.random.default_rng(env_seed),
         max_steps=max_steps or domain.max_steps,
     )
-    data = learn(env, domain, n_episodes, rng=np.random.default_rng(agent_seed))
-    data = dataclasses.replace(data.transitions, dt=env.control_timestep())
-    if len(data) < n_train + n_test:
+    agent_rng = np.random.default_rng(agent_seed)
+    result = learn(env, domain, n_episodes, rng=agent_rng)
+    parts, seen, episodes = [result.transitions], len(result.transitions), n_episodes
+    while seen < n_train + n_test and episodes < max_episodes:
+        result = learn(env, domain, 1, rng=agent_rng, state=result.state)
+        parts.append(result.transitions)
+        seen, episodes = seen + len(result.transitions), episodes + 1
+    if seen < n_train + n_test:
         raise ValueError(
-            f"n_train + n_test: {n_train + n_test} transitions asked, only {len(data)}"
-            f" gathered in {n_episodes} episodes; raise n_episodes"
+            f"n_train + n_test: {n_train + n_test} transitions asked, only {seen}"
+            f" gathered in {episodes} episodes"
         )
+    data = Transitions.concatenate(parts)
+    data = dataclasses.replace(data, dt=env.control_timestep())
     order = np.random.default_rng(split_seed).permutation(len(data))
     return Split(
         data.take(order[:n_train]), data.take(order[n_train : n_train + n_test]), data

@@ -82,3 +82,20 @@ def test_cli_bad_option(capsys):
     with pytest.raises(SystemExit):
         parse_args(["--runs", "0"])
     assert "n_runs: expected >= 1" in capsys.readouterr().err
+
+
+def test_gather_split_keeps_learning_until_it_has_enough():
+    from tasks.agents import CARTPOLE
+    from tasks.cartpole import CartpoleParams
+    from tasks.prediction import gather_split
+
+    params = CartpoleParams(cart_mass=1.0, pole_mass=0.2, pole_half_length=0.5)
+    rng = np.random.default_rng(0)
+    split = gather_split(CARTPOLE, params, 60, 60, rng=rng, n_episodes=1)
+    assert len(split.train) == len(split.test) == 60
+    # disjoint: no transition is in both
+    train = {tuple(r) for r in np.c_[split.train.states, split.train.actions]}
+    test = {tuple(r) for r in np.c_[split.test.states, split.test.actions]}
+    assert not train & test
+    with pytest.raises(ValueError, match="transitions asked, only"):
+        gather_split(CARTPOLE, params, 5000, 5000, rng=rng, max_episodes=2)
