@@ -40,6 +40,7 @@ from tasks.batch import gather_and_save
 from tasks.experiment import (
     apply_common,
     check_positive,
+    check_settings,
     common_parser,
     first_episode_within,
     mean_ci,
@@ -124,15 +125,7 @@ class SwingupConfig:
     progress: bool = True
 
     def __post_init__(self) -> None:
-        for name in ("train_masses", "test_masses"):
-            masses = tuple(tuple(float(v) for v in mm) for mm in getattr(self, name))
-            if not masses or any(len(mm) != 2 for mm in masses):
-                raise ValueError(f"{name}: expected (m1, m2) pairs, got {masses}")
-            for m1, m2 in masses:  # validated (bounds, finite) by AcrobotParams
-                _params(m1, m2)
-            object.__setattr__(self, name, masses)
-        if len(self.train_masses) < 2:
-            raise ValueError("train_masses: expected at least two settings")
+        check_settings(self, "train_masses", "test_masses", _params, "(m1, m2)")
         check_positive(self, (
             "batch_repetitions", "batch_episodes", "batch_max_steps", "average_n_max",
             "n_trials", "mse_train", "mse_test", "workers", "final_window",

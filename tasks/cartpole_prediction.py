@@ -40,6 +40,7 @@ from tasks.cartpole import CartpoleParams
 from tasks.experiment import (
     apply_common,
     check_positive,
+    check_settings,
     common_parser,
     run_dir,
     to_jsonable,
@@ -107,15 +108,9 @@ class PredictionConfig:
     progress: bool = True
 
     def __post_init__(self) -> None:
-        for name in ("train_settings", "test_settings"):
-            pairs = tuple(tuple(float(v) for v in p) for p in getattr(self, name))
-            if not pairs or any(len(p) != 2 for p in pairs):
-                raise ValueError(f"{name}: expected (mass, half-length) pairs")
-            for p in pairs:  # validated (finite, bounds) by CartpoleParams
-                _params(*p)
-            object.__setattr__(self, name, pairs)
-        if len(self.train_settings) < 2:
-            raise ValueError("train_settings: expected at least two settings")
+        check_settings(
+            self, "train_settings", "test_settings", _params, "(mass, half-length)"
+        )
         check_positive(self, (
             "batch_repetitions", "batch_episodes", "batch_max_steps", "n_runs",
             "average_n_max", "n_train", "n_test", "gather_episodes", "workers",

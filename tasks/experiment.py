@@ -159,6 +159,21 @@ def pool_map(
         return list(tqdm(it, total=len(jobs), desc=desc, disable=not progress))
 
 
+def check_settings(config: Any, train: str, test: str, make, what: str) -> None:
+    """Normalise ``config.<train>`` and ``config.<test>`` to tuples of float pairs,
+    each checked by ``make(*pair)`` (the domain's parameter validation); at least
+    two training settings. ``what`` names a pair's entries in errors."""
+    for name in (train, test):
+        pairs = tuple(tuple(float(v) for v in p) for p in getattr(config, name))
+        if not pairs or any(len(p) != 2 for p in pairs):
+            raise ValueError(f"{name}: expected {what} pairs, got {pairs}")
+        for p in pairs:
+            make(*p)
+        object.__setattr__(config, name, pairs)
+    if len(getattr(config, train)) < 2:
+        raise ValueError(f"{train}: expected at least two settings")
+
+
 def check_positive(config: Any, names: Sequence[str]) -> None:
     """Raise ``ValueError`` naming the first of ``names`` that is not >= 1."""
     for name in names:

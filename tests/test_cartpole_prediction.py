@@ -99,3 +99,16 @@ def test_gather_split_keeps_learning_until_it_has_enough():
     assert not train & test
     with pytest.raises(ValueError, match="transitions asked, only"):
         gather_split(CARTPOLE, params, 5000, 5000, rng=rng, max_episodes=2)
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(train_settings=((0.1, 0.4),)), "train_settings: expected at least two"),
+        (dict(test_settings=((0.1,),)), r"test_settings: expected \(mass, half-length"),
+        (dict(test_settings=((0.1, 9.0),)), "pole_half_length"),
+    ],
+)
+def test_bad_settings(kw, match):
+    with pytest.raises(ValueError, match=match):
+        PredictionConfig(**kw)
