@@ -14,11 +14,10 @@ from tasks.agents import (
     ACROBOT,
     CARTPOLE,
     SimulatorModel,
-    gather_batch,
     learn,
-    main,
     run_episode,
 )
+from tasks.batch import gather_batch
 
 
 class Recording:
@@ -136,12 +135,18 @@ def test_planning_on_the_true_simulator_improves_the_first_real_episode() -> Non
 
 
 def test_gather_batch_returns_consistent_transitions() -> None:
-    data = gather_batch(CARTPOLE, cartpole.CartpoleParams(pole_mass=0.3),
-                        instance=4, rng=np.random.default_rng(5), n_repetitions=2,
-                        n_episodes=3, max_steps=40)  # fmt: skip
+    def gather(workers):
+        return gather_batch(
+            "cartpole", [cartpole.CartpoleParams(pole_mass=0.3)] * 2,
+            repetitions=2, episodes=3, max_steps=40,
+            seed=np.random.SeedSequence(5), workers=workers,
+        )  # fmt: skip
+
+    data = gather(workers=1)
     assert isinstance(data, Transitions)
-    assert data.dones.sum() == 2 * 3
-    assert np.all(data.instances == 4) and data.angle_dims == cartpole.ANGLE_DIMS
+    assert data.dones.sum() == 2 * 2 * 3  # instances x repetitions x episodes
+    np.testing.assert_array_equal(data.instance_ids, [0, 1])
+    assert data.angle_dims == cartpole.ANGLE_DIMS and data.dt == 0.02
     # within an episode each next state is the following state
     inside = ~data.dones[:-1]
     np.testing.assert_array_equal(
@@ -153,19 +158,6 @@ def test_gather_batch_returns_consistent_transitions() -> None:
     assert lengths.max() <= 40
     failed = cartpole.failed(data.next_states)
     np.testing.assert_array_equal(data.rewards, np.where(failed, 0.0, 1.0))
-    # the same seed gives the same data
-    again = gather_batch(CARTPOLE, cartpole.CartpoleParams(pole_mass=0.3),
-                         instance=4, rng=np.random.default_rng(5), n_repetitions=2,
-                         n_episodes=3, max_steps=40)  # fmt: skip
+    # the same seed gives the same data, whatever the number of processes
+    again = gather(workers=2)
     np.testing.assert_array_equal(again.states, data.states)
-
-
-def test_command_line_writes_loadable_batch(tmp_path) -> None:
-    out = tmp_path / "batch.npz"
-    data = main(["--domain", "cartpole", "--param", "pole_half_length=0.4",
-                 "--repetitions", "1", "--episodes", "2", "--max-steps", "20",
-                 "--out", str(out), "--no-progress"])  # fmt: skip
-    loaded = Transitions.load(out)
-    np.testing.assert_array_equal(loaded.states, data.states)
-    with pytest.raises(SystemExit):
-        main(["--help"])
