@@ -21,8 +21,26 @@ from hipmdp.planning import (
 )
 from hipmdp.sarsa import SarsaConfig, SarsaState, init_state
 
-__all__ = ["Transitions", "GibbsData", "GibbsPriors", "GibbsState", "run_chains"]
-__all__ += ["Belief", "FitConfig", "HipMDP", "fit", "load"]
-__all__ += ["FourierBasis", "SarsaConfig", "SarsaState", "init_state", "plan"]
-__all__ += ["DynamicsModel", "LearnedModel", "StepwiseModel", "PlanningTask"]
-__all__ += ["PlanResult", "SimulatedEpisodes"]
+__all__ = [
+    "Belief",
+    "DynamicsModel",
+    "FitConfig",
+    "FourierBasis",
+    "GibbsData",
+    "GibbsPriors",
+    "GibbsState",
+    "HipMDP",
+    "LearnedModel",
+    "PlanResult",
+    "PlanningTask",
+    "SarsaConfig",
+    "SarsaState",
+    "SimulatedEpisodes",
+    "StepwiseModel",
+    "Transitions",
+    "fit",
+    "init_state",
+    "load",
+    "plan",
+    "run_chains",
+]
