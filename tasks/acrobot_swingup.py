@@ -46,6 +46,7 @@ from tasks.experiment import (
     mean_ci,
     pool_map,
     run_dir,
+    seed_value,
     to_jsonable,
     write_json,
 )
@@ -167,10 +168,6 @@ class Results(NamedTuple):
     metrics: dict[str, Any]
 
 
-def _seed_of(ss: np.random.SeedSequence) -> tuple[int, tuple[int, ...]]:
-    return (int(ss.entropy), tuple(int(k) for k in ss.spawn_key))
-
-
 def run_transfer(config, hip, average, ss: np.random.SeedSequence) -> list:
     """Every (method, test setting, trial) trial; the seeds depend on (setting,
     trial) only. Setting 0, trial 0 is traced for the recording."""
@@ -181,7 +178,7 @@ def run_transfer(config, hip, average, ss: np.random.SeedSequence) -> list:
             setting=i,
             trial=t,
             params=_params(*masses),
-            seed=_seed_of(seeds[i * config.n_trials + t]),
+            seed=seed_value(seeds[i * config.n_trials + t]),
             record=config.record and i == 0 and t == 0,
         )
         for i, masses in enumerate(config.test_masses)

@@ -274,9 +274,10 @@ class LearnResult(NamedTuple):
 
 
 def episode_transitions(
-    episode: Episode, instance: int, angle_dims: tuple[int, ...]
+    episode: Episode, instance: int, angle_dims: tuple[int, ...], dt: float
 ) -> Transitions:
-    """The ``T`` transitions of one episode, ``dones`` true on the last."""
+    """The ``T`` transitions of one episode, ``dones`` true on the last; ``dt`` is
+    the seconds per action (fast angle changes are unwrapped with it)."""
     n = episode.actions.shape[0]
     dones = np.zeros(n, dtype=bool)
     dones[-1] = True
@@ -288,6 +289,7 @@ def episode_transitions(
         rewards=episode.rewards,
         dones=dones,
         angle_dims=angle_dims,
+        dt=dt,
     )
 
 
@@ -322,7 +324,11 @@ def learn(
     for _ in bar:
         episode = run_episode(env, basis, config, state, rng=rng)
         state = episode.state
-        parts.append(episode_transitions(episode, instance, domain.angle_dims))
+        parts.append(
+            episode_transitions(
+                episode, instance, domain.angle_dims, env.control_timestep()
+            )
+        )
         steps.append(episode.actions.shape[0])
         returns.append(float(episode.rewards.sum()))
         bar.set_postfix(steps=steps[-1])

@@ -15,7 +15,7 @@ import numpy as np
 
 from hipmdp.data import ParameterTable, Transitions
 from tasks.collect import collect_sarsa
-from tasks.experiment import pool_map
+from tasks.experiment import pool_map, seed_value
 
 
 def _job(args) -> Transitions:
@@ -57,7 +57,7 @@ def gather_batch(
             domain,
             b,
             params,
-            (int(s.entropy), tuple(int(k) for k in s.spawn_key)),
+            seed_value(s),
             episodes,
             max_steps,
         )  # fmt: skip

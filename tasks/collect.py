@@ -14,7 +14,6 @@ ends its episode; the whole episode is then dropped from the data and reported i
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
@@ -216,7 +215,7 @@ def collect_sarsa(
         except control.PhysicsError as error:
             diverged.append(Divergence(b, -1, -1, f"MuJoCo warning: {error}"))
             continue
-        parts.append(dataclasses.replace(result.transitions, dt=spec.dt))
+        parts.append(result.transitions)
     transitions = (
         Transitions.concatenate(parts)
         if parts

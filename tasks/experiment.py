@@ -122,9 +122,10 @@ def fmt_ci(ci: dict, digits: int = 3) -> str:
     return f"{f(ci['mean'])} [{f(ci['low'])}, {f(ci['high'])}]"
 
 
-def spawn_rngs(seed_seq: np.random.SeedSequence, n: int) -> list[np.random.Generator]:
-    """``n`` independent generators from one seed sequence."""
-    return [np.random.default_rng(s) for s in seed_seq.spawn(n)]
+def seed_value(ss: np.random.SeedSequence) -> tuple[int, tuple[int, ...]]:
+    """``(entropy, spawn_key)``: a seed sequence as an immutable value that jobs can
+    share (``SeedSequence.spawn`` mutates the object)."""
+    return (int(ss.entropy), tuple(int(k) for k in ss.spawn_key))
 
 
 def pool_map(

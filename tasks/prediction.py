@@ -24,7 +24,6 @@ error a method makes on instances it was fitted on.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
@@ -100,7 +99,6 @@ def gather_split(
             f" gathered in {episodes} episodes"
         )
     data = Transitions.concatenate(parts)
-    data = dataclasses.replace(data, dt=env.control_timestep())
     order = np.random.default_rng(split_seed).permutation(len(data))
     return Split(
         data.take(order[:n_train]), data.take(order[n_train : n_train + n_test]), data

@@ -21,7 +21,6 @@ agent's exploration stream depend only on (setting, trial), never on the method.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -31,6 +30,7 @@ from hipmdp.data import Transitions
 from hipmdp.planning import LearnedModel, plan
 from hipmdp.sarsa import init_state
 from tasks.agents import Domain, SimulatorModel, episode_transitions, run_episode
+from tasks.experiment import check_positive
 
 Array = np.ndarray
 
@@ -58,9 +58,9 @@ class TransferConfig:
     planning_max_steps: int = 500
 
     def __post_init__(self) -> None:
-        for name in ("n_episodes", "n_start_states", "max_steps", "planning_max_steps"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"{name}: expected >= 1, got {getattr(self, name)}")
+        check_positive(
+            self, ("n_episodes", "n_start_states", "max_steps", "planning_max_steps")
+        )
         for name in ("planning_episodes", "initial_planning_episodes"):
             if int(getattr(self, name)) < 0:
                 raise ValueError(f"{name}: expected >= 0, got {getattr(self, name)}")
@@ -68,7 +68,10 @@ class TransferConfig:
 
 class TrialJob(NamedTuple):
     """One unit of work: ``method`` on test setting ``setting`` (params), ``trial``;
-    ``seed`` is the (setting, trial) seed sequence's entropy and spawn key."""
+    ``seed`` is the (setting, trial) seed sequence as a value, ``(entropy,
+    spawn_key)``: the three methods' jobs share it, and ``SeedSequence.spawn``
+    mutates the object it is called on, so sharing the object itself would give
+    each method different streams when trials run in-process."""
 
     method: str
     setting: int
@@ -169,9 +172,8 @@ def run_trial(job: TrialJob) -> TrialResult:
         returns.append(float(episode.rewards.sum()))
         steps.append(int(episode.actions.shape[0]))
         starts.append(episode.states[0])
-        data = dataclasses.replace(
-            episode_transitions(episode, episode_index, domain.angle_dims),
-            dt=env.control_timestep(),
+        data = episode_transitions(
+            episode, episode_index, domain.angle_dims, env.control_timestep()
         )
         belief, trace = _filter_episode(model, hip, belief, data, episode, job)
         if trace is not None:

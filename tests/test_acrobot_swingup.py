@@ -111,3 +111,22 @@ def test_cli_presets_and_bad_options(capsys):
         SwingupConfig(test_masses=((0.0, 1.0),))
     with pytest.raises(ValueError, match="final_window: expected <= "):
         SwingupConfig(final_window=50)
+
+
+def test_every_method_meets_the_same_initial_states(run):
+    # Same instances and seeds for every method: the real episodes of one
+    # (setting, trial) start from the same states whatever the method.
+    from hipmdp import baselines
+    from tasks.acrobot_swingup import run_transfer
+
+    hip = hipmdp.load(run.out / "hipmdp_model.npz")
+    batch = hipmdp.Transitions.load(run.out / "batch.npz")
+    average = baselines.batch_only(batch, rng=np.random.default_rng(0), n_max=100)
+    trials = run_transfer(TINY, hip, average, np.random.SeedSequence(7))
+    starts = {
+        r.method: [trace.states[0] for trace in r.traces] for r in trials if r.traces
+    }
+    assert set(starts) == set(METHODS)
+    for method in METHODS:
+        np.testing.assert_array_equal(starts[method], starts["true"])
+    assert not np.array_equal(starts["true"][0], starts["true"][1])  # reset differs
