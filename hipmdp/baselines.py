@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hipmdp.data import Transitions
+from hipmdp.data import Transitions, check_queries
 from hipmdp.gp import GPPosterior, HyperSet, condition, fit_hyperparameters, subsample
 
 Array = np.ndarray
@@ -63,17 +63,8 @@ class GPBaseline:
     def _predict(
         self, states: Array, actions: Array, with_var: bool
     ) -> tuple[Array, Array]:
-        states = np.asarray(states, dtype=float)
-        actions = np.asarray(actions)
+        states, actions = check_queries(states, actions, self.state_dim, self.n_actions)
         D = self.state_dim
-        if states.ndim != 2 or states.shape[1] != D:
-            raise ValueError(f"states: expected shape (n, {D}), got {states.shape}")
-        if actions.shape != (len(states),):
-            raise ValueError(
-                f"actions: expected shape ({len(states)},), got {actions.shape}"
-            )
-        if len(actions) and (actions.min() < 0 or actions.max() >= self.n_actions):
-            raise ValueError(f"actions: expected integers in [0, {self.n_actions})")
         mean = np.zeros((len(states), D))
         var = np.zeros((len(states), D))
         for a in np.unique(actions):

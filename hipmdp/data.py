@@ -90,6 +90,28 @@ def npz_bytes(arrays: dict[str, Array]) -> bytes:
     return buffer.getvalue()
 
 
+def check_queries(
+    states, actions, state_dim: int, n_actions: int
+) -> tuple[Array, Array]:
+    """Validate a model query: states (n, D) finite, actions (n,) in [0, A).
+
+    Returns the states as floats and the actions as integers.
+    """
+    states = np.asarray(states, dtype=float)
+    actions = np.asarray(actions)
+    if states.ndim != 2 or states.shape[1] != state_dim:
+        raise ValueError(f"states: expected shape (n, {state_dim}), got {states.shape}")
+    if actions.shape != (len(states),):
+        raise ValueError(
+            f"actions: expected shape ({len(states)},), got {actions.shape}"
+        )
+    if not np.all(np.isfinite(states)):
+        raise ValueError("states: expected finite values")
+    if len(actions) and (actions.min() < 0 or actions.max() >= n_actions):
+        raise ValueError(f"actions: expected integers in [0, {n_actions})")
+    return states, actions.astype(int)
+
+
 def _finite_float(name: str, x, shape_desc: str, ndim: int) -> Array:
     arr = np.asarray(x)
     if arr.dtype == object or not (

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import linalg
 
-from hipmdp.data import Transitions, atomic_write
+from hipmdp.data import Transitions, atomic_write, check_queries
 from hipmdp.filter import Belief, predictive, prior_belief, update_belief
 from hipmdp.gp import HyperSet
 from hipmdp.kernels import se_kernel
@@ -164,20 +164,7 @@ class HipMDP:
 
     # -- basis evaluation ------------------------------------------------------------
     def _check_inputs(self, states: Array, actions: Array) -> tuple[Array, Array]:
-        states = np.asarray(states, dtype=float)
-        actions = np.asarray(actions)
-        D = self.state_dim
-        if states.ndim != 2 or states.shape[1] != D:
-            raise ValueError(f"states: expected shape (n, {D}), got {states.shape}")
-        if actions.shape != (len(states),):
-            raise ValueError(
-                f"actions: expected shape ({len(states)},), got {actions.shape}"
-            )
-        if not np.all(np.isfinite(states)):
-            raise ValueError("states: expected finite values")
-        if len(actions) and (actions.min() < 0 or actions.max() >= self.n_actions):
-            raise ValueError(f"actions: expected integers in [0, {self.n_actions})")
-        return states, actions.astype(int)
+        return check_queries(states, actions, self.state_dim, self.n_actions)
 
     def basis(self, states: Array, actions: Array) -> Array:
         """z[k,a,d] f[k,a,d](s) for each transition's action, shape (n, D, K).

@@ -99,3 +99,18 @@ def test_missing_action_needs_hyperparameters():
     mean, var = model.predict(np.zeros((1, D)), np.array([1]))
     np.testing.assert_allclose(mean, 0.0)  # the prior where action 1 has no data
     np.testing.assert_allclose(var[0], hyper.signal_var[1] + hyper.noise_var[1])
+
+
+@pytest.mark.parametrize(
+    "states, actions, match",
+    [
+        (np.zeros((3, D + 1)), np.zeros(3, int), "states: expected shape"),
+        (np.zeros((3, D)), np.zeros(2, int), "actions: expected shape"),
+        (np.full((3, D), np.nan), np.zeros(3, int), "states: expected finite"),
+        (np.zeros((3, D)), np.full(3, 7), r"actions: expected integers in \[0, 2\)"),
+    ],
+)
+def test_bad_queries(states, actions, match):
+    model = batch_only(_batch(np.random.default_rng(7)), rng=np.random.default_rng(7))
+    with pytest.raises(ValueError, match=match):
+        model.predict(states, actions)
