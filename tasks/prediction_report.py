@@ -76,17 +76,8 @@ def record(file: Path, config, metrics: dict, hip, splits) -> None:
                 sds.append(np.sqrt(np.diag(belief.cov)))
             means, sds = np.array(means), np.array(sds)
             step = np.arange(means.shape[0])
-            for k in range(means.shape[1]):
-                base = f"/belief/w{k + 1}"
-                rec.scalars(f"{base}/mean", means[:, k], episode=e, step=step)
-                rec.scalars(f"{base}/upper", means[:, k] + 2 * sds[:, k], episode=e,
-                            step=step)  # fmt: skip
-                rec.scalars(f"{base}/lower", means[:, k] - 2 * sds[:, k], episode=e,
-                            step=step)  # fmt: skip
-            rec.scalars("/belief/true/pole_mass", np.full(step.size, p[0]),
-                        episode=e, step=step)  # fmt: skip
-            rec.scalars("/belief/true/pole_half_length", np.full(step.size, p[1]),
-                        episode=e, step=step)  # fmt: skip
+            truth = {"pole_mass": p[0], "pole_half_length": p[1]}
+            rec.belief(means, sds, truth, episode=e, step=step)
             first = _first_episode(split.episodes)
             model = LearnedModel(hip, belief, first.angle_dims)
             predicted = model.predict(first.states, first.actions)

@@ -101,6 +101,28 @@ class Recording:
             columns=self._rr.Scalars.columns(scalars=values),
         )
 
+    def belief(
+        self,
+        means: Array,
+        sds: Array,
+        truth: dict[str, float],
+        *,
+        episode: int,
+        step: Array,
+    ) -> None:
+        """The weight-belief panel: per weight ``k`` the series ``/belief/w{k}/mean``,
+        ``/upper`` and ``/lower`` (mean ± 2σ), and each true parameter as a
+        constant ``/belief/true/<name>``. ``means``, ``sds``: shape (T, K)."""
+        for k in range(np.shape(means)[1]):
+            base = f"/belief/w{k + 1}"
+            mean, sd = means[:, k], sds[:, k]
+            self.scalars(f"{base}/mean", mean, episode=episode, step=step)
+            self.scalars(f"{base}/upper", mean + 2 * sd, episode=episode, step=step)
+            self.scalars(f"{base}/lower", mean - 2 * sd, episode=episode, step=step)
+        for name, value in truth.items():
+            constant = np.full(len(step), float(value))
+            self.scalars(f"/belief/true/{name}", constant, episode=episode, step=step)
+
     def strips(
         self,
         entity: str,

@@ -110,18 +110,11 @@ def record(file: Path, config, metrics: dict, trials: list) -> None:
                     f"/rollout/{m}/predicted", pred, episode=e, step=step[1:],
                     color=(200, 40, 40), radius=0.015,
                 )  # fmt: skip
-                if trace.belief_mean is None:
-                    continue
-                for k in range(trace.belief_mean.shape[1]):
-                    mean, sd = trace.belief_mean[:, k], trace.belief_std[:, k]
-                    base = f"/belief/w{k + 1}"
-                    rec.scalars(f"{base}/mean", mean, episode=e, step=step)
-                    rec.scalars(f"{base}/upper", mean + 2 * sd, episode=e, step=step)
-                    rec.scalars(f"{base}/lower", mean - 2 * sd, episode=e, step=step)
-                rec.scalars("/belief/true/m1", np.full(step.size, m1), episode=e,
-                            step=step)  # fmt: skip
-                rec.scalars("/belief/true/m2", np.full(step.size, m2), episode=e,
-                            step=step)  # fmt: skip
+                if trace.belief_mean is not None:
+                    rec.belief(
+                        trace.belief_mean, trace.belief_std, {"m1": m1, "m2": m2},
+                        episode=e, step=step,
+                    )  # fmt: skip
 
 
 _NOTES = """\
