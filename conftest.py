@@ -1,8 +1,7 @@
-"""Test-session settings, applied before any test module imports numpy."""
+"""Test-session settings, applied before any test module imports numpy.
 
-import os
+Importing `tasks` sets its process defaults (one BLAS thread, headless MuJoCo; see
+tasks/__init__.py); numpy is not loaded yet when pytest reads this file.
+"""
 
-# See tasks/__init__.py: one BLAS thread per process, headless MuJoCo.
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
-os.environ.setdefault("MUJOCO_GL", "disable")
+import tasks  # noqa: F401

@@ -25,10 +25,10 @@ would give), random / raw and sarsa / raw.
 
 from __future__ import annotations
 
-import os
+# first, before numpy loads: one BLAS thread, headless MuJoCo (tasks/__init__.py)
+import tasks  # noqa: F401
 
-# one BLAS thread per process (see tasks/__init__.py), set before numpy loads
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# isort: split
 
 import argparse
 import concurrent.futures as cf

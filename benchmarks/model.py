@@ -15,20 +15,20 @@ transitions per instance. Prints:
 
 from __future__ import annotations
 
+# first, before numpy loads: one BLAS thread, headless MuJoCo (tasks/__init__.py)
+import tasks  # noqa: F401
+
+# isort: split
+
 import argparse
-import os
 import time
 
-# One BLAS thread: on a loaded 2-core machine OpenBLAS's threads spin against each
-# other (a 142x142 Cholesky measured 356 ms with threads vs 0.4 ms without).
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+import numpy as np
 
-import numpy as np  # noqa: E402
-
-import hipmdp  # noqa: E402
-from hipmdp.fitting import FitConfig, smooth_onto_support  # noqa: E402
-from hipmdp.gp import fit_hyper_set  # noqa: E402
-from hipmdp.support import select_support  # noqa: E402
+import hipmdp
+from hipmdp.fitting import FitConfig, smooth_onto_support
+from hipmdp.gp import fit_hyper_set
+from hipmdp.support import select_support
 
 A, D, B, N_PER = 2, 4, 7, 6000
 

@@ -16,10 +16,10 @@ and the ratio env / raw: the fraction of raw speed the environment keeps.
 
 from __future__ import annotations
 
-import os
+# first, before numpy loads: one BLAS thread, headless MuJoCo (tasks/__init__.py)
+import tasks  # noqa: F401
 
-# one BLAS thread per process (see tasks/__init__.py), set before numpy loads
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# isort: split
 
 import argparse
 import time
