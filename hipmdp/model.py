@@ -130,17 +130,7 @@ class HipMDP:
 
     def interpolation_var(self, states: Array, actions: Array) -> Array:
         """v_ad(s), the GP interpolation variance of a basis function, (n, D)."""
-        states, actions = self._check_inputs(states, actions)
-        out = np.zeros((len(states), self.state_dim))
-        for a in np.unique(actions):
-            idx = np.flatnonzero(actions == a)
-            for d in range(self.state_dim):
-                h = self.hyper.get(a, d)
-                Kx = se_kernel(states[idx], self.support, h.lengthscales, h.signal_var)
-                L, _ = self._factor(a, d)
-                V = linalg.solve_triangular(L, Kx.T, lower=True)
-                out[idx, d] = np.maximum(h.signal_var - (V * V).sum(0), 0.0)
-        return out
+        return self._evaluate(states, actions, with_var=True)[1]
 
     def __getstate__(self) -> dict:
         # factors are a cache: not shipped to worker processes
@@ -171,15 +161,27 @@ class HipMDP:
 
         states: (n, D); actions: (n,).
         """
+        return self._evaluate(states, actions, with_var=False)[0]
+
+    def _evaluate(
+        self, states: Array, actions: Array, with_var: bool
+    ) -> tuple[Array, Array | None]:
+        """The basis (n, D, K) and, if asked, v_ad(s) (n, D), from one kernel
+        evaluation k_ad(s, S*) per (action, dimension)."""
         states, actions = self._check_inputs(states, actions)
-        out = np.zeros((len(states), self.state_dim, self.n_features))
+        F = np.zeros((len(states), self.state_dim, self.n_features))
+        v = np.zeros((len(states), self.state_dim)) if with_var else None
         for a in np.unique(actions):
             idx = np.flatnonzero(actions == a)
             for d in range(self.state_dim):
                 h = self.hyper.get(a, d)
                 Kx = se_kernel(states[idx], self.support, h.lengthscales, h.signal_var)
-                out[idx, d] = (Kx @ self._coef[:, a, d].T) * self.z[:, a, d]
-        return out
+                F[idx, d] = (Kx @ self._coef[:, a, d].T) * self.z[:, a, d]
+                if with_var:
+                    L, _ = self._factor(a, d)
+                    V = linalg.solve_triangular(L, Kx.T, lower=True)
+                    v[idx, d] = np.maximum(h.signal_var - (V * V).sum(0), 0.0)
+        return F, v
 
     # -- online filtering ------------------------------------------------------------
     def prior(self) -> Belief:
@@ -209,13 +211,13 @@ class HipMDP:
         """Predicted Δs and its variance, each (n, D): noise, weight uncertainty and
         basis interpolation variance (module docstring)."""
         self._check_belief(belief)
-        F = self.basis(states, actions)
+        F, v = self._evaluate(states, actions, with_var=True)
         a = np.asarray(actions, dtype=int)
         mean, var = predictive(belief, F[..., 1:], F[..., 0], self.hyper.noise_var[a])
         # E[w_k²] for the active features of each (a, d); feature 0 has w = 1
         w2 = np.concatenate([[1.0], belief.mean**2 + np.diag(belief.cov)])
         scale = np.einsum("kad,k->ad", self.z, w2)[a]  # (n, D)
-        return mean, var + self.interpolation_var(states, actions) * scale
+        return mean, var + v * scale
 
     def predict_mean(self, states: Array, actions: Array, belief: Belief) -> Array:
         """Predicted Δs only, f_1(s) + F(s) μ, shape (n, D)."""
