@@ -102,6 +102,26 @@ def first_episode_within(
     return int(ok[0]) + 1 if ok.size else None
 
 
+def paired_difference(a: Array, b: Array, level: float = 0.95) -> dict:
+    """Method ``a`` minus method ``b`` on the same (setting, trial) pairs.
+
+    ``a`` and ``b`` have shape (trials, episodes) with rows in the same (setting,
+    trial) order. Returns ``{"all_episodes": mean_ci of each trial's mean return
+    difference over its episodes, "per_episode": mean_ci per episode}``; both are
+    paired, so what the trials share (instance, start states, seeds) cancels.
+    """
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    if a.ndim != 2 or a.shape != b.shape:
+        raise ValueError(
+            f"a, b: expected equal shapes (trials, episodes), got {a.shape}, {b.shape}"
+        )
+    diff = a - b
+    return {
+        "all_episodes": mean_ci(diff.mean(axis=1), level=level),
+        "per_episode": mean_ci(diff, axis=0, level=level),
+    }
+
+
 def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
     """A GitHub Markdown table."""
     lines = [

@@ -154,6 +154,25 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
         rows,
     )
 
+    paired = metrics["paired_difference"]
+    n_show = min(2, n_ep)
+    paired_table = markdown_table(
+        ["difference", "all episodes"] + [f"episode {e + 1}" for e in range(n_show)],
+        [
+            [pair, fmt_ci(d["all_episodes"], 4)]
+            + [
+                fmt_ci({k: d["per_episode"][k][e] for k in ("mean", "low", "high")}, 4)
+                for e in range(n_show)
+            ]
+            for pair, d in paired.items()
+        ],
+    )
+    limit = metrics["step_limit_rate"]
+    limit_table = markdown_table(
+        ["method"] + [f"episode {e + 1}" for e in range(n_ep)],
+        [[LABELS[m]] + [f"{x:.0%}" for x in limit[m]] for m in METHODS],
+    )
+
     def mse_table(mse: dict) -> str:
         dims = list(next(iter(mse.values())))
         return markdown_table(
@@ -176,6 +195,19 @@ features inferred.
 {transfer}
 
 "Near-optimal" is within 10% of the true model's final mean return ({target:.1f}).
+
+## Paired differences in return (mean [95% interval] over trials)
+
+Each trial's return minus the other method's on the same instance and seeds;
+"all episodes" is the difference of the two trials' mean returns over all
+{n_ep} real episodes. An interval above 0 means the first method is clearly ahead.
+
+{paired_table}
+
+Share of real episodes that ran to the {config.transfer.max_steps}-step limit
+(each such episode has a return of −{config.transfer.max_steps}):
+
+{limit_table}
 
 ## One-step prediction error on test settings (MSE of Δs, mean [95% interval])
 

@@ -81,6 +81,23 @@ def test_metrics_schema(run):
     assert json.loads((run.out / "config.json").read_text())["seed"] == 0
 
 
+def test_paired_differences_and_step_limit_rates_agree_with_the_curves(run):
+    m = json.loads((run.out / "metrics.json").read_text())
+    curves, limit = m["returns"], m["step_limit_rate"]
+    for pair, d in m["paired_difference"].items():
+        a, b = pair.split(" - ")
+        # the mean of the paired differences is the difference of the means
+        gap = np.array(curves[a]["mean"]) - np.array(curves[b]["mean"])
+        np.testing.assert_allclose(d["per_episode"]["mean"], gap, atol=1e-9)
+        np.testing.assert_allclose(d["all_episodes"]["mean"], gap.mean(), atol=1e-9)
+    cap = TINY.transfer.max_steps
+    for method in METHODS:
+        assert len(limit[method]) == TINY.transfer.n_episodes
+        # a mean return of -cap means every trial hit the limit, and only then
+        at_cap = np.isclose(curves[method]["mean"], -cap)
+        assert np.array_equal(at_cap, np.isclose(limit[method], 1.0))
+
+
 def test_model_file_loads_and_predicts(run):
     model = hipmdp.load(run.out / "hipmdp_model.npz")
     batch = hipmdp.Transitions.load(run.out / "batch.npz")

@@ -5,9 +5,16 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 from scipy import stats
 
-from tasks.experiment import first_episode_within, mean_ci, to_jsonable, write_json
+from tasks.experiment import (
+    first_episode_within,
+    mean_ci,
+    paired_difference,
+    to_jsonable,
+    write_json,
+)
 
 
 def test_mean_ci_matches_t_interval_and_covers_at_nominal_rate():
@@ -33,6 +40,37 @@ def test_first_episode_within_uses_negative_returns():
     curve = np.array([-500.0, -200.0, -111.0, -109.0, -100.0])
     assert first_episode_within(curve, target=-100.0) == 4
     assert first_episode_within(curve, target=-10.0) is None
+
+
+def test_paired_difference_cancels_what_the_trials_share():
+    # trial-to-trial spread 50, a constant gap of 7: unpaired intervals would be
+    # ~±20 wide; paired, the shared part cancels and the gap is exact
+    rng = np.random.default_rng(1)
+    shared = rng.normal(-120.0, 50.0, size=(24, 5))
+    d = paired_difference(shared + 7.0, shared)
+    np.testing.assert_allclose(d["per_episode"]["mean"], 7.0)
+    np.testing.assert_allclose(d["per_episode"]["low"], 7.0)
+    np.testing.assert_allclose(d["per_episode"]["high"], 7.0)
+    assert d["all_episodes"]["n"] == 24
+    np.testing.assert_allclose(
+        [d["all_episodes"]["low"], d["all_episodes"]["high"]], [7.0, 7.0]
+    )
+
+
+def test_paired_difference_is_the_t_interval_of_per_trial_mean_gaps():
+    rng = np.random.default_rng(2)
+    a, b = rng.normal(size=(10, 4)), rng.normal(size=(10, 4))
+    gaps = (a - b).mean(axis=1)
+    low, high = stats.t.interval(0.95, df=9, loc=gaps.mean(), scale=stats.sem(gaps))
+    d = paired_difference(a, b)["all_episodes"]
+    np.testing.assert_allclose(
+        [d["mean"], d["low"], d["high"]], [gaps.mean(), low, high]
+    )
+
+
+def test_paired_difference_rejects_unpaired_shapes():
+    with pytest.raises(ValueError, match="a, b: expected equal shapes"):
+        paired_difference(np.zeros((3, 2)), np.zeros((4, 2)))
 
 
 def test_json_artefacts_are_plain_and_nan_free(tmp_path):
