@@ -1,0 +1,201 @@
+"""Is the acrobot transfer gap identification or model? A check on a finished run.
+
+    python -m tasks.acrobot_identified runs/acrobot_swingup [--trials 10]
+
+Reads a finished swing-up run (``config.json``, ``hipmdp_model.npz``,
+``batch.npz``), refits its average model exactly as the run did, and runs the
+transfer protocol (tasks/transfer.py) on the run's test settings for four variants:
+
+- ``true``, ``average``, ``hipmdp``: the run's three methods;
+- ``identified``: the HiP-MDP whose belief starts already filtered on
+  ``--identify`` transitions of the test instance (gathered along a Sarsa agent's
+  trajectories), instead of the prior. It plans with the instance's weights
+  identified about as well as this model can, so its gap to ``true`` is what the
+  model itself costs; ``hipmdp``'s gap to ``identified`` is what identifying the
+  instance online costs.
+
+Every variant runs on the same (setting, trial) seeds, spawned from ``--seed``;
+they differ from the run's own trial seeds. Prints the mean return per episode
+with its standard error, and writes ``identified.json`` in the run folder: per
+variant the returns (trials × episodes), the mean curve with 95% intervals, and
+paired differences against ``true``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+import hipmdp
+from hipmdp import baselines
+from tasks import transfer
+from tasks.acrobot_swingup import _params
+from tasks.agents import ACROBOT
+from tasks.experiment import (
+    mean_ci,
+    paired_difference,
+    pool_map,
+    seed_value,
+    write_json,
+)
+from tasks.prediction import gather_split
+
+VARIANTS = ("true", "average", "hipmdp", "identified")
+
+
+class _Identified:
+    """The fitted HiP-MDP with ``prior()`` replaced by a given belief."""
+
+    def __init__(self, hip, belief) -> None:
+        self._hip, self._belief = hip, belief
+
+    def prior(self):
+        return self._belief
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._hip, name)
+
+
+_STATE: dict[str, Any] = {}
+
+
+def _init(config: transfer.TransferConfig, hip, average, beliefs) -> None:
+    transfer.set_models(ACROBOT, config, hip, average)
+    _STATE.update(hip=hip, beliefs=beliefs)
+
+
+def _job(args) -> tuple[str, int, int, np.ndarray]:
+    variant, setting, trial, masses, seed = args
+    model = _STATE["hip"]
+    if variant == "identified":
+        model = _Identified(model, _STATE["beliefs"][setting])
+    transfer._MODELS["hipmdp"] = model
+    method = "hipmdp" if variant == "identified" else variant
+    job = transfer.TrialJob(method, setting, trial, _params(*masses), seed, False)
+    return variant, setting, trial, transfer.run_trial(job).returns
+
+
+class Results(NamedTuple):
+    out: Path
+    returns: dict[str, np.ndarray]
+
+
+def main(
+    run: str | Path,
+    *,
+    variants: tuple[str, ...] = VARIANTS,
+    trials: int = 10,
+    episodes: int = 3,
+    identify: int = 1000,
+    seed: int = 123,
+    workers: int = 2,
+    progress: bool = True,
+) -> Results:
+    """Run the check on the run folder ``run``; see the module docstring."""
+    run = Path(run)
+    for name in ("config.json", "hipmdp_model.npz", "batch.npz"):
+        if not (run / name).is_file():
+            raise FileNotFoundError(f"run: {run} has no {name}; is it a swing-up run?")
+    unknown = set(variants) - set(VARIANTS)
+    if unknown or not variants:
+        raise ValueError(f"variants: expected some of {VARIANTS}, got {variants}")
+    for name, value in (("trials", trials), ("episodes", episodes)):
+        if value < 1:
+            raise ValueError(f"{name}: expected >= 1, got {value}")
+    if identify < 1:
+        raise ValueError(f"identify: expected >= 1, got {identify}")
+
+    config = json.loads((run / "config.json").read_text())
+    masses = [tuple(m) for m in config["test_masses"]]
+    protocol = dataclasses.replace(
+        transfer.TransferConfig(**config["transfer"]), n_episodes=episodes
+    )
+    hip = hipmdp.load(run / "hipmdp_model.npz")
+    batch = hipmdp.Transitions.load(run / "batch.npz")
+    ss_avg = np.random.SeedSequence(config["seed"]).spawn(5)[2]  # as the run did
+    average = baselines.batch_only(
+        batch, rng=np.random.default_rng(ss_avg), n_max=config["average_n_max"]
+    )
+
+    ss_trials, ss_identify = np.random.SeedSequence(seed).spawn(2)
+    beliefs = []
+    if "identified" in variants:
+        for params_seed, mm in zip(ss_identify.spawn(len(masses)), masses, strict=True):
+            split = gather_split(
+                ACROBOT,
+                _params(*mm),
+                identify,
+                0,
+                rng=np.random.default_rng(params_seed),
+            )
+            beliefs.append(hip.update(hip.prior(), split.train))
+    seeds = [seed_value(s) for s in ss_trials.spawn(len(masses) * trials)]
+    jobs = [
+        (v, i, t, mm, seeds[i * trials + t])
+        for v in variants
+        for i, mm in enumerate(masses)
+        for t in range(trials)
+    ]
+    done = pool_map(
+        _job, jobs, workers=workers, desc="trials", progress=progress,
+        initializer=_init, initargs=(protocol, hip, average, beliefs),
+    )  # fmt: skip
+    returns = {v: np.array([r for (vv, _, _, r) in done if vv == v]) for v in variants}
+    out: dict[str, Any] = {
+        "run": str(run),
+        "seed": seed,
+        "trials_per_setting": trials,
+        "identify_transitions": identify,
+        "returns": returns,
+        "curves": {v: mean_ci(r, axis=0) for v, r in returns.items()},
+    }
+    if "true" in variants:
+        out["paired_difference_to_true"] = {
+            v: paired_difference(r, returns["true"])
+            for v, r in returns.items()
+            if v != "true"
+        }
+    path = write_json(run / "identified.json", out)
+    return Results(path, returns)
+
+
+def cli(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m tasks.acrobot_identified",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("run", help="a finished acrobot_swingup run folder")
+    parser.add_argument("--variants", nargs="+", default=list(VARIANTS))
+    parser.add_argument("--trials", type=int, default=10, help="trials per setting")
+    parser.add_argument("--episodes", type=int, default=3, help="real episodes")
+    parser.add_argument("--identify", type=int, default=1000, help="transitions")
+    parser.add_argument("--seed", type=int, default=123)
+    parser.add_argument("--workers", type=int, default=2)
+    args = parser.parse_args(argv)
+    try:
+        results = main(
+            args.run, variants=tuple(args.variants), trials=args.trials,
+            episodes=args.episodes, identify=args.identify, seed=args.seed,
+            workers=args.workers,
+        )  # fmt: skip
+    except (ValueError, FileNotFoundError) as err:
+        parser.error(str(err))
+    for v, r in results.returns.items():
+        se = r.std(axis=0, ddof=1) / np.sqrt(len(r)) if len(r) > 1 else 0 * r[0]
+        cells = ", ".join(
+            f"{m:.1f} ± {s:.1f}" for m, s in zip(r.mean(axis=0), se, strict=True)
+        )
+        print(f"{v:>10}: {cells}   (mean ± s.e. per episode, {len(r)} trials)")
+    print(f"wrote {results.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

@@ -1,0 +1,50 @@
+"""The identification check on a finished (tiny) swing-up run."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from tasks import acrobot_identified
+from tasks.acrobot_swingup import main as swingup_main
+from tests.test_acrobot_swingup import TINY
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    out = swingup_main(TINY, out=tmp_path_factory.mktemp("swingup")).out
+    return out, acrobot_identified.main(
+        out, trials=1, episodes=2, identify=30, workers=1, progress=False
+    )
+
+
+def test_writes_every_variant_on_the_same_trials(run):
+    out, results = run
+    data = json.loads((out / "identified.json").read_text())
+    n = len(TINY.test_masses) * 1
+    for v in acrobot_identified.VARIANTS:
+        returns = np.array(data["returns"][v])
+        assert returns.shape == (n, 2)
+        np.testing.assert_array_equal(returns, results.returns[v])
+        assert np.all((-TINY.transfer.max_steps <= returns) & (returns <= -1))
+    assert set(data["paired_difference_to_true"]) == {"average", "hipmdp", "identified"}
+
+
+def test_identified_model_starts_from_the_given_belief():
+    class Hip:
+        n_features = 3
+
+        def prior(self):
+            return "prior"
+
+    model = acrobot_identified._Identified(Hip(), "filtered")
+    assert model.prior() == "filtered" and model.n_features == 3
+
+
+def test_rejects_a_folder_that_is_not_a_run_and_unknown_variants(tmp_path, run):
+    with pytest.raises(FileNotFoundError, match="has no config.json"):
+        acrobot_identified.main(tmp_path)
+    with pytest.raises(ValueError, match="variants: expected some of"):
+        acrobot_identified.main(run[0], variants=("oracle",))
