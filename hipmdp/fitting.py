@@ -13,15 +13,18 @@ Pipeline (DESIGN §2):
    σ² I)⁻¹ Δ_b(S_ab)` on (a subsample of) instance b's action-a transitions;
 4. blocked Gibbs sampling of z, w, f, μ_w (`hipmdp.gibbs.run_chains`), best sample;
 5. the returned weights are the conditional posterior means E[w_b | z, f, μ_w, Y], and
-   the prior mean for a new instance is E[μ_w | those weights].
+   the prior mean for a new instance is E[μ_w | those weights];
+6. the model-error terms of the predictive variance per `(a, d)` (`model_error`),
+   on a reproducible subsample of the batch.
 """
 
 from __future__ import annotations
 
 import numbers
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
+from scipy import optimize
 from tqdm.auto import tqdm
 
 from hipmdp.data import Transitions
@@ -51,6 +54,7 @@ class FitConfig:
     | n_hyper      | transitions per action, hyperparameter fit     | 1000    | >= 2  |
     | n_candidates | candidate states for the support selection     | 3000    | >= m  |
     | n_smooth     | transitions per (instance, action), smoothing  | 1000    | >= 1  |
+    | n_residual   | transitions per action, model-error variance   | 2000    | >= 1  |
     | progress     | show progress bars                             | True    |       |
 
     The paper's cartpole run: n_support=750, n_sweeps=250, alpha=2, sigma_w=4.
@@ -66,6 +70,7 @@ class FitConfig:
     n_hyper: int = 1000
     n_candidates: int = 3000
     n_smooth: int = 1000
+    n_residual: int = 2000
     progress: bool = True
 
     def __post_init__(self) -> None:
@@ -77,6 +82,7 @@ class FitConfig:
             "n_hyper": 2,
             "n_candidates": 1,
             "n_smooth": 1,
+            "n_residual": 1,
         }
         for name, low in minimum.items():
             v = getattr(self, name)
@@ -203,7 +209,8 @@ def fit(data: Transitions, config: FitConfig, *, rng: np.random.Generator) -> Hi
             f"rng: expected numpy.random.Generator, got {type(rng).__name__}"
         )
     check_batch(data, config)
-    rng_hyper, rng_support, rng_smooth, rng_gibbs = rng.spawn(4)
+    # spawn(5)'s first four children are spawn(4)'s: adding a stream changed nothing
+    rng_hyper, rng_support, rng_smooth, rng_gibbs, rng_residual = rng.spawn(5)
     A, D = data.n_actions, data.state_dim
     deltas = data.deltas
     hyper = fit_hyper_set(
@@ -274,7 +281,7 @@ def fit(data: Transitions, config: FitConfig, *, rng: np.random.Generator) -> Hi
         "n_transitions": int(len(data)),
         "angle_dims": list(data.angle_dims),
     }
-    return HipMDP(
+    model = HipMDP(
         support=support,
         hyper=hyper,
         z=z.reshape(K, A, D),
@@ -285,6 +292,73 @@ def fit(data: Transitions, config: FitConfig, *, rng: np.random.Generator) -> Hi
         instance_ids=data.instance_ids,
         info=info,
     )
+    sub = np.concatenate(
+        [
+            idx[subsample(len(idx), config.n_residual, rng=rng_residual)]
+            for idx in (np.flatnonzero(data.actions == a) for a in range(A))
+        ]
+    )
+    r0, c = model_error(model, data.take(sub))
+    return replace(model, residual_var=r0, interp_var_scale=c)
+
+
+def model_error(model: HipMDP, data: Transitions) -> tuple[Array, Array]:
+    """What the fitted model cannot represent, per (a, d), from its training data.
+
+    Each transition of training instance b is predicted with b's fitted weights (no
+    weight uncertainty), leaving residuals ``r_i``. Per (a, d), the variance of
+    ``r_i`` is modelled as
+
+        var_i = σ²[a,d] + c[a,d] · u_i + r0[a,d],   u_i = v_ad(s_i) Σ_k z w[k,b]²,
+
+    (``u_i`` is the interpolation term of `HipMDP.predict`, so ``c = 1, r0 = 0``
+    is the uncalibrated model) and ``c >= 0``, ``r0 >= 0`` maximise the Gaussian
+    likelihood of the residuals. The errors are heavy-tailed and larger away from
+    the support points, which ``c`` captures and one constant variance cannot.
+
+    Returns:
+        ``(r0, c)``, each (A, D); an (a, d) without transitions gets ``(0, 1)``.
+    """
+    A, D = model.n_actions, model.state_dim
+    col = {int(b): j for j, b in enumerate(model.instance_ids)}
+    unknown = sorted(set(np.unique(data.instances).tolist()) - set(col))
+    if unknown:
+        raise ValueError(f"data: instances {unknown} are not training instances")
+    F, v = model._evaluate(data.states, data.actions, with_var=True)
+    w = model.weights[:, [col[int(b)] for b in data.instances]].T  # (n, K)
+    r2 = (data.deltas - np.einsum("ndk,nk->nd", F, w)) ** 2
+    u = v * np.einsum("nk,knd->nd", w * w, model.z[:, data.actions, :])
+    r0, c = np.zeros((A, D)), np.ones((A, D))
+    for a in range(A):
+        rows = data.actions == a
+        if not rows.any():
+            continue
+        for d in range(D):
+            r0[a, d], c[a, d] = _fit_error_terms(
+                r2[rows, d], u[rows, d], float(model.hyper.noise_var[a, d])
+            )
+    return r0, c
+
+
+def _fit_error_terms(r2: Array, u: Array, noise: float) -> tuple[float, float]:
+    """argmax over r0, c >= 0 of Σ log N(r; 0, noise + c u + r0), by L-BFGS-B on
+    (log r0, log c); the bounds keep both finite."""
+    scale = max(float(np.mean(r2)), noise, 1e-300)
+
+    def nll(theta: Array) -> tuple[float, Array]:
+        e0, ec = np.exp(theta)
+        var = noise + ec * u + e0 * scale
+        g = 0.5 * (1.0 / var - r2 / var**2)  # d nll / d var
+        return float(0.5 * np.sum(r2 / var + np.log(var))), np.array(
+            [np.sum(g) * e0 * scale, np.sum(g * u) * ec]
+        )
+
+    start = np.log([max(float(np.median(r2)) / scale, 1e-12), 1.0])
+    res = optimize.minimize(
+        nll, start, jac=True, method="L-BFGS-B", bounds=[(-60.0, 5.0), (-60.0, 30.0)]
+    )
+    e0, ec = np.exp(res.x)
+    return float(e0 * scale), float(ec)
 
 
 __all__ = [
@@ -292,5 +366,6 @@ __all__ = [
     "check_batch",
     "fit",
     "posterior_weights",
+    "model_error",
     "smooth_onto_support",
 ]

@@ -26,6 +26,18 @@ and with independent basis functions the prediction's variance is
 The paper ignores the last term; without it the variance of a deterministic
 simulator's dynamics is the fitted noise (~1e-8 here), and held-out log-likelihoods
 are meaningless. `predict_mean` (used for planning) skips the variance entirely.
+
+Model error. Even with the interpolation variance, a deterministic simulator's
+fitted noise leaves out what the model cannot represent (smoothed support values,
+a few features): on the acrobot at paper size the median error was 2-7 predictive
+standard deviations. `hipmdp.fit` therefore calibrates two terms per (a, d) on its
+training instances (`hipmdp.fitting.model_error`), and `predict` uses
+
+    Var[Δs_d] = σ² + F Σ_w Fᵀ + c[a,d] v_ad(s) (1 + Σ_k z (μ_k² + Σ_w[k,k])) + r0[a,d]
+
+(`interp_var_scale` c, `residual_var` r0; c = 1, r0 = 0 when absent, as in models
+saved before they existed). Filtering (`update`) keeps σ²[a,d], so the belief,
+`predict_mean` and planning do not depend on them.
 """
 
 from __future__ import annotations
@@ -90,6 +102,8 @@ class HipMDP:
         sigma_w: prior standard deviation σ_w of a weight around μ_w.
         instance_ids: training instance ids, shape (B,), the columns of `weights`.
         info: JSON-serialisable metadata (config, log joint, ...).
+        residual_var, interp_var_scale: the model-error terms r0 and c of the
+            predictive variance (module docstring), each (A, D), or None.
     """
 
     support: Array
@@ -101,9 +115,19 @@ class HipMDP:
     sigma_w: float
     instance_ids: Array
     info: dict
+    residual_var: Array | None = None
+    interp_var_scale: Array | None = None
 
     def __post_init__(self) -> None:
         K, A, D, m = self.f.shape
+        for name in ("residual_var", "interp_var_scale"):
+            if getattr(self, name) is not None:
+                r = np.asarray(getattr(self, name), dtype=float)
+                if r.shape != (A, D) or not np.all(np.isfinite(r) & (r >= 0)):
+                    raise ValueError(
+                        f"{name}: expected finite values >= 0 of shape ({A}, {D})"
+                    )
+                object.__setattr__(self, name, r)
         if self.support.shape != (m, D):
             raise ValueError(
                 f"support: expected shape ({m}, {D}), got {self.support.shape}"
@@ -217,7 +241,12 @@ class HipMDP:
         # E[w_k²] for the active features of each (a, d); feature 0 has w = 1
         w2 = np.concatenate([[1.0], belief.mean**2 + np.diag(belief.cov)])
         scale = np.einsum("kad,k->ad", self.z, w2)[a]  # (n, D)
-        return mean, var + v * scale
+        if self.interp_var_scale is not None:
+            scale = scale * self.interp_var_scale[a]
+        var = var + v * scale
+        if self.residual_var is not None:
+            var = var + self.residual_var[a]
+        return mean, var
 
     def predict_mean(self, states: Array, actions: Array, belief: Belief) -> Array:
         """Predicted Δs only, f_1(s) + F(s) μ, shape (n, D)."""
@@ -255,6 +284,9 @@ class HipMDP:
             "mu_w": self.mu_w,
             "instance_ids": self.instance_ids,
         }
+        for name in ("residual_var", "interp_var_scale"):
+            if getattr(self, name) is not None:
+                arrays[name] = getattr(self, name)
         meta = {
             "format_version": FORMAT_VERSION,
             "sigma_w": self.sigma_w,
@@ -275,6 +307,10 @@ def load(path: str | os.PathLike) -> HipMDP:
         if missing:
             raise ValueError(f"{path}: not a HiP-MDP model file, missing {missing}")
         arr = {k: npz[k] for k in _ARRAYS}
+        optional = {
+            k: npz[k] if k in npz.files else None
+            for k in ("residual_var", "interp_var_scale")
+        }
         meta = json.loads(str(npz["meta_json"]))
     if meta.get("format_version") != FORMAT_VERSION:
         raise ValueError(
@@ -292,4 +328,5 @@ def load(path: str | os.PathLike) -> HipMDP:
         sigma_w=float(meta["sigma_w"]),
         instance_ids=arr["instance_ids"],
         info=meta["info"],
+        **optional,
     )

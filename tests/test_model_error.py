@@ -1,0 +1,112 @@
+"""The model-error terms of the HiP-MDP's predictive variance (fitting.model_error)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from hipmdp.fitting import _fit_error_terms, model_error
+from hipmdp.model import load
+from tests.test_model import _batch, _instance, fitted  # noqa: F401  (fixture)
+
+
+def _residuals(r0, c, noise, n, seed):
+    rng = np.random.default_rng(seed)
+    u = rng.exponential(1e-3, size=n)  # interpolation variances of many sizes
+    r = rng.normal(size=n) * np.sqrt(noise + c * u + r0)
+    return r * r, u
+
+
+# each case has both terms of comparable size (E[u] = 1e-3), or one of them 0: a
+# term hundreds of times smaller than the other is not identifiable from residuals
+@pytest.mark.parametrize(("r0", "c"), [(3e-2, 30.0), (4e-4, 0.5), (1e-3, 0.0)])
+def test_error_terms_recover_the_variance_they_were_drawn_from(r0, c):
+    # 20,000 residuals: the maximum-likelihood estimates' sampling sd is a few %
+    r2, u = _residuals(r0, c, 1e-8, 20_000, seed=0)
+    r0_hat, c_hat = _fit_error_terms(r2, u, 1e-8)
+    assert r0_hat == pytest.approx(r0, rel=0.1)
+    assert c_hat == pytest.approx(c, rel=0.1, abs=0.005)
+
+
+def test_error_terms_maximise_the_likelihood_over_a_grid():
+    r2, u = _residuals(2e-5, 5.0, 1e-8, 3_000, seed=1)
+
+    def loglik(r0, c):
+        var = 1e-8 + c * u + r0
+        return -0.5 * np.sum(r2 / var + np.log(var))
+
+    best = loglik(*_fit_error_terms(r2, u, 1e-8))
+    grid = max(
+        loglik(r0, c)
+        for r0 in np.geomspace(1e-7, 1e-3, 81)
+        for c in np.geomspace(0.1, 100, 81)
+    )
+    assert best >= grid - 1e-6 * abs(grid)
+
+
+def test_model_error_is_the_dense_per_transition_fit(fitted):  # noqa: F811
+    data = _batch().take(np.arange(0, 1200, 3))
+    r0, c = model_error(fitted, data)
+    col = {int(b): j for j, b in enumerate(fitted.instance_ids)}
+    for a in range(fitted.n_actions):
+        for d in range(fitted.state_dim):
+            r2, u = [], []
+            for i in np.flatnonzero(data.actions == a):
+                s, w = data.states[i : i + 1], fitted.weights[:, col[data.instances[i]]]
+                F = fitted.basis(s, data.actions[i : i + 1])[0, d]  # (K,)
+                v = fitted.interpolation_var(s, data.actions[i : i + 1])[0, d]
+                r2.append((data.deltas[i, d] - F @ w) ** 2)
+                u.append(v * np.sum(w**2 * fitted.z[:, a, d]))
+            expect = _fit_error_terms(
+                np.array(r2), np.array(u), fitted.hyper.noise_var[a, d]
+            )
+            np.testing.assert_allclose([r0[a, d], c[a, d]], expect, rtol=1e-6)
+
+
+def test_predict_adds_the_terms_and_the_filter_ignores_them(fitted):  # noqa: F811
+    plain = dataclasses.replace(fitted, residual_var=None, interp_var_scale=None)
+    r0 = np.array([[1e-3, 2e-3], [3e-3, 4e-3]])
+    c = np.array([[2.0, 3.0], [0.5, 1.0]])
+    both = dataclasses.replace(fitted, residual_var=r0, interp_var_scale=c)
+    data = _instance(7, np.array([0.5, -0.5]), 40, np.random.default_rng(4))
+    b_plain = plain.update(plain.prior(), data)
+    b_both = both.update(both.prior(), data)
+    np.testing.assert_array_equal(b_plain.h, b_both.h)
+    np.testing.assert_array_equal(b_plain.P, b_both.P)
+    m1, v1 = plain.predict(data.states, data.actions, b_plain)
+    m2, v2 = both.predict(data.states, data.actions, b_both)
+    np.testing.assert_array_equal(m1, m2)
+    # the interpolation term alone: plain minus the same model without it
+    w2 = np.concatenate([[1.0], b_plain.mean**2 + np.diag(b_plain.cov)])
+    scale = np.einsum("kad,k->ad", fitted.z, w2)[data.actions]
+    interp = fitted.interpolation_var(data.states, data.actions) * scale
+    a = data.actions
+    np.testing.assert_allclose(v2, v1 + (c[a] - 1) * interp + r0[a], rtol=1e-10)
+
+
+def test_fit_sets_the_terms_and_files_keep_them(fitted, tmp_path):  # noqa: F811
+    shape = (fitted.n_actions, fitted.state_dim)
+    assert fitted.residual_var.shape == shape and fitted.interp_var_scale.shape == shape
+    fitted.save(tmp_path / "m.npz")
+    loaded = load(tmp_path / "m.npz")
+    np.testing.assert_array_equal(loaded.residual_var, fitted.residual_var)
+    np.testing.assert_array_equal(loaded.interp_var_scale, fitted.interp_var_scale)
+    # a model saved without them (as before they existed) loads without them
+    dataclasses.replace(fitted, residual_var=None, interp_var_scale=None).save(
+        tmp_path / "old.npz"
+    )
+    old = load(tmp_path / "old.npz")
+    assert old.residual_var is None and old.interp_var_scale is None
+
+
+def test_bad_terms_are_rejected(fitted):  # noqa: F811
+    with pytest.raises(ValueError, match=r"residual_var: expected finite values >= 0"):
+        dataclasses.replace(fitted, residual_var=-np.ones((2, 2)))
+    with pytest.raises(
+        ValueError, match=r"interp_var_scale: expected .* shape \(2, 2\)"
+    ):
+        dataclasses.replace(fitted, interp_var_scale=np.ones(3))
+    with pytest.raises(ValueError, match="instances \\[9\\] are not training"):
+        model_error(fitted, _instance(9, np.zeros(2), 10, np.random.default_rng(5)))
