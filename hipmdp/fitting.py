@@ -312,9 +312,15 @@ def model_error(model: HipMDP, data: Transitions) -> tuple[Array, Array]:
         var_i = σ²[a,d] + c[a,d] · u_i + r0[a,d],   u_i = v_ad(s_i) Σ_k z w[k,b]²,
 
     (``u_i`` is the interpolation term of `HipMDP.predict`, so ``c = 1, r0 = 0``
-    is the uncalibrated model) and ``c >= 0``, ``r0 >= 0`` maximise the Gaussian
+    is the uncalibrated model) and ``c >= 1``, ``r0 >= 0`` maximise the Gaussian
     likelihood of the residuals. The errors are heavy-tailed and larger away from
     the support points, which ``c`` captures and one constant variance cannot.
+
+    The calibration may only add variance (``c >= 1``): these residuals are
+    in-sample (the support points and smoothed values come from the same
+    transitions), so they understate the error at a new instance's states. Without
+    the bound, the cart-pole's near-zero training residuals drove ``c`` to 0 and
+    its held-out log-likelihood fell by thousands of nats.
 
     Returns:
         ``(r0, c)``, each (A, D); an (a, d) without transitions gets ``(0, 1)``.
@@ -341,8 +347,8 @@ def model_error(model: HipMDP, data: Transitions) -> tuple[Array, Array]:
 
 
 def _fit_error_terms(r2: Array, u: Array, noise: float) -> tuple[float, float]:
-    """argmax over r0, c >= 0 of Σ log N(r; 0, noise + c u + r0), by L-BFGS-B on
-    (log r0, log c); the bounds keep both finite."""
+    """argmax over r0 >= 0, c >= 1 of Σ log N(r; 0, noise + c u + r0), by L-BFGS-B
+    on (log r0, log c); the bounds keep both finite."""
     scale = max(float(np.mean(r2)), noise, 1e-300)
 
     def nll(theta: Array) -> tuple[float, Array]:
@@ -355,7 +361,7 @@ def _fit_error_terms(r2: Array, u: Array, noise: float) -> tuple[float, float]:
 
     start = np.log([max(float(np.median(r2)) / scale, 1e-12), 1.0])
     res = optimize.minimize(
-        nll, start, jac=True, method="L-BFGS-B", bounds=[(-60.0, 5.0), (-60.0, 30.0)]
+        nll, start, jac=True, method="L-BFGS-B", bounds=[(-60.0, 5.0), (0.0, 30.0)]
     )
     e0, ec = np.exp(res.x)
     return float(e0 * scale), float(ec)

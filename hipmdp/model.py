@@ -35,8 +35,8 @@ training instances (`hipmdp.fitting.model_error`), and `predict` uses
 
     Var[Δs_d] = σ² + F Σ_w Fᵀ + c[a,d] v_ad(s) (1 + Σ_k z (μ_k² + Σ_w[k,k])) + r0[a,d]
 
-(`interp_var_scale` c, `residual_var` r0; c = 1, r0 = 0 when absent, as in models
-saved before they existed). Filtering (`update`) keeps σ²[a,d], so the belief,
+(`interp_var_scale` c >= 1, `residual_var` r0 >= 0; c = 1, r0 = 0 when absent, as
+in models saved before they existed). Filtering (`update`) keeps σ²[a,d], so the belief,
 `predict_mean` and planning do not depend on them.
 """
 

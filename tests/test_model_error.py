@@ -19,9 +19,10 @@ def _residuals(r0, c, noise, n, seed):
     return r * r, u
 
 
-# each case has both terms of comparable size (E[u] = 1e-3), or one of them 0: a
-# term hundreds of times smaller than the other is not identifiable from residuals
-@pytest.mark.parametrize(("r0", "c"), [(3e-2, 30.0), (4e-4, 0.5), (1e-3, 0.0)])
+# each case has both terms of comparable size (E[u] = 1e-3), or one at its bound
+# (c = 1: the uncalibrated interpolation term): a term hundreds of times smaller
+# than the other is not identifiable from residuals
+@pytest.mark.parametrize(("r0", "c"), [(3e-2, 30.0), (4e-4, 2.0), (1e-3, 1.0)])
 def test_error_terms_recover_the_variance_they_were_drawn_from(r0, c):
     # 20,000 residuals: the maximum-likelihood estimates' sampling sd is a few %
     r2, u = _residuals(r0, c, 1e-8, 20_000, seed=0)
@@ -41,9 +42,17 @@ def test_error_terms_maximise_the_likelihood_over_a_grid():
     grid = max(
         loglik(r0, c)
         for r0 in np.geomspace(1e-7, 1e-3, 81)
-        for c in np.geomspace(0.1, 100, 81)
+        for c in np.geomspace(1.0, 100, 81)
     )
     assert best >= grid - 1e-6 * abs(grid)
+
+
+def test_error_terms_only_add_variance():
+    # residuals far smaller than the interpolation term (in-sample, near support
+    # points): the fit keeps the interpolation term whole and adds nothing
+    r2, u = _residuals(0.0, 1e-6, 1e-8, 2_000, seed=2)
+    r0_hat, c_hat = _fit_error_terms(r2, u, 1e-8)
+    assert c_hat == 1.0 and r0_hat < 1e-8
 
 
 def test_model_error_is_the_dense_per_transition_fit(fitted):  # noqa: F811
