@@ -30,8 +30,9 @@ are meaningless. `predict_mean` (used for planning) skips the variance entirely.
 Model error. Even with the interpolation variance, a deterministic simulator's
 fitted noise leaves out what the model cannot represent (smoothed support values,
 a few features): on the acrobot at paper size the median error was 4-7 predictive
-standard deviations in two of four test settings checked. `hipmdp.fit` therefore calibrates two terms per (a, d) on its
-training instances (`hipmdp.fitting.model_error`), and `predict` uses
+standard deviations in two of four test settings checked. `hipmdp.fit` therefore
+calibrates two terms per (a, d) on its training instances
+(`hipmdp.fitting.model_error`), and `predict` uses
 
     Var[Δs_d] = σ² + F Σ_w Fᵀ + c[a,d] v_ad(s) (1 + Σ_k z (μ_k² + Σ_w[k,k])) + r0[a,d]
 
