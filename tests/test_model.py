@@ -98,7 +98,15 @@ def test_new_instance_prediction_after_40_transitions(fitted):
 
 def test_same_seed_same_fit(fitted):
     again = fit(_batch(), CONFIG, rng=np.random.default_rng(1))
-    for name in ("support", "z", "f", "weights", "mu_w"):
+    for name in (
+        "support",
+        "z",
+        "f",
+        "weights",
+        "mu_w",
+        "residual_var",
+        "interp_var_scale",
+    ):
         np.testing.assert_array_equal(getattr(again, name), getattr(fitted, name))
 
 
