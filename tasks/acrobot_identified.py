@@ -66,8 +66,7 @@ _STATE: dict[str, Any] = {}
 
 
 def _init(config: transfer.TransferConfig, hip, average, beliefs) -> None:
-    transfer.set_models(ACROBOT, config, hip, average)
-    _STATE.update(hip=hip, beliefs=beliefs)
+    _STATE.update(config=config, hip=hip, average=average, beliefs=beliefs)
 
 
 def _job(args) -> tuple[str, int, int, np.ndarray]:
@@ -75,7 +74,8 @@ def _job(args) -> tuple[str, int, int, np.ndarray]:
     model = _STATE["hip"]
     if variant == "identified":
         model = _Identified(model, _STATE["beliefs"][setting])
-    transfer._MODELS["hipmdp"] = model
+    # the trial reads its models from what set_models installed in this process
+    transfer.set_models(ACROBOT, _STATE["config"], model, _STATE["average"])
     method = "hipmdp" if variant == "identified" else variant
     job = transfer.TrialJob(method, setting, trial, _params(*masses), seed, False)
     return variant, setting, trial, transfer.run_trial(job).returns
