@@ -3,8 +3,10 @@
 Symbols: `k` latent parameter (the mean-dynamics feature k = 1 is excluded: its weight
 is fixed at 1, so the belief is over the `K - 1` others); `d` state dimension; `n`
 transitions; `F` basis values `z[k,a,d] f[k,a,d](s)`, shape (n, D, K - 1); `f_1` the
-mean dynamics `f[1,a,d](s)`, shape (n, D); `σ²` noise `σ²[a,d]` of each transition's
-action, shape (n, D); `Δ` observed changes `s' - s`, shape (n, D).
+mean dynamics `f[1,a,d](s)`, shape (n, D); `σ²` the variance of each (transition,
+dimension) row given the weights, shape (n, D) (`HipMDP.update` passes the model's
+calibrated error τ², the paper the GP noise σ²[a,d]); `Δ` observed changes `s' - s`,
+shape (n, D).
 
 The belief `N(w; μ, Σ)` is kept as `(h, P) = (Σ⁻¹ μ, Σ⁻¹)`:
 

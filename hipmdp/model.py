@@ -37,8 +37,20 @@ calibrates two terms per (a, d) on its training instances
     Var[Δs_d] = σ² + F Σ_w Fᵀ + c[a,d] v_ad(s) (1 + Σ_k z (μ_k² + Σ_w[k,k])) + r0[a,d]
 
 (`interp_var_scale` c >= 1, `residual_var` r0 >= 0; c = 1, r0 = 0 when absent, as
-in models saved before they existed). Filtering (`update`) keeps σ²[a,d], so the belief,
-`predict_mean` and planning do not depend on them.
+in models saved before they existed).
+
+Filtering with the model error. The filter's likelihood for one (transition, dimension)
+row is N(Δ; f_1 + F w, τ²), and τ² must be the model's error given the weights, not
+σ² alone: with σ² ~ 1e-8 against real errors ~ 1e-4 the belief collapses after a few
+transitions onto whichever weights fit them, and its covariance means nothing. `update`
+uses the variance above without the weight-uncertainty term, with the weights at their
+prior mean μ_w:
+
+    τ²[i,d] = σ²[a,d] + c[a,d] v_ad(s_i) (1 + Σ_{k>1} z[k,a,d] μ_w[k]²) + r0[a,d].
+
+Because τ² does not depend on the belief, the update stays linear-Gaussian: one update
+with n transitions still equals n single ones. `update(..., model_error=False)` is the
+paper's filter (τ² = σ²).
 """
 
 from __future__ import annotations
@@ -219,16 +231,40 @@ class HipMDP:
                 f"belief: expected {self.n_features - 1} weights, got {belief.dim}"
             )
 
-    def update(self, belief: Belief, data: Transitions) -> Belief:
+    def update(
+        self, belief: Belief, data: Transitions, *, model_error: bool = True
+    ) -> Belief:
         """Condition the belief on any number of a new instance's transitions.
 
-        h ← h + Fᵀ Σ⁻¹ (Δ - f_1(s)),   P ← P + Fᵀ Σ⁻¹ F   (see hipmdp.filter)
+        h ← h + Fᵀ T⁻¹ (Δ - f_1(s)),   P ← P + Fᵀ T⁻¹ F   (see hipmdp.filter)
+
+        with T = diag(τ²) the model's error given the weights (`filter_noise`), or
+        with τ² = σ² (the paper's filter) if `model_error` is False.
         """
         self._check_belief(belief)
         self._check_data(data)
-        F = self.basis(data.states, data.actions)
-        noise = self.hyper.noise_var[data.actions]
+        F, v = self._evaluate(data.states, data.actions, with_var=model_error)
+        noise = self._filter_noise(data.actions, v)
         return update_belief(belief, F[..., 1:], data.deltas - F[..., 0], noise)
+
+    def filter_noise(self, states: Array, actions: Array) -> Array:
+        """τ²[i,d], the variance of Δs given the weights that `update` filters with,
+        shape (n, D) (module docstring)."""
+        _, v = self._evaluate(states, actions, with_var=True)
+        return self._filter_noise(np.asarray(actions, dtype=int), v)
+
+    def _filter_noise(self, actions: Array, v: Array | None) -> Array:
+        noise = self.hyper.noise_var[actions]
+        if v is None:
+            return noise
+        m2 = np.concatenate([[1.0], self.mu_w[1:] ** 2])
+        scale = np.einsum("kad,k->ad", self.z, m2)
+        if self.interp_var_scale is not None:
+            scale = scale * self.interp_var_scale
+        noise = noise + v * scale[actions]
+        if self.residual_var is not None:
+            noise = noise + self.residual_var[actions]
+        return noise
 
     def predict(
         self, states: Array, actions: Array, belief: Belief

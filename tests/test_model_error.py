@@ -74,24 +74,33 @@ def test_model_error_is_the_dense_per_transition_fit(fitted):  # noqa: F811
             np.testing.assert_allclose([r0[a, d], c[a, d]], expect, rtol=1e-6)
 
 
-def test_predict_adds_the_terms_and_the_filter_ignores_them(fitted):  # noqa: F811
+def test_predict_and_the_filter_add_the_terms(fitted):  # noqa: F811
     plain = dataclasses.replace(fitted, residual_var=None, interp_var_scale=None)
     r0 = np.array([[1e-3, 2e-3], [3e-3, 4e-3]])
     c = np.array([[2.0, 3.0], [0.5, 1.0]])
     both = dataclasses.replace(fitted, residual_var=r0, interp_var_scale=c)
     data = _instance(7, np.array([0.5, -0.5]), 40, np.random.default_rng(4))
-    b_plain = plain.update(plain.prior(), data)
-    b_both = both.update(both.prior(), data)
+    a = data.actions
+    v = fitted.interpolation_var(data.states, data.actions)
+    # the filter: the same terms, with the weights at their prior mean
+    m2 = np.concatenate([[1.0], fitted.mu_w[1:] ** 2])
+    prior_interp = v * np.einsum("kad,k->ad", fitted.z, m2)[a]
+    np.testing.assert_allclose(
+        both.filter_noise(data.states, a),
+        plain.filter_noise(data.states, a) + (c[a] - 1) * prior_interp + r0[a],
+        rtol=1e-10,
+    )
+    # the paper's filter ignores them
+    b_plain = plain.update(plain.prior(), data, model_error=False)
+    b_both = both.update(both.prior(), data, model_error=False)
     np.testing.assert_array_equal(b_plain.h, b_both.h)
     np.testing.assert_array_equal(b_plain.P, b_both.P)
+    # predict: the same belief, the same mean, the terms added to the variance
     m1, v1 = plain.predict(data.states, data.actions, b_plain)
-    m2, v2 = both.predict(data.states, data.actions, b_both)
-    np.testing.assert_array_equal(m1, m2)
-    # the interpolation term alone: plain minus the same model without it
+    m2_, v2 = both.predict(data.states, data.actions, b_plain)
+    np.testing.assert_array_equal(m1, m2_)
     w2 = np.concatenate([[1.0], b_plain.mean**2 + np.diag(b_plain.cov)])
-    scale = np.einsum("kad,k->ad", fitted.z, w2)[data.actions]
-    interp = fitted.interpolation_var(data.states, data.actions) * scale
-    a = data.actions
+    interp = v * np.einsum("kad,k->ad", fitted.z, w2)[a]
     np.testing.assert_allclose(v2, v1 + (c[a] - 1) * interp + r0[a], rtol=1e-10)
 
 
