@@ -12,13 +12,18 @@ transfer protocol (tasks/transfer.py) on the run's test settings for four varian
   trajectories), instead of the prior. It plans with the instance's weights
   identified about as well as this model can, so its gap to ``true`` is what the
   model itself costs; ``hipmdp``'s gap to ``identified`` is what identifying the
-  instance online costs.
+  instance online costs;
+- ``hipmdp_paper_filter``, ``identified_paper_filter``: the same two with the
+  paper's filter (``HipMDP.update(..., model_error=False)``: the GP noise σ²
+  alone), to compare the filters on the same trials.
 
 Every variant runs on the same (setting, trial) seeds, spawned from ``--seed``;
 they differ from the run's own trial seeds. Prints the mean return per episode
-with its standard error, and writes ``identified.json`` in the run folder: per
-variant the returns (trials × episodes), the mean curve with 95% intervals, and
-paired differences against ``true``.
+with its standard error, the median and the share of episodes that ran to the step
+limit (these heavy-tailed failures move the means most), and writes
+``identified.json`` in the run folder: per variant the returns (trials × episodes),
+the mean curve with 95% intervals, medians, step-limit shares, and paired
+differences against ``true``.
 """
 
 from __future__ import annotations
@@ -46,17 +51,28 @@ from tasks.experiment import (
 )
 from tasks.prediction import gather_split
 
-VARIANTS = ("true", "average", "hipmdp", "identified")
+VARIANTS = (
+    "true",
+    "average",
+    "hipmdp",
+    "identified",
+    "hipmdp_paper_filter",
+    "identified_paper_filter",
+)
 
 
 class _Identified:
-    """The fitted HiP-MDP with ``prior()`` replaced by a given belief."""
+    """The fitted HiP-MDP with ``prior()`` replaced by a given belief (if not None)
+    and ``update`` filtering with or without the model error."""
 
-    def __init__(self, hip, belief) -> None:
-        self._hip, self._belief = hip, belief
+    def __init__(self, hip, belief, model_error: bool = True) -> None:
+        self._hip, self._belief, self._model_error = hip, belief, model_error
 
     def prior(self):
-        return self._belief
+        return self._hip.prior() if self._belief is None else self._belief
+
+    def update(self, belief, data):
+        return self._hip.update(belief, data, model_error=self._model_error)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._hip, name)
@@ -72,11 +88,15 @@ def _init(config: transfer.TransferConfig, hip, average, beliefs) -> None:
 def _job(args) -> tuple[str, int, int, np.ndarray]:
     variant, setting, trial, masses, seed = args
     model = _STATE["hip"]
-    if variant == "identified":
-        model = _Identified(model, _STATE["beliefs"][setting])
+    if variant not in ("true", "average"):
+        paper = variant.endswith("_paper_filter")
+        belief = None
+        if variant.startswith("identified"):
+            belief = _STATE["beliefs"]["paper" if paper else "model"][setting]
+        model = _Identified(model, belief, model_error=not paper)
     # the trial reads its models from what set_models installed in this process
     transfer.set_models(ACROBOT, _STATE["config"], model, _STATE["average"])
-    method = "hipmdp" if variant == "identified" else variant
+    method = variant if variant in ("true", "average") else "hipmdp"
     job = transfer.TrialJob(method, setting, trial, _params(*masses), seed, False)
     return variant, setting, trial, transfer.run_trial(job).returns
 
@@ -84,6 +104,7 @@ def _job(args) -> tuple[str, int, int, np.ndarray]:
 class Results(NamedTuple):
     out: Path
     returns: dict[str, np.ndarray]
+    summary: dict[str, Any]
 
 
 def main(
@@ -124,8 +145,8 @@ def main(
     )
 
     ss_trials, ss_identify = np.random.SeedSequence(seed).spawn(2)
-    beliefs = []
-    if "identified" in variants:
+    beliefs: dict[str, list] = {"model": [], "paper": []}
+    if any(v.startswith("identified") for v in variants):
         for params_seed, mm in zip(ss_identify.spawn(len(masses)), masses, strict=True):
             split = gather_split(
                 ACROBOT,
@@ -134,7 +155,10 @@ def main(
                 0,
                 rng=np.random.default_rng(params_seed),
             )
-            beliefs.append(hip.update(hip.prior(), split.train))
+            for key, model_error in (("model", True), ("paper", False)):
+                beliefs[key].append(
+                    hip.update(hip.prior(), split.train, model_error=model_error)
+                )
     seeds = [seed_value(s) for s in ss_trials.spawn(len(masses) * trials)]
     jobs = [
         (v, i, t, mm, seeds[i * trials + t])
@@ -154,6 +178,10 @@ def main(
         "identify_transitions": identify,
         "returns": returns,
         "curves": {v: mean_ci(r, axis=0) for v, r in returns.items()},
+        "median": {v: np.median(r, axis=0) for v, r in returns.items()},
+        "step_limit_rate": {
+            v: np.mean(r <= -protocol.max_steps, axis=0) for v, r in returns.items()
+        },
     }
     if "true" in variants:
         out["paired_difference_to_true"] = {
@@ -162,7 +190,7 @@ def main(
             if v != "true"
         }
     path = write_json(run / "identified.json", out)
-    return Results(path, returns)
+    return Results(path, returns, out)
 
 
 def cli(argv: list[str] | None = None) -> int:
@@ -192,7 +220,11 @@ def cli(argv: list[str] | None = None) -> int:
         cells = ", ".join(
             f"{m:.1f} ± {s:.1f}" for m, s in zip(r.mean(axis=0), se, strict=True)
         )
-        print(f"{v:>10}: {cells}   (mean ± s.e. per episode, {len(r)} trials)")
+        print(f"{v:>23}: {cells}   (mean ± s.e. per episode, {len(r)} trials)")
+    for key, what in (("median", "median"), ("step_limit_rate", "step-limit share")):
+        for v, x in results.summary[key].items():
+            cells = ", ".join(f"{c:.3g}" for c in x)
+            print(f"{v:>23}: {cells}   ({what} per episode)")
     print(f"wrote {results.out}")
     return 0
 

@@ -29,18 +29,34 @@ def test_writes_every_variant_on_the_same_trials(run):
         assert returns.shape == (n, 2)
         np.testing.assert_array_equal(returns, results.returns[v])
         assert np.all((-TINY.transfer.max_steps <= returns) & (returns <= -1))
-    assert set(data["paired_difference_to_true"]) == {"average", "hipmdp", "identified"}
+    assert set(data["paired_difference_to_true"]) == set(
+        acrobot_identified.VARIANTS
+    ) - {"true"}
+    for v in acrobot_identified.VARIANTS:
+        returns = np.array(data["returns"][v])
+        np.testing.assert_array_equal(data["median"][v], np.median(returns, axis=0))
+        np.testing.assert_array_equal(
+            data["step_limit_rate"][v],
+            np.mean(returns == -TINY.transfer.max_steps, axis=0),
+        )
 
 
-def test_identified_model_starts_from_the_given_belief():
+def test_identified_model_starts_from_the_given_belief_and_filters_as_asked():
     class Hip:
         n_features = 3
 
         def prior(self):
             return "prior"
 
+        def update(self, belief, data, *, model_error=True):
+            return (belief, data, model_error)
+
     model = acrobot_identified._Identified(Hip(), "filtered")
     assert model.prior() == "filtered" and model.n_features == 3
+    assert model.update("b", "d") == ("b", "d", True)
+    paper = acrobot_identified._Identified(Hip(), None, model_error=False)
+    assert paper.prior() == "prior"
+    assert paper.update("b", "d") == ("b", "d", False)
 
 
 def test_rejects_a_folder_that_is_not_a_run_and_unknown_variants(tmp_path, run):
