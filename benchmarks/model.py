@@ -9,7 +9,9 @@ transitions per instance. Prints:
 - seconds of each pre-sampler stage on its own (hyperparameters, support points with
   m = 750, per-instance smoothing) and of the whole `hipmdp.fit` (m = 750, 250 sweeps,
   FitConfig's default chains);
-- filter latency: one single-transition `update` + one single-state `predict`;
+- filter latency: one single-transition `update`, with the paper's filter and with
+  the model-error filter side by side, and followed by a single-state `predict` or
+  `predict_mean`;
 - batched `predict` throughput in states per second.
 """
 
@@ -114,7 +116,6 @@ def main() -> None:
 
     # Filter latency: single-transition update + single-state predict.
     new = make_batch(np.random.default_rng(5))[0].select(instances=[0]).head(200)
-    belief = model.prior()
     singles = [
         hipmdp.Transitions(
             new.states[i : i + 1],
@@ -124,17 +125,32 @@ def main() -> None:
         )
         for i in range(len(new))
     ]
-    # predict = mean and variance (the variance needs an m x m triangular solve per
-    # state and (a, d)); predict_mean = what planning calls
-    for name in ("predict", "predict_mean"):
-        fn = getattr(model, name)
+    # The Cholesky factors of the support kernels are computed on first use: do
+    # that before timing. predict = mean and variance (the variance needs an m x m
+    # triangular solve per state and (a, d)); predict_mean = what planning calls.
+    # The model-error filter needs the same solve for the transition's action.
+    model.interpolation_var(new.states[:A], np.arange(A))
+
+    def latency(model_error: bool, then: str | None) -> float:
         belief = model.prior()
         t0 = time.perf_counter()
         for one in singles:
-            belief = model.update(belief, one)
-            fn(one.states, one.actions, belief)
-        lat = (time.perf_counter() - t0) / len(singles)
+            belief = model.update(belief, one, model_error=model_error)
+            if then is not None:
+                getattr(model, then)(one.states, one.actions, belief)
+        return (time.perf_counter() - t0) / len(singles)
+
+    paper = latency(False, None)
+    err = latency(True, None)
+    print(f"filter update, one transition, paper filter: {paper * 1e3:8.3f} ms")
+    print(
+        f"filter update, one transition, model-error filter: {err * 1e3:8.3f} ms"
+        f"   ({err / paper:.1f}x the paper filter)"
+    )
+    for name in ("predict", "predict_mean"):
+        lat = latency(True, name)
         print(f"filter update + {name}, one transition: {lat * 1e3:8.3f} ms")
+    belief = model.update(model.prior(), new)
 
     S = np.random.default_rng(6).normal(size=(100_000, D))
     acts = np.random.default_rng(7).integers(0, A, size=len(S))

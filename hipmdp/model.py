@@ -216,7 +216,8 @@ class HipMDP:
                 F[idx, d] = (Kx @ self._coef[:, a, d].T) * self.z[:, a, d]
                 if with_var:
                     L, _ = self._factor(a, d)
-                    V = linalg.solve_triangular(L, Kx.T, lower=True)
+                    # L is our own factor and the states were checked finite
+                    V = linalg.solve_triangular(L, Kx.T, lower=True, check_finite=False)
                     v[idx, d] = np.maximum(h.signal_var - (V * V).sum(0), 0.0)
         return F, v
 

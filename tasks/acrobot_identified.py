@@ -23,7 +23,8 @@ with its standard error, the median and the share of episodes that ran to the st
 limit (these heavy-tailed failures move the means most), and writes
 ``identified.json`` in the run folder: per variant the returns (trials × episodes),
 the mean curve with 95% intervals, medians, step-limit shares, and paired
-differences against ``true``.
+differences (each trial's mean return over its episodes, with 95% intervals)
+against ``true`` and between the two filters.
 """
 
 from __future__ import annotations
@@ -189,6 +190,12 @@ def main(
             for v, r in returns.items()
             if v != "true"
         }
+    pairs = [(v, f"{v}_paper_filter") for v in ("hipmdp", "identified")]
+    out["paired_difference_model_error_minus_paper_filter"] = {
+        v: paired_difference(returns[v], returns[paper])
+        for v, paper in pairs
+        if v in returns and paper in returns
+    }
     path = write_json(run / "identified.json", out)
     return Results(path, returns, out)
 
@@ -225,6 +232,15 @@ def cli(argv: list[str] | None = None) -> int:
         for v, x in results.summary[key].items():
             cells = ", ".join(f"{c:.3g}" for c in x)
             print(f"{v:>23}: {cells}   ({what} per episode)")
+    pairs = [("paired_difference_to_true", "true")]
+    pairs += [("paired_difference_model_error_minus_paper_filter", "paper filter")]
+    for key, other in pairs:
+        for v, d in results.summary.get(key, {}).items():
+            a = d["all_episodes"]
+            print(
+                f"{v:>23} - {other}: {a['mean']:+.1f} [{a['low']:.1f}, "
+                f"{a['high']:.1f}]   (paired, over all episodes)"
+            )
     print(f"wrote {results.out}")
     return 0
 

@@ -32,6 +32,11 @@ def test_writes_every_variant_on_the_same_trials(run):
     assert set(data["paired_difference_to_true"]) == set(
         acrobot_identified.VARIANTS
     ) - {"true"}
+    between_filters = data["paired_difference_model_error_minus_paper_filter"]
+    assert set(between_filters) == {"hipmdp", "identified"}
+    for v, d in between_filters.items():
+        diff = results.returns[v] - results.returns[f"{v}_paper_filter"]
+        assert d["all_episodes"]["mean"] == pytest.approx(diff.mean())
     for v in acrobot_identified.VARIANTS:
         returns = np.array(data["returns"][v])
         np.testing.assert_array_equal(data["median"][v], np.median(returns, axis=0))
