@@ -3,15 +3,22 @@ writes every artefact with the documented schema."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
 import pytest
 
 import hipmdp
-from tasks.acrobot_swingup import PRESETS, SwingupConfig, main, parse_args
+from tasks.acrobot_swingup import (
+    PRESETS,
+    SwingupConfig,
+    main,
+    parse_args,
+    transfer_metrics,
+)
 from tasks.recording import rrd_contents
-from tasks.transfer import METHODS, TransferConfig
+from tasks.transfer import METHODS, TransferConfig, TrialResult
 
 TINY = SwingupConfig(
     name="tiny",
@@ -61,6 +68,10 @@ def test_artefacts_exist(run):
     }  # fmt: skip
     assert expected <= names
     assert not [n for n in names if n.endswith(".tmp")]
+    report = (run.out / "report.md").read_text()
+    m = json.loads((run.out / "metrics.json").read_text())
+    median = m["true_model_final_median_return"]
+    assert f"true model's final median\n({median:.1f})" in report
 
 
 def test_metrics_schema(run):
@@ -147,3 +158,25 @@ def test_every_method_meets_the_same_initial_states(run):
     for method in METHODS:
         np.testing.assert_array_equal(starts[method], starts["true"])
     assert not np.array_equal(starts["true"][0], starts["true"][1])  # reset differs
+
+
+def test_median_view_is_not_decided_by_one_failed_episode():
+    """One trial at the step limit drags the HiP-MDP's episode-1 mean out of the
+    10% band; its median stays in it, so the two near-optimal counts differ."""
+    cap = TINY.transfer.max_steps
+    base = np.array([[-20.0, -20.0], [-21.0, -20.0], [-19.0, -20.0]])
+    returns = {m: base.copy() for m in METHODS}
+    returns["hipmdp"][0, 0] = -cap  # one failure in episode 1
+    trials = [
+        TrialResult(m, 0, i, r[i], -r[i], np.zeros((3, 1)), None)
+        for m, r in returns.items()
+        for i in range(len(r))
+    ]
+    config = dataclasses.replace(TINY, final_window=1, test_masses=TINY.test_masses[:1])
+    m = transfer_metrics(config, trials)
+    for method, r in returns.items():
+        np.testing.assert_array_equal(m["median_returns"][method], np.median(r, 0))
+    assert m["true_model_final_median_return"] == -20.0
+    assert m["episodes_to_near_optimal"]["hipmdp"] == 2
+    assert m["episodes_to_near_optimal_median"]["hipmdp"] == 1
+    assert m["episodes_to_near_optimal_median"]["true"] == 1
