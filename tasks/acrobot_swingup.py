@@ -17,7 +17,8 @@
 
 Writes ``runs/<name>/``: config.json, metrics.json, report.md, learning_curves.png,
 weights.png, acrobot.rrd (``RERUN=off`` skips it), hipmdp_model.npz (read it with
-``hipmdp.load``) and batch.npz (``hipmdp.Transitions.load``).
+``hipmdp.load``), batch.npz (``hipmdp.Transitions.load``) and trials.npz (every
+trial's returns and steps per episode, see :func:`trial_arrays`).
 All randomness is spawned from ``--seed``.
 """
 
@@ -34,6 +35,7 @@ import numpy as np
 
 import hipmdp
 from hipmdp import baselines
+from hipmdp.data import atomic_write, npz_bytes
 from tasks.acrobot import AcrobotParams
 from tasks.agents import ACROBOT
 from tasks.batch import gather_and_save
@@ -254,6 +256,8 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
     mse = prediction_table(config, hip, average, batch, ss_mse)
     timings["prediction"] = time.perf_counter() - t0
 
+    arrays = trial_arrays(config, trials)
+    atomic_write(path / "trials.npz", lambda fh: fh.write(npz_bytes(arrays)))
     metrics = transfer_metrics(config, trials)
     metrics.update(
         mse=mse["test"]["mse"],
@@ -272,6 +276,29 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
     write_json(path / "metrics.json", metrics)
     swingup_report.write_report(path, config, metrics)
     return Results(path, to_jsonable(metrics))
+
+
+def trial_arrays(config: SwingupConfig, trials: list) -> dict[str, np.ndarray]:
+    """Every trial's episodes, for statistics metrics.json does not hold.
+
+    ``returns`` and ``steps``: shape (methods, settings, trials, episodes), in the
+    order of ``methods`` and ``test_masses`` ((m1, m2) per setting, kg). Read with
+    ``np.load("trials.npz")`` (no pickle).
+    """
+    shape = (len(METHODS), len(config.test_masses), config.n_trials)
+    returns = np.full((*shape, config.transfer.n_episodes), np.nan)
+    steps = np.zeros(returns.shape, dtype=np.int64)
+    for r in trials:
+        index = (METHODS.index(r.method), r.setting, r.trial)
+        returns[index], steps[index] = r.returns, r.steps
+    if np.isnan(returns).any():
+        raise ValueError("trials: expected one result per (method, setting, trial)")
+    return {
+        "methods": np.array(METHODS),
+        "test_masses": np.array(config.test_masses, dtype=np.float64),
+        "returns": returns,
+        "steps": steps,
+    }
 
 
 def transfer_metrics(config: SwingupConfig, trials: list) -> dict[str, Any]:

@@ -64,7 +64,7 @@ def test_artefacts_exist(run):
     names = {p.name for p in run.out.iterdir()}
     expected = {
         "config.json", "metrics.json", "report.md", "learning_curves.png",
-        "weights.png", "acrobot.rrd", "hipmdp_model.npz", "batch.npz",
+        "weights.png", "acrobot.rrd", "hipmdp_model.npz", "batch.npz", "trials.npz",
     }  # fmt: skip
     assert expected <= names
     assert not [n for n in names if n.endswith(".tmp")]
@@ -107,6 +107,20 @@ def test_paired_differences_and_step_limit_rates_agree_with_the_curves(run):
         # a mean return of -cap means every trial hit the limit, and only then
         at_cap = np.isclose(curves[method]["mean"], -cap)
         assert np.array_equal(at_cap, np.isclose(limit[method], 1.0))
+
+
+def test_trial_file_holds_what_the_curves_summarise(run):
+    m = json.loads((run.out / "metrics.json").read_text())
+    with np.load(run.out / "trials.npz", allow_pickle=False) as f:
+        assert f["methods"].tolist() == list(METHODS)
+        np.testing.assert_array_equal(f["test_masses"], TINY.test_masses)
+        returns, steps = f["returns"], f["steps"]
+    shape = (len(METHODS), len(TINY.test_masses), TINY.n_trials)
+    assert returns.shape == steps.shape == (*shape, TINY.transfer.n_episodes)
+    np.testing.assert_array_equal(returns, -steps)  # the acrobot's -1 per step
+    for i, method in enumerate(METHODS):
+        per_trial = returns[i].reshape(-1, returns.shape[-1])
+        np.testing.assert_allclose(per_trial.mean(0), m["returns"][method]["mean"])
 
 
 def test_model_file_loads_and_predicts(run):
