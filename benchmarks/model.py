@@ -12,7 +12,11 @@ transitions per instance. Prints:
 - filter latency: one single-transition `update`, with the paper's filter and with
   the model-error filter side by side, and followed by a single-state `predict` or
   `predict_mean`;
-- batched `predict` throughput in states per second.
+- single-state means at a fixed belief, as planning calls them: `predict_mean`
+  against `mean_predictor(belief)` (the features folded into one
+  `hipmdp.kernels.KernelMeans`), side by side;
+- batched `predict`, `predict_mean` and `mean_predictor` throughput in states per
+  second.
 """
 
 from __future__ import annotations
@@ -152,11 +156,25 @@ def main() -> None:
         print(f"filter update + {name}, one transition: {lat * 1e3:8.3f} ms")
     belief = model.update(model.prior(), new)
 
+    # Planning: one state at a time at a fixed belief.
+    fused = model.mean_predictor(belief)
+    one = [(s[None], a[None]) for s, a in zip(new.states, new.actions, strict=True)]
+    _, slow = timed(lambda: [model.predict_mean(s, a, belief) for s, a in one])
+    _, fast = timed(lambda: [fused(s, a) for s, a in one])
+    print(
+        f"single-state predict_mean vs mean_predictor: {slow / len(one) * 1e6:8.1f} "
+        f"vs {fast / len(one) * 1e6:8.1f} us  ({slow / fast:.1f}x)"
+    )
+
     S = np.random.default_rng(6).normal(size=(100_000, D))
     acts = np.random.default_rng(7).integers(0, A, size=len(S))
-    for name in ("predict", "predict_mean"):
-        fn = getattr(model, name)
-        _, t = timed(lambda fn=fn: fn(S, acts, belief))
+    calls = {
+        "predict": lambda: model.predict(S, acts, belief),
+        "predict_mean": lambda: model.predict_mean(S, acts, belief),
+        "mean_predictor": lambda: fused(S, acts),
+    }
+    for name, fn in calls.items():
+        _, t = timed(fn)
         print(
             f"batched {name}: {len(S) / t:12.0f} states/s  ({len(S)} states, {t:.2f} s)"
         )

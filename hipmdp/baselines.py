@@ -23,6 +23,7 @@ import numpy as np
 
 from hipmdp.data import Transitions, check_queries
 from hipmdp.gp import GPPosterior, HyperSet, condition, fit_hyperparameters, subsample
+from hipmdp.kernels import KernelMeans
 
 Array = np.ndarray
 
@@ -52,6 +53,25 @@ class GPBaseline:
         """Predictive mean of Δs only, (n, D): O(n) per state against the variance's
         O(n²). states: (n, D); actions: (n,)."""
         return self._predict(states, actions, with_var=False)[0]
+
+    def mean_predictor(self) -> KernelMeans:
+        """`predict_mean` as one :class:`~hipmdp.kernels.KernelMeans` (for many
+        calls, as in planning). The GPs of one action share their inputs."""
+        inputs, coef = [], []
+        for row in self.posteriors:
+            posts = [p for p in row if p is not None]
+            if posts and (
+                len(posts) != len(row)
+                or any(not np.array_equal(p.X, posts[0].X) for p in posts)
+            ):
+                raise ValueError("posteriors: expected one input set per action")
+            inputs.append(posts[0].X if posts else np.zeros((0, self.state_dim)))
+            coef.append(
+                np.array([p.alpha for p in posts])
+                if posts
+                else np.zeros((self.state_dim, 0))
+            )
+        return KernelMeans(inputs, self.hyper.lengthscales, self.hyper.signal_var, coef)
 
     def predict(self, states: Array, actions: Array) -> tuple[Array, Array]:
         """Predictive mean and variance (noise included) of Δs, each (n, D).

@@ -15,7 +15,12 @@ from typing import NamedTuple
 
 import numpy as np
 
+from hipmdp.data import check_queries
+
 Array = np.ndarray
+
+# KernelMeans evaluates at most this many kernel values at once (32 MB)
+_CHUNK = 1 << 22
 
 
 class KernelGrad(NamedTuple):
@@ -90,3 +95,83 @@ def se_kernel_grad(X: Array, lengthscales: Array, signal_var: float) -> KernelGr
         dK[j] = K * diff * diff
     dK[D] = K
     return KernelGrad(K=K, dK=dK)
+
+
+class KernelMeans:
+    """Fixed kernel-weighted sums ``μ_ad(s) = σ_f²[a,d] Σ_j exp(-½ r²_ad(s, x_aj))
+    β_ad[j]``, every output dimension ``d`` of one action in one evaluation.
+
+    This is the shape of every mean prediction that planning makes: a GP's
+    predictive mean (``x_a`` its data, ``β = (K + σ² I)⁻¹ y``), or a HiP-MDP's at a
+    fixed belief (``x_a = S*``, ``β_ad = Σ_k z[k,a,d] μ_k c[k,a,d]``). The inputs
+    scaled by each output's length scales and their squared norms are computed once
+    here, so a call costs a few array operations per action, against one
+    :func:`se_kernel` call per (action, dimension).
+
+    Args:
+        inputs: per action ``a``, ``x_a``, shape ``(n_a, D)`` (``n_a`` may be 0: the
+            mean is then 0).
+        lengthscales: ``ℓ[a,d]``, shape ``(A, E, D)`` for ``E`` outputs.
+        signal_var: ``σ_f²[a,d]``, shape ``(A, E)``.
+        coefficients: per action ``β_a``, shape ``(E, n_a)``.
+    """
+
+    def __init__(self, inputs, lengthscales, signal_var, coefficients) -> None:
+        ell = np.asarray(lengthscales, dtype=float)
+        sf2 = np.asarray(signal_var, dtype=float)
+        if ell.ndim != 3 or sf2.shape != ell.shape[:2]:
+            raise ValueError(
+                "lengthscales, signal_var: expected shapes (A, E, D) and (A, E), got "
+                f"{ell.shape} and {sf2.shape}"
+            )
+        A, E, D = ell.shape
+        if len(inputs) != A or len(coefficients) != A:
+            raise ValueError(
+                f"inputs, coefficients: expected {A} actions, got {len(inputs)} and "
+                f"{len(coefficients)}"
+            )
+        self.n_actions, self.n_outputs, self.state_dim = A, E, D
+        self._scaled, self._sqnorm, self._coef = [], [], []
+        for a in range(A):
+            x = np.asarray(inputs[a], dtype=float).reshape(-1, D)
+            beta = np.asarray(coefficients[a], dtype=float)
+            if beta.shape != (E, len(x)):
+                raise ValueError(
+                    f"coefficients[{a}]: expected shape ({E}, {len(x)}), "
+                    f"got {beta.shape}"
+                )
+            for d in range(E):
+                _check_params(ell[a, d], float(sf2[a, d]), D)
+            B = x[None] / ell[a][:, None, :]  # (E, n_a, D)
+            self._scaled.append(B.transpose(0, 2, 1).copy())  # (E, D, n_a)
+            self._sqnorm.append((B * B).sum(-1)[:, None, :])  # (E, 1, n_a)
+            # σ_f² folded into β: μ = exp(-½ r²) @ (σ_f² β)
+            self._coef.append((sf2[a][:, None] * beta)[:, :, None])  # (E, n_a, 1)
+        self._inv_ell = 1.0 / ell  # (A, E, D)
+
+    def __call__(self, states, actions) -> Array:
+        """``μ_ad(s_i)`` for each row's action, shape ``(n, E)``.
+
+        states: ``(n, D)`` finite; actions: ``(n,)`` integers in ``[0, A)``.
+        """
+        states, actions = check_queries(states, actions, self.state_dim, self.n_actions)
+        out = np.zeros((len(states), self.n_outputs))
+        if len(actions) and np.all(actions == actions[0]):  # e.g. planning's state
+            groups = [(int(actions[0]), None)]  # every row: slices, no gather
+        else:
+            groups = [(a, np.flatnonzero(actions == a)) for a in np.unique(actions)]
+        for a, idx in groups:
+            # at most _CHUNK kernel values at a time: (E, rows, n_a) floats
+            rows = max(1, _CHUNK // max(1, self.n_outputs * self._coef[a].shape[1]))
+            n = len(states) if idx is None else len(idx)
+            for start in range(0, n, rows):
+                part = slice(start, start + rows)
+                part = part if idx is None else idx[part]
+                out[part] = self._means(a, states[part])
+        return out
+
+    def _means(self, a: int, states: Array) -> Array:
+        S = states[None] * self._inv_ell[a][:, None, :]  # (E, n, D)
+        d2 = (S * S).sum(-1)[:, :, None] + self._sqnorm[a] - 2.0 * (S @ self._scaled[a])
+        k = np.exp(-0.5 * np.maximum(d2, 0.0))  # (E, n, n_a)
+        return (k @ self._coef[a])[..., 0].T

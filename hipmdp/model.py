@@ -66,7 +66,7 @@ from scipy import linalg
 from hipmdp.data import Transitions, atomic_write, check_queries
 from hipmdp.filter import Belief, predictive, prior_belief, update_belief
 from hipmdp.gp import HyperSet
-from hipmdp.kernels import se_kernel
+from hipmdp.kernels import KernelMeans, se_kernel
 
 Array = np.ndarray
 
@@ -291,6 +291,20 @@ class HipMDP:
         self._check_belief(belief)
         F = self.basis(states, actions)
         return F[..., 0] + F[..., 1:] @ belief.mean
+
+    def mean_predictor(self, belief: Belief) -> KernelMeans:
+        """`predict_mean` at this belief as one :class:`~hipmdp.kernels.KernelMeans`
+        (for many calls with one belief, as in planning): the features fold into
+        β_ad = Σ_k z[k,a,d] μ_k c[k,a,d] (μ_0 = 1), one GP mean per (a, d)."""
+        self._check_belief(belief)
+        w = np.concatenate([[1.0], np.asarray(belief.mean, dtype=float)])
+        beta = np.einsum("kadm,kad,k->adm", self._coef, self.z, w)
+        return KernelMeans(
+            [self.support] * self.n_actions,
+            self.hyper.lengthscales,
+            self.hyper.signal_var,
+            list(beta),
+        )
 
     def log_likelihood(self, data: Transitions, belief: Belief) -> float:
         """Σ_i Σ_d log N(Δ[i,d]; mean[i,d], var[i,d]) under the predictive of `predict`

@@ -75,7 +75,12 @@ class LearnedModel:
             If the model also has ``predict_mean`` with the same arguments,
             returning ``E[Δ]`` only, that is called instead: planning needs no
             variance, and a GP's predictive variance costs ``O(n²)`` per state
-            against ``O(n)`` for its mean.
+            against ``O(n)`` for its mean. If it has ``mean_predictor(belief)``
+            (or ``mean_predictor()`` without a belief), returning a callable
+            ``(states, actions) -> E[Δ]`` equal to ``predict_mean``, that is built
+            once here and called instead (the HiP-MDP's and the GP baselines'
+            :class:`~hipmdp.kernels.KernelMeans`: planning calls the model with
+            one state at a time, where per-call overhead dominates).
         belief: the weight belief passed to ``model.predict``, or ``None`` to call
             it without one. Planning "with the posterior-mean weights" is the
             HiP-MDP's ``predict`` with the current belief (its mean prediction).
@@ -85,12 +90,22 @@ class LearnedModel:
     model: Any
     belief: Any = None
     angle_dims: tuple[int, ...] = ()
+    _mean: Callable[[Array, NDArray[np.int64]], Array] | None = field(
+        init=False, repr=False, compare=False, default=None
+    )
+
+    def __post_init__(self) -> None:
+        if hasattr(self.model, "mean_predictor"):
+            extra = () if self.belief is None else (self.belief,)
+            object.__setattr__(self, "_mean", self.model.mean_predictor(*extra))
 
     def predict(self, states: Array, actions: NDArray[np.int64]) -> Array:
         """``s + E[Δ]`` with angles wrapped, shape ``(N, D)``."""
         s, a = _check_batch(states, actions)
         args = (s, a) if self.belief is None else (s, a, self.belief)
-        if hasattr(self.model, "predict_mean"):
+        if self._mean is not None:
+            mean = self._mean(s, a)
+        elif hasattr(self.model, "predict_mean"):
             mean = self.model.predict_mean(*args)
         else:
             mean, _ = self.model.predict(*args)

@@ -7,6 +7,7 @@ import pytest
 
 from hipmdp.baselines import batch_only, batch_plus_train, fit_gp_baseline, train_only
 from hipmdp.data import Transitions
+from hipmdp.gp import HyperSet
 from hipmdp.kernels import se_kernel
 
 D = 2
@@ -55,6 +56,25 @@ def test_prediction_is_the_dense_gp_formula():
     v = model.predict(batch.states, batch.actions)[1]
     dense_ll = np.sum(-0.5 * r**2 / v - 0.5 * np.log(2 * np.pi * v))
     assert model.log_likelihood(batch) == pytest.approx(dense_ll, rel=1e-12)
+
+
+def test_mean_predictor_is_predict_mean():
+    rng = np.random.default_rng(2)
+    batch = _batch(rng)
+    Xs = rng.normal(size=(12, D))
+    acts = rng.integers(0, 3, size=12)
+    # 3 actions, the last with no data: its mean is 0, as in predict_mean
+    fitted = batch_only(batch, rng=np.random.default_rng(1), n_max=50).hyper
+    hyper = HyperSet(*(np.concatenate([v, v[:1]]) for v in vars(fitted).values()))
+    model = batch_only(
+        batch, rng=np.random.default_rng(1), n_actions=3, n_max=50, hyper=hyper
+    )
+    assert model.posteriors[2] == (None, None)
+    got = model.mean_predictor()(Xs, acts)
+    np.testing.assert_allclose(
+        got, model.predict_mean(Xs, acts), rtol=1e-10, atol=1e-12
+    )
+    np.testing.assert_array_equal(got[acts == 2], 0.0)
 
 
 def test_subset_of_data_and_kept_train_points():

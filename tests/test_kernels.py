@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hipmdp.kernels import se_kernel, se_kernel_grad
+from hipmdp import kernels
+from hipmdp.kernels import KernelMeans, se_kernel, se_kernel_grad
 
 
 def test_kernel_matches_definition():
@@ -47,3 +48,46 @@ def test_bad_parameters_raise():
         se_kernel(X, X, np.array([1.0, 1.0]), 0.0)
     with pytest.raises(ValueError, match="dimension"):
         se_kernel(X, np.zeros((2, 3)), np.array([1.0, 1.0]), 1.0)
+
+
+def test_kernel_means_are_the_per_output_kernel_sums(monkeypatch):
+    # A = 3 actions (the last with no inputs), E = 2 outputs, D = 3; against one
+    # se_kernel call per (action, output), row by row.
+    rng = np.random.default_rng(3)
+    inputs = [rng.normal(size=(7, 3)), rng.normal(size=(4, 3)), np.zeros((0, 3))]
+    ell = rng.uniform(0.3, 2.0, size=(3, 2, 3))
+    sf2 = rng.uniform(0.5, 2.0, size=(3, 2))
+    coef = [rng.normal(size=(2, len(x))) for x in inputs]
+    means = KernelMeans(inputs, ell, sf2, coef)
+    states = rng.normal(size=(9, 3))
+    actions = np.array([0, 1, 2, 1, 0, 0, 2, 1, 1])
+    got = means(states, actions)
+    for i, a in enumerate(actions):
+        for d in range(2):
+            k = se_kernel(states[i : i + 1], inputs[a], ell[a, d], sf2[a, d])
+            want = (k @ coef[a][d])[0] if len(inputs[a]) else 0.0
+            assert got[i, d] == pytest.approx(want, rel=1e-12, abs=1e-14)
+    # one action for every row takes the single-group path: the same numbers
+    ones = np.ones(9, dtype=int)
+    np.testing.assert_array_equal(means(states, ones)[actions == 1], got[actions == 1])
+    assert means(np.zeros((0, 3)), np.zeros(0, dtype=int)).shape == (0, 2)
+    # large batches are evaluated in chunks of rows: the same numbers
+    monkeypatch.setattr(kernels, "_CHUNK", 10)  # 2 outputs x 7 inputs: 1 row
+    np.testing.assert_allclose(means(states, actions), got, rtol=1e-14, atol=1e-15)
+    chunked = means(states, ones)[actions == 1]
+    np.testing.assert_allclose(chunked, got[actions == 1], rtol=1e-14, atol=1e-15)
+
+
+def test_kernel_means_reject_bad_input():
+    x, ell, sf2 = np.zeros((2, 3)), np.ones((1, 2, 3)), np.ones((1, 2))
+    with pytest.raises(ValueError, match=r"coefficients\[0\]: expected shape \(2, 2\)"):
+        KernelMeans([x], ell, sf2, [np.zeros((2, 3))])
+    with pytest.raises(ValueError, match="lengthscales"):
+        KernelMeans([x], -ell, sf2, [np.zeros((2, 2))])
+    with pytest.raises(ValueError, match="expected 1 actions"):
+        KernelMeans([x, x], ell, sf2, [np.zeros((2, 2))])
+    means = KernelMeans([x], ell, sf2, [np.zeros((2, 2))])
+    with pytest.raises(ValueError, match="actions"):
+        means(np.zeros((1, 3)), np.array([1]))
+    with pytest.raises(ValueError, match="states"):
+        means(np.full((1, 3), np.nan), np.array([0]))

@@ -96,6 +96,19 @@ def test_new_instance_prediction_after_40_transitions(fitted):
     assert np.mean((prior_mean - test.deltas) ** 2) > 3 * true_mse
 
 
+def test_mean_predictor_is_predict_mean_at_the_belief(fitted):
+    rng = np.random.default_rng(5)
+    belief = fitted.update(fitted.prior(), _instance(0, np.array([1.0, -0.5]), 30, rng))
+    S = rng.uniform(-2, 2, size=(25, D))
+    acts = rng.integers(0, A, size=25)
+    want = fitted.predict_mean(S, acts, belief)
+    got = fitted.mean_predictor(belief)(S, acts)
+    np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
+    assert not np.allclose(fitted.mean_predictor(fitted.prior())(S, acts), want)
+    with pytest.raises(ValueError, match="belief"):
+        fitted.mean_predictor(hipmdp.Belief(np.zeros(9), np.eye(9)))
+
+
 def test_same_seed_same_fit(fitted):
     again = fit(_batch(), CONFIG, rng=np.random.default_rng(1))
     for name in (

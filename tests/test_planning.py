@@ -72,6 +72,22 @@ def test_learned_model_prefers_a_mean_only_path() -> None:
     np.testing.assert_array_equal(got, -1.0)
 
 
+def test_learned_model_builds_a_mean_predictor_once() -> None:
+    built = []
+
+    class WithPredictor(PlainModel):
+        def mean_predictor(self, *belief):
+            built.append(belief)
+            return lambda states, actions: states + actions[:, None]
+
+    model = LearnedModel(WithPredictor())
+    for _ in range(3):
+        got = model.predict(np.zeros((2, 3)), np.array([0, 1]))
+    np.testing.assert_array_equal(got, [[0, 0, 0], [1, 1, 1]])
+    LearnedModel(WithPredictor(), belief="b")
+    assert built == [(), ("b",)]  # built at construction, with the belief if any
+
+
 def test_learned_model_rejects_bad_shapes() -> None:
     model = LearnedModel(PlainModel())
     with pytest.raises(ValueError, match="actions"):
