@@ -348,6 +348,7 @@ def transfer_metrics(config: SwingupConfig, trials: list) -> dict[str, Any]:
             for a, b in PAIRS
         },
         "step_limit_rate": at_limit,
+        "paired_difference_per_setting": per_setting_differences(config, trials),
         "test_belief_means": {
             str(i): np.mean(
                 [
@@ -360,6 +361,30 @@ def transfer_metrics(config: SwingupConfig, trials: list) -> dict[str, Any]:
             for i in range(len(config.test_masses))
         },  # fmt: skip
     }
+
+
+def per_setting_differences(config: SwingupConfig, trials: list) -> dict[str, Any]:
+    """``paired_difference``'s all-episodes interval on each test setting alone:
+    ``{"a - b": [{"masses": (m1, m2), "mean", "low", "high", "n"}, ...]}`` in the
+    order of ``test_masses``; where one method gains and the others do not."""
+    out = {}
+    for a, b in PAIRS:
+        rows = []
+        for i, masses in enumerate(config.test_masses):
+            by = {
+                m: np.array(
+                    [
+                        r.returns
+                        for r in sorted(trials, key=lambda r: r.trial)
+                        if r.method == m and r.setting == i
+                    ]
+                )
+                for m in (a, b)
+            }
+            ci = paired_difference(by[a], by[b])["all_episodes"]
+            rows.append({"masses": list(masses), **ci})
+        out[f"{a} - {b}"] = rows
+    return out
 
 
 def parse_args(argv: list[str] | None = None) -> tuple[SwingupConfig, str | None]:

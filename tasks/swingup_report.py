@@ -167,6 +167,15 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
             for pair, d in paired.items()
         ],
     )
+    per_setting = metrics["paired_difference_per_setting"]
+    setting_table = markdown_table(
+        ["(m1, m2)", *per_setting],
+        [
+            [f"({rows[0]['masses'][0]:g}, {rows[0]['masses'][1]:g})"]
+            + [fmt_ci(r, 4) for r in rows]
+            for rows in zip(*per_setting.values(), strict=True)
+        ],
+    )
     medians = metrics["median_returns"]
     ep_median = metrics["episodes_to_near_optimal_median"]
     median_table = markdown_table(
@@ -214,6 +223,10 @@ Each trial's return minus the other method's on the same instance and seeds;
 {n_ep} real episodes. An interval above 0 means the first method is clearly ahead.
 
 {paired_table}
+
+The same over all episodes, on each test setting alone:
+
+{setting_table}
 
 Share of real episodes that ran to the {config.transfer.max_steps}-step limit
 (each such episode has a return of −{config.transfer.max_steps}):

@@ -101,6 +101,11 @@ def test_paired_differences_and_step_limit_rates_agree_with_the_curves(run):
         gap = np.array(curves[a]["mean"]) - np.array(curves[b]["mean"])
         np.testing.assert_allclose(d["per_episode"]["mean"], gap, atol=1e-9)
         np.testing.assert_allclose(d["all_episodes"]["mean"], gap.mean(), atol=1e-9)
+    for pair, rows in m["paired_difference_per_setting"].items():
+        # one test setting: the per-setting interval is the overall one
+        assert [r["masses"] for r in rows] == [list(x) for x in TINY.test_masses]
+        overall = m["paired_difference"][pair]["all_episodes"]
+        assert rows[0]["mean"] == pytest.approx(overall["mean"], abs=1e-9)
     cap = TINY.transfer.max_steps
     for method in METHODS:
         assert len(limit[method]) == TINY.transfer.n_episodes
@@ -194,3 +199,33 @@ def test_median_view_is_not_decided_by_one_failed_episode():
     assert m["episodes_to_near_optimal"]["hipmdp"] == 2
     assert m["episodes_to_near_optimal_median"]["hipmdp"] == 1
     assert m["episodes_to_near_optimal_median"]["true"] == 1
+
+
+def test_per_setting_differences_group_trials_by_setting():
+    """Setting 0: the HiP-MDP gains 10 steps on every trial; setting 1: it loses 4
+    on one trial and gains 2 on the other. The overall interval mixes them."""
+    rng = np.random.default_rng(0)
+    base = {(s, t): -100.0 + rng.normal(size=2) for s in (0, 1) for t in (0, 1)}
+    gain = {(0, 0): 10.0, (0, 1): 10.0, (1, 0): -4.0, (1, 1): 2.0}
+    trials = [
+        TrialResult(
+            m,
+            s,
+            t,
+            r + (gain[s, t] if m == "hipmdp" else 0.0),
+            -r,
+            np.zeros((3, 1)),
+            None,
+        )  # fmt: skip
+        for (s, t), r in base.items()
+        for m in METHODS
+    ]
+    config = dataclasses.replace(TINY, test_masses=((0.7, 0.9), (1.3, 1.1)), n_trials=2)
+    rows = transfer_metrics(config, trials)["paired_difference_per_setting"]
+    hip_avg = rows["hipmdp - average"]
+    assert [r["masses"] for r in hip_avg] == [[0.7, 0.9], [1.3, 1.1]]
+    assert hip_avg[0]["mean"] == pytest.approx(10.0)
+    assert hip_avg[0]["low"] == pytest.approx(10.0)  # no spread: a zero-width interval
+    assert hip_avg[1]["mean"] == pytest.approx(-1.0)
+    assert hip_avg[1]["low"] < -4.0 < 2.0 < hip_avg[1]["high"]
+    assert all(r["mean"] == pytest.approx(0.0) for r in rows["average - true"])
