@@ -56,22 +56,28 @@ class GPBaseline:
 
     def mean_predictor(self) -> KernelMeans:
         """`predict_mean` as one :class:`~hipmdp.kernels.KernelMeans` (for many
-        calls, as in planning). The GPs of one action share their inputs."""
+        calls, as in planning). The GPs of one action share their inputs; each
+        keeps the hyperparameters it was conditioned with."""
+        ell = np.array(self.hyper.lengthscales, dtype=float)
+        sf2 = np.array(self.hyper.signal_var, dtype=float)
         inputs, coef = [], []
-        for row in self.posteriors:
+        for a, row in enumerate(self.posteriors):
             posts = [p for p in row if p is not None]
-            if posts and (
-                len(posts) != len(row)
-                or any(not np.array_equal(p.X, posts[0].X) for p in posts)
+            if not posts:  # no data for this action: mean 0, as in predict_mean
+                inputs.append(np.zeros((0, self.state_dim)))
+                coef.append(np.zeros((self.state_dim, 0)))
+                continue
+            if len(posts) != len(row) or any(
+                not np.array_equal(p.X, posts[0].X) for p in posts
             ):
-                raise ValueError("posteriors: expected one input set per action")
-            inputs.append(posts[0].X if posts else np.zeros((0, self.state_dim)))
-            coef.append(
-                np.array([p.alpha for p in posts])
-                if posts
-                else np.zeros((self.state_dim, 0))
-            )
-        return KernelMeans(inputs, self.hyper.lengthscales, self.hyper.signal_var, coef)
+                raise ValueError(
+                    f"posteriors[{a}]: expected one input set for every dimension"
+                )
+            for d, p in enumerate(posts):
+                ell[a, d], sf2[a, d] = p.hyper.lengthscales, p.hyper.signal_var
+            inputs.append(posts[0].X)
+            coef.append(np.array([p.alpha for p in posts]))
+        return KernelMeans(inputs, ell, sf2, coef)
 
     def predict(self, states: Array, actions: Array) -> tuple[Array, Array]:
         """Predictive mean and variance (noise included) of Δs, each (n, D).

@@ -19,8 +19,9 @@ from hipmdp.data import check_queries
 
 Array = np.ndarray
 
-# KernelMeans evaluates at most this many kernel values at once (32 MB)
-_CHUNK = 1 << 22
+# KernelMeans evaluates at most this many kernel values at once (a few
+# temporaries of this size: about 50 MB)
+_CHUNK = 1 << 21
 
 
 class KernelGrad(NamedTuple):

@@ -80,7 +80,8 @@ class LearnedModel:
             ``(states, actions) -> E[Δ]`` equal to ``predict_mean``, that is built
             once here and called instead (the HiP-MDP's and the GP baselines'
             :class:`~hipmdp.kernels.KernelMeans`: planning calls the model with
-            one state at a time, where per-call overhead dominates).
+            one state at a time, where per-call overhead dominates). A model and
+            belief that do not fit together then fail here, not at ``predict``.
         belief: the weight belief passed to ``model.predict``, or ``None`` to call
             it without one. Planning "with the posterior-mean weights" is the
             HiP-MDP's ``predict`` with the current belief (its mean prediction).

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -74,7 +76,25 @@ def test_mean_predictor_is_predict_mean():
     np.testing.assert_allclose(
         got, model.predict_mean(Xs, acts), rtol=1e-10, atol=1e-12
     )
+    assert set(acts) == {0, 1, 2}
     np.testing.assert_array_equal(got[acts == 2], 0.0)
+    # each GP's own hyperparameters count, not the set's
+    post = model.posteriors[0][1]
+    wider = post._replace(hyper=post.hyper._replace(signal_var=4.0))
+    other = dataclasses.replace(
+        model, posteriors=((model.posteriors[0][0], wider), *model.posteriors[1:])
+    )
+    np.testing.assert_allclose(
+        other.mean_predictor()(Xs, acts), other.predict_mean(Xs, acts), rtol=1e-10
+    )
+    assert not np.allclose(other.predict_mean(Xs, acts), got)
+    # the GPs of one action must share their inputs
+    moved = post._replace(X=post.X + 1.0)
+    bad = dataclasses.replace(
+        model, posteriors=((model.posteriors[0][0], moved), *model.posteriors[1:])
+    )
+    with pytest.raises(ValueError, match=r"posteriors\[0\]: expected one input set"):
+        bad.mean_predictor()
 
 
 def test_subset_of_data_and_kept_train_points():

@@ -72,10 +72,11 @@ def test_kernel_means_are_the_per_output_kernel_sums(monkeypatch):
     np.testing.assert_array_equal(means(states, ones)[actions == 1], got[actions == 1])
     assert means(np.zeros((0, 3)), np.zeros(0, dtype=int)).shape == (0, 2)
     # large batches are evaluated in chunks of rows: the same numbers
-    monkeypatch.setattr(kernels, "_CHUNK", 10)  # 2 outputs x 7 inputs: 1 row
-    np.testing.assert_allclose(means(states, actions), got, rtol=1e-14, atol=1e-15)
-    chunked = means(states, ones)[actions == 1]
-    np.testing.assert_allclose(chunked, got[actions == 1], rtol=1e-14, atol=1e-15)
+    for chunk in (10, 30):  # 2 outputs x 7 inputs: 1 row, then 2 (and a part)
+        monkeypatch.setattr(kernels, "_CHUNK", chunk)
+        np.testing.assert_allclose(means(states, actions), got, rtol=1e-14, atol=1e-15)
+        chunked = means(states, ones)[actions == 1]
+        np.testing.assert_allclose(chunked, got[actions == 1], rtol=1e-14, atol=1e-15)
 
 
 def test_kernel_means_reject_bad_input():
