@@ -14,6 +14,8 @@ Symbols: ``N`` states in a batch (or episodes in lockstep), ``D`` state dimensio
   predicted arrays (a :class:`PlanningTask`).
 - :func:`plan`: Dyna-style planning (DESIGN §4): simulated Sarsa(λ) episodes started
   from states the real instance produced, updating the agent's weights.
+- :func:`open_loop_errors`: a model's ``k``-step prediction errors along recorded
+  episodes, what a planner on the model meets.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm.auto import tqdm
 
-from hipmdp.data import wrap_angle
+from hipmdp.data import Transitions, wrap_angle
 from hipmdp.fourier import FourierBasis
 from hipmdp.sarsa import (
     SarsaConfig,
@@ -356,3 +358,59 @@ def plan(
         np.array(sum(returns, []), dtype=np.float64),
         np.array(sum(reached, []), dtype=bool),
     )
+
+
+def open_loop_errors(
+    model: DynamicsModel, data: Transitions, horizons: Sequence[int]
+) -> dict[int, Array]:
+    """``k``-step open-loop prediction errors of ``model`` along recorded episodes.
+
+    For every start ``t`` whose next ``k`` transitions belong to one episode, the
+    model is rolled ``k`` steps from the recorded ``s_t`` with the recorded actions
+    ``a_t … a_{t+k-1}`` (its own predictions fed back), and compared with the
+    recorded ``s_{t+k}``. One-step errors (``k = 1``) say how well a model fits;
+    longer horizons say how its errors compound, which is what a planner on it
+    meets.
+
+    Args:
+        model: the dynamics model (``predict(states, actions) -> next_states``).
+        data: transitions in time order, episodes ending where ``dones`` is true
+            (all one episode if ``dones`` is None); within an episode each
+            transition must start where the previous one ended.
+        horizons: the ``k`` values, each ``>= 1``.
+
+    Returns:
+        ``{k: ŝ_{t+k} − s_{t+k}}``, shape ``(n_k, D)`` for the ``n_k`` starts, with
+        ``data.angle_dims`` wrapped to ``(−π, π]``.
+    """
+    ks = [int(k) for k in horizons]
+    if not ks or min(ks) < 1:
+        raise ValueError(f"horizons: expected integers >= 1, got {list(horizons)}")
+    n = len(data)
+    ends = np.zeros(n, dtype=bool) if data.dones is None else data.dones.astype(bool)
+    # within an episode, transition j + 1 must start at transition j's next state
+    inside = ~ends[:-1]
+    gap = data.next_states[:-1][inside] - data.states[1:][inside]
+    if data.angle_dims:
+        gap[:, list(data.angle_dims)] = wrap_angle(gap[:, list(data.angle_dims)])
+    if gap.size and np.max(np.abs(gap)) > 1e-9:
+        raise ValueError(
+            "data: expected transitions in time order (each starting where the "
+            "previous one ended, episodes ending at dones)"
+        )
+    episode = np.concatenate([[0], np.cumsum(ends[:-1])])
+    out = {}
+    for k in ks:
+        starts = np.flatnonzero(
+            (np.arange(n) + k <= n)
+            & (episode == episode[np.minimum(np.arange(n) + k - 1, n - 1)])
+        )
+        s = data.states[starts]
+        for j in range(k):
+            s = model.predict(s, data.actions[starts + j])
+        err = np.asarray(s, dtype=np.float64) - data.next_states[starts + k - 1]
+        if data.angle_dims:
+            dims = list(data.angle_dims)
+            err[:, dims] = wrap_angle(err[:, dims])
+        out[k] = err
+    return out

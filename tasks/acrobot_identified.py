@@ -108,6 +108,26 @@ class Results(NamedTuple):
     summary: dict[str, Any]
 
 
+def check_run(run: Path) -> None:
+    """Raise FileNotFoundError unless ``run`` holds a finished swing-up run."""
+    for name in ("config.json", "hipmdp_model.npz", "batch.npz"):
+        if not (run / name).is_file():
+            raise FileNotFoundError(f"run: {run} has no {name}; is it a swing-up run?")
+
+
+def load_run(run: Path) -> tuple[dict[str, Any], Any, Any]:
+    """A finished run's config, its HiP-MDP, and its average model refitted exactly
+    as the run fitted it (the same data, seed and size)."""
+    config = json.loads((run / "config.json").read_text())
+    hip = hipmdp.load(run / "hipmdp_model.npz")
+    batch = hipmdp.Transitions.load(run / "batch.npz")
+    ss_avg = np.random.SeedSequence(config["seed"]).spawn(5)[2]  # as the run did
+    average = baselines.batch_only(
+        batch, rng=np.random.default_rng(ss_avg), n_max=config["average_n_max"]
+    )
+    return config, hip, average
+
+
 def main(
     run: str | Path,
     *,
@@ -121,9 +141,7 @@ def main(
 ) -> Results:
     """Run the check on the run folder ``run``; see the module docstring."""
     run = Path(run)
-    for name in ("config.json", "hipmdp_model.npz", "batch.npz"):
-        if not (run / name).is_file():
-            raise FileNotFoundError(f"run: {run} has no {name}; is it a swing-up run?")
+    check_run(run)
     unknown = set(variants) - set(VARIANTS)
     if unknown or not variants:
         raise ValueError(f"variants: expected some of {VARIANTS}, got {variants}")
@@ -133,16 +151,10 @@ def main(
     if identify < 1:
         raise ValueError(f"identify: expected >= 1, got {identify}")
 
-    config = json.loads((run / "config.json").read_text())
+    config, hip, average = load_run(run)
     masses = [tuple(m) for m in config["test_masses"]]
     protocol = dataclasses.replace(
         transfer.TransferConfig(**config["transfer"]), n_episodes=episodes
-    )
-    hip = hipmdp.load(run / "hipmdp_model.npz")
-    batch = hipmdp.Transitions.load(run / "batch.npz")
-    ss_avg = np.random.SeedSequence(config["seed"]).spawn(5)[2]  # as the run did
-    average = baselines.batch_only(
-        batch, rng=np.random.default_rng(ss_avg), n_max=config["average_n_max"]
     )
 
     ss_trials, ss_identify = np.random.SeedSequence(seed).spawn(2)

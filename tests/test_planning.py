@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hipmdp.data import wrap_angle
+from hipmdp.data import Transitions, wrap_angle
 from hipmdp.fourier import FourierBasis
 from hipmdp.planning import (
     DynamicsModel,
@@ -14,6 +14,7 @@ from hipmdp.planning import (
     PlanningTask,
     SimulatedEpisodes,
     StepwiseModel,
+    open_loop_errors,
     plan,
 )
 from hipmdp.sarsa import SarsaConfig, SarsaState, init_state, sarsa_update
@@ -191,3 +192,58 @@ def test_non_finite_model_output_is_an_error() -> None:
     episodes = SimulatedEpisodes(Broken(), CORRIDOR_TASK, np.zeros((2, 1)))
     with pytest.raises(ValueError, match="model.predict"):
         episodes.step(np.zeros(2, dtype=int))
+
+
+def _drift_episodes(lengths, rng):
+    """Episodes of s' = s + u[a] (2 dims, the first an angle), in time order."""
+    u = np.array([[0.9, 0.1], [-0.4, 0.3]])
+    parts = []
+    for i, n in enumerate(lengths):
+        actions = rng.integers(0, 2, size=n)
+        states = np.zeros((n + 1, 2))
+        states[0] = rng.normal(size=2)
+        for t, a in enumerate(actions):
+            states[t + 1] = states[t] + u[a]
+        states[:, 0] = wrap_angle(states[:, 0])
+        dones = np.zeros(n, dtype=bool)
+        dones[-1] = True
+        parts.append(
+            Transitions(
+                states[:-1],
+                actions,
+                states[1:],
+                np.full(n, i),
+                dones=dones,
+                angle_dims=(0,),
+            )  # fmt: skip
+        )
+    return Transitions.concatenate(parts), u
+
+
+def test_open_loop_errors_compound_a_bias_and_respect_episodes() -> None:
+    data, u = _drift_episodes([7, 3, 12], np.random.default_rng(0))
+    bias = np.array([0.05, -0.02])
+
+    def step(s, a, c):
+        nxt = s + u[a] + c
+        return np.array([wrap_angle(nxt[0]), nxt[1]])
+
+    exact = StepwiseModel(lambda s, a: step(s, a, 0.0))
+    biased = StepwiseModel(lambda s, a: step(s, a, bias))
+    horizons = (1, 3, 8)
+    for k, err in open_loop_errors(exact, data, horizons).items():
+        # windows never cross an episode end: episodes of 7, 3, 12 transitions
+        assert len(err) == sum(max(0, n - k + 1) for n in (7, 3, 12))
+        np.testing.assert_allclose(err, 0.0, atol=1e-12)
+    for k, err in open_loop_errors(biased, data, horizons).items():
+        np.testing.assert_allclose(err, np.tile(k * bias, (len(err), 1)), atol=1e-12)
+
+
+def test_open_loop_errors_reject_bad_input() -> None:
+    data, u = _drift_episodes([5], np.random.default_rng(1))
+    model = StepwiseModel(lambda s, a: s + u[a])
+    with pytest.raises(ValueError, match="horizons"):
+        open_loop_errors(model, data, [0])
+    shuffled = data.take(np.array([0, 2, 1, 3, 4]))
+    with pytest.raises(ValueError, match="time order"):
+        open_loop_errors(model, shuffled, [1])

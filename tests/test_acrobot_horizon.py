@@ -1,0 +1,52 @@
+"""The compounding-error check on a finished (tiny) swing-up run."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from tasks import acrobot_horizon
+from tasks.acrobot_swingup import main as swingup_main
+from tests.test_acrobot_swingup import TINY
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    out = swingup_main(TINY, out=tmp_path_factory.mktemp("swingup")).out
+    return out, acrobot_horizon.main(
+        out, horizons=(1, 4), identify=30, evaluate=40, progress=False
+    )
+
+
+def test_writes_errors_per_model_horizon_and_setting(run, capsys):
+    out, results = run
+    data = json.loads((out / "horizon.json").read_text())
+    assert data["horizons"] == [1, 4]
+    assert data["test_masses"] == [list(m) for m in TINY.test_masses]
+    for model in acrobot_horizon.MODELS:
+        for k in ("1", "4"):
+            rmse = np.array(data["rmse"][model][k])
+            p99 = np.array(data["p99"][model][k])
+            assert rmse.shape == p99.shape == (len(TINY.test_masses), 4)
+            assert np.all(np.isfinite(rmse) & (rmse > 0) & (p99 > 0))
+    # fewer 4-step windows than 1-step ones: none crosses an episode end
+    assert 0 < data["windows"]["4"][0] < data["windows"]["1"][0]
+    assert data["windows"]["1"][0] >= 40
+    # the same seed, the same numbers
+    first = (out / "horizon.json").read_text()
+    acrobot_horizon.main(out, horizons=(1, 4), identify=30, evaluate=40, progress=False)
+    assert (out / "horizon.json").read_text() == first
+    np.testing.assert_array_equal(
+        results.summary["rmse"]["identified"]["4"], data["rmse"]["identified"]["4"]
+    )
+
+
+def test_rejects_bad_options(tmp_path, run):
+    with pytest.raises(FileNotFoundError, match="has no config.json"):
+        acrobot_horizon.main(tmp_path)
+    with pytest.raises(ValueError, match="horizons: expected integers >= 1"):
+        acrobot_horizon.main(run[0], horizons=(0,))
+    with pytest.raises(ValueError, match="evaluate: expected >= 1"):
+        acrobot_horizon.main(run[0], evaluate=0)
