@@ -40,12 +40,14 @@ from tqdm.auto import tqdm
 
 from hipmdp.planning import LearnedModel, open_loop_errors
 from tasks.acrobot_identified import check_run, load_run
-from tasks.acrobot_swingup import DIM_NAMES, _params
+from tasks.acrobot_swingup import _params
 from tasks.agents import ACROBOT
 from tasks.experiment import write_json
 from tasks.prediction import gather_split
 
 MODELS = ("average", "prior", "identified")
+# errors are in the predicted state s_{t+k}, not in a change
+STATE_NAMES = ("theta1", "theta2", "theta1_dot", "theta2_dot")
 
 
 class Results(NamedTuple):
@@ -110,7 +112,7 @@ def main(
         "identify_transitions": identify,
         "test_masses": [list(m) for m in masses],
         "horizons": list(horizons),
-        "dimensions": list(DIM_NAMES),
+        "dimensions": list(STATE_NAMES),
         "windows": {str(k): v for k, v in windows.items()},
         **{
             stat: {
