@@ -4,7 +4,7 @@
 
 Reads a finished swing-up run (``config.json``, ``hipmdp_model.npz``,
 ``batch.npz``), refits its average model exactly as the run did, and runs the
-transfer protocol (tasks/transfer.py) on the run's test settings for four variants:
+transfer protocol (tasks/transfer.py) on the run's test settings for these variants:
 
 - ``true``, ``average``, ``hipmdp``: the run's three methods;
 - ``identified``: the HiP-MDP whose belief starts already filtered on
@@ -15,7 +15,10 @@ transfer protocol (tasks/transfer.py) on the run's test settings for four varian
   instance online costs;
 - ``hipmdp_paper_filter``, ``identified_paper_filter``: the same two with the
   paper's filter (``HipMDP.update(..., model_error=False)``: the GP noise σ²
-  alone), to compare the filters on the same trials.
+  alone), to compare the filters on the same trials;
+- ``model_free``: the same agent with no planning at all (no simulated episodes
+  before or between the real ones), so what planning on any model buys is the
+  gap between it and ``true``.
 
 Every variant runs on the same (setting, trial) seeds, spawned from ``--seed``;
 they differ from the run's own trial seeds. Prints the mean return per episode
@@ -59,6 +62,7 @@ VARIANTS = (
     "identified",
     "hipmdp_paper_filter",
     "identified_paper_filter",
+    "model_free",
 )
 
 
@@ -88,16 +92,22 @@ def _init(config: transfer.TransferConfig, hip, average, beliefs) -> None:
 
 def _job(args) -> tuple[str, int, int, np.ndarray]:
     variant, setting, trial, masses, seed = args
-    model = _STATE["hip"]
-    if variant not in ("true", "average"):
+    model, config = _STATE["hip"], _STATE["config"]
+    if variant == "model_free":  # the true model's trial, with nothing planned
+        config = dataclasses.replace(
+            config, planning_episodes=0, initial_planning_episodes=0
+        )
+    elif variant not in ("true", "average"):
         paper = variant.endswith("_paper_filter")
         belief = None
         if variant.startswith("identified"):
             belief = _STATE["beliefs"]["paper" if paper else "model"][setting]
         model = _Identified(model, belief, model_error=not paper)
     # the trial reads its models from what set_models installed in this process
-    transfer.set_models(ACROBOT, _STATE["config"], model, _STATE["average"])
-    method = variant if variant in ("true", "average") else "hipmdp"
+    transfer.set_models(ACROBOT, config, model, _STATE["average"])
+    method = {"average": "average", "true": "true", "model_free": "true"}.get(
+        variant, "hipmdp"
+    )
     job = transfer.TrialJob(method, setting, trial, _params(*masses), seed, False)
     return variant, setting, trial, transfer.run_trial(job).returns
 

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+import hipmdp
 from tasks import acrobot_identified
 from tasks.acrobot_swingup import main as swingup_main
 from tests.test_acrobot_swingup import TINY
@@ -69,3 +70,33 @@ def test_rejects_a_folder_that_is_not_a_run_and_unknown_variants(tmp_path, run):
         acrobot_identified.main(tmp_path)
     with pytest.raises(ValueError, match="variants: expected some of"):
         acrobot_identified.main(run[0], variants=("oracle",))
+
+
+def test_model_free_variant_plans_nothing(run, monkeypatch):
+    from hipmdp import baselines
+    from tasks import transfer
+
+    out, _ = run
+    hip = hipmdp.load(out / "hipmdp_model.npz")
+    batch = hipmdp.Transitions.load(out / "batch.npz")
+    average = baselines.batch_only(batch, rng=np.random.default_rng(0), n_max=100)
+    planned = []
+    real_plan = transfer.plan
+
+    def counting_plan(*args, **kwargs):
+        planned.append(args[6])  # n_episodes
+        return real_plan(*args, **kwargs)
+
+    monkeypatch.setattr(transfer, "plan", counting_plan)
+    acrobot_identified._init(TINY.transfer, hip, average, {"model": [], "paper": []})
+    seed = (7, ())
+    for variant in ("model_free", "true"):
+        planned.clear()
+        v, *_, returns = acrobot_identified._job(
+            (variant, 0, 0, TINY.test_masses[0], seed)
+        )
+        assert v == variant and len(returns) == TINY.transfer.n_episodes
+        if variant == "model_free":
+            assert planned and set(planned) == {0}
+        else:
+            assert sum(planned) > 0
