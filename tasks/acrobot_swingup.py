@@ -367,22 +367,15 @@ def per_setting_differences(config: SwingupConfig, trials: list) -> dict[str, An
     """``paired_difference``'s all-episodes interval on each test setting alone:
     ``{"a - b": [{"masses": (m1, m2), "mean", "low", "high", "n"}, ...]}`` in the
     order of ``test_masses``; where one method gains and the others do not."""
+    returns: dict[tuple[str, int], list] = {}
+    for r in sorted(trials, key=lambda r: r.trial):
+        returns.setdefault((r.method, r.setting), []).append(r.returns)
     out = {}
     for a, b in PAIRS:
         rows = []
         for i, masses in enumerate(config.test_masses):
-            by = {
-                m: np.array(
-                    [
-                        r.returns
-                        for r in sorted(trials, key=lambda r: r.trial)
-                        if r.method == m and r.setting == i
-                    ]
-                )
-                for m in (a, b)
-            }
-            ci = paired_difference(by[a], by[b])["all_episodes"]
-            rows.append({"masses": list(masses), **ci})
+            d = paired_difference(np.array(returns[a, i]), np.array(returns[b, i]))
+            rows.append({"masses": list(masses), **d["all_episodes"]})
         out[f"{a} - {b}"] = rows
     return out
 
