@@ -18,7 +18,12 @@ transfer protocol (tasks/transfer.py) on the run's test settings for these varia
   alone), to compare the filters on the same trials;
 - ``model_free``: the same agent with no planning at all (no simulated episodes
   before or between the real ones), so what planning on any model buys is the
-  gap between it and ``true``.
+  gap between it and ``true``;
+- ``true_first``: the HiP-MDP whose initial value function comes from planning on
+  the true simulator instead of its prior mean; after each real episode it filters
+  and plans on the posterior-mean HiP-MDP as usual. Its gap to ``true`` is what
+  the planning between episodes costs; ``hipmdp``'s gap to it is what the
+  initial planning on the prior-mean model costs.
 
 Every variant runs on the same (setting, trial) seeds, spawned from ``--seed``;
 they differ from the run's own trial seeds. Prints the mean return per episode
@@ -43,9 +48,10 @@ import numpy as np
 
 import hipmdp
 from hipmdp import baselines
+from hipmdp.data import wrap_angle
 from tasks import transfer
 from tasks.acrobot_swingup import _params
-from tasks.agents import ACROBOT
+from tasks.agents import ACROBOT, SimulatorModel
 from tasks.experiment import (
     mean_ci,
     paired_difference,
@@ -63,6 +69,7 @@ VARIANTS = (
     "hipmdp_paper_filter",
     "identified_paper_filter",
     "model_free",
+    "true_first",
 )
 
 
@@ -83,6 +90,32 @@ class _Identified:
         return getattr(self._hip, name)
 
 
+class _TrueFirst(_Identified):
+    """The HiP-MDP whose prior belief, until the first update, predicts with the
+    instance's true simulator (``mean_predictor``); every other belief predicts
+    with the HiP-MDP. The prior is a real belief, so filtering starts from it."""
+
+    def __init__(self, hip, params) -> None:
+        super().__init__(hip, None)
+        self._first = hip.prior()
+        self._true = SimulatorModel(ACROBOT, params)
+
+    def prior(self):
+        return self._first
+
+    def mean_predictor(self, belief):
+        if belief is not self._first:
+            return self._hip.mean_predictor(belief)
+
+        def true_delta(states, actions):
+            delta = self._true.predict(states, actions) - states
+            dims = list(ACROBOT.angle_dims)
+            delta[:, dims] = wrap_angle(delta[:, dims])
+            return delta
+
+        return true_delta
+
+
 _STATE: dict[str, Any] = {}
 
 
@@ -97,6 +130,8 @@ def _job(args) -> tuple[str, int, int, np.ndarray]:
         config = dataclasses.replace(
             config, planning_episodes=0, initial_planning_episodes=0
         )
+    elif variant == "true_first":
+        model = _TrueFirst(model, _params(*masses))
     elif variant not in ("true", "average"):
         paper = variant.endswith("_paper_filter")
         belief = None

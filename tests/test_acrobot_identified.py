@@ -100,3 +100,25 @@ def test_model_free_variant_plans_nothing(run, monkeypatch):
             assert planned and set(planned) == {0}
         else:
             assert sum(planned) > 0
+
+
+def test_true_first_plans_on_the_simulator_until_the_first_update(run):
+    from hipmdp.planning import LearnedModel
+    from tasks.acrobot_swingup import _params
+    from tasks.agents import ACROBOT, SimulatorModel
+
+    out, _ = run
+    hip = hipmdp.load(out / "hipmdp_model.npz")
+    batch = hipmdp.Transitions.load(out / "batch.npz")
+    params = _params(*TINY.test_masses[0])
+    model = acrobot_identified._TrueFirst(hip, params)
+    S, A = batch.states[:20], batch.actions[:20]
+    first = LearnedModel(model, model.prior(), ACROBOT.angle_dims).predict(S, A)
+    np.testing.assert_allclose(
+        first, SimulatorModel(ACROBOT, params).predict(S, A), atol=1e-12
+    )
+    data = batch.take(np.arange(30))
+    after = LearnedModel(model, model.update(model.prior(), data), ACROBOT.angle_dims)
+    plain = LearnedModel(hip, hip.update(hip.prior(), data), ACROBOT.angle_dims)
+    np.testing.assert_array_equal(after.predict(S, A), plain.predict(S, A))
+    assert not np.allclose(after.predict(S, A), first)
