@@ -25,6 +25,8 @@ transfer protocol (tasks/transfer.py) on the run's test settings for these varia
   the planning between episodes costs; ``hipmdp``'s gap to it is what the
   initial planning on the prior-mean model costs.
 
+``--first-planning N`` gives every variant ``N`` simulated episodes after the first
+real one instead of the run's ``planning_episodes`` (not the paper's protocol).
 Every variant runs on the same (setting, trial) seeds, spawned from ``--seed``;
 they differ from the run's own trial seeds. Prints the mean return per episode
 with its standard error, the median and the share of episodes that ran to the step
@@ -180,6 +182,7 @@ def main(
     trials: int = 10,
     episodes: int = 3,
     identify: int = 1000,
+    first_planning: int | None = None,
     seed: int = 123,
     workers: int = 2,
     progress: bool = True,
@@ -201,6 +204,8 @@ def main(
     protocol = dataclasses.replace(
         transfer.TransferConfig(**config["transfer"]), n_episodes=episodes
     )
+    if first_planning is not None:  # every variant: the comparison stays paired
+        protocol = dataclasses.replace(protocol, first_planning_episodes=first_planning)
 
     ss_trials, ss_identify = np.random.SeedSequence(seed).spawn(2)
     beliefs: dict[str, list] = {"model": [], "paper": []}
@@ -234,6 +239,7 @@ def main(
         "seed": seed,
         "trials_per_setting": trials,
         "identify_transitions": identify,
+        "first_planning_episodes": protocol.first_planning_episodes,
         "returns": returns,
         "curves": {v: mean_ci(r, axis=0) for v, r in returns.items()},
         "median": {v: np.median(r, axis=0) for v, r in returns.items()},
@@ -268,13 +274,21 @@ def cli(argv: list[str] | None = None) -> int:
     parser.add_argument("--trials", type=int, default=10, help="trials per setting")
     parser.add_argument("--episodes", type=int, default=3, help="real episodes")
     parser.add_argument("--identify", type=int, default=1000, help="transitions")
+    parser.add_argument(
+        "--first-planning",
+        type=int,
+        default=None,
+        help="simulated episodes after the first real one, for every variant "
+        "(default: the run's planning episodes, as after every other)",
+    )
     parser.add_argument("--seed", type=int, default=123)
     parser.add_argument("--workers", type=int, default=2)
     args = parser.parse_args(argv)
     try:
         results = main(
             args.run, variants=tuple(args.variants), trials=args.trials,
-            episodes=args.episodes, identify=args.identify, seed=args.seed,
+            episodes=args.episodes, identify=args.identify,
+            first_planning=args.first_planning, seed=args.seed,
             workers=args.workers,
         )  # fmt: skip
     except (ValueError, FileNotFoundError) as err:

@@ -9,7 +9,10 @@ For one test instance, one trial and one method:
    instance; filter the HiP-MDP weight belief with every transition of the episode
    (one transition at a time, as online filtering during the episode); then run
    ``planning_episodes`` simulated episodes on the model with the posterior-mean
-   weights (the average and true models stay as they are).
+   weights (the average and true models stay as they are). After the first real
+   episode, ``first_planning_episodes`` simulated episodes instead, if set (not
+   the paper's protocol: a check of whether the agent can use an instance
+   identified in one episode, given more planning).
 
 Simulated episodes start from initial states of real episodes (the instance's own
 start distribution): the planning start states are the first states of every real
@@ -44,6 +47,9 @@ class TransferConfig:
     Attributes:
         n_episodes: real episodes per trial.
         planning_episodes: simulated episodes after each real episode (paper: 5).
+        first_planning_episodes: simulated episodes after the first real episode
+            instead of ``planning_episodes``; None (the paper's protocol) for the
+            same number as after every other.
         initial_planning_episodes: simulated episodes before the first real one.
         n_start_states: reset states added to the planning start states.
         max_steps: step limit of a real episode.
@@ -56,12 +62,16 @@ class TransferConfig:
     n_start_states: int = 20
     max_steps: int = 500
     planning_max_steps: int = 500
+    first_planning_episodes: int | None = None
 
     def __post_init__(self) -> None:
         check_positive(
             self, ("n_episodes", "n_start_states", "max_steps", "planning_max_steps")
         )
-        for name in ("planning_episodes", "initial_planning_episodes"):
+        names = ["planning_episodes", "initial_planning_episodes"]
+        if self.first_planning_episodes is not None:
+            names.append("first_planning_episodes")
+        for name in names:
             if int(getattr(self, name)) < 0:
                 raise ValueError(f"{name}: expected >= 0, got {getattr(self, name)}")
 
@@ -183,7 +193,7 @@ def run_trial(job: TrialJob) -> TrialResult:
         model = model_now()
         state = plan(
             state, basis, sarsa, model, task, np.array(starts),
-            config.planning_episodes, rng=rng,
+            _planning_episodes(config, episode_index), rng=rng,
         ).state  # fmt: skip
     return TrialResult(
         job.method,
@@ -194,6 +204,13 @@ def run_trial(job: TrialJob) -> TrialResult:
         np.array(weight_means) if weight_means else None,
         traces if job.record else None,
     )
+
+
+def _planning_episodes(config: TransferConfig, episode_index: int) -> int:
+    """Simulated episodes after real episode ``episode_index`` (0-based)."""
+    if episode_index == 0 and config.first_planning_episodes is not None:
+        return config.first_planning_episodes
+    return config.planning_episodes
 
 
 def _filter_episode(model, hip, belief, data: Transitions, episode, job: TrialJob):

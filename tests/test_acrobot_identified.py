@@ -122,3 +122,34 @@ def test_true_first_plans_on_the_simulator_until_the_first_update(run):
     plain = LearnedModel(hip, hip.update(hip.prior(), data), ACROBOT.angle_dims)
     np.testing.assert_array_equal(after.predict(S, A), plain.predict(S, A))
     assert not np.allclose(after.predict(S, A), first)
+
+
+def test_first_planning_changes_only_the_planning_after_the_first_episode(
+    run, monkeypatch
+):
+    import dataclasses
+
+    from hipmdp import baselines
+    from tasks import transfer
+
+    out, _ = run
+    hip = hipmdp.load(out / "hipmdp_model.npz")
+    batch = hipmdp.Transitions.load(out / "batch.npz")
+    average = baselines.batch_only(batch, rng=np.random.default_rng(0), n_max=100)
+    planned = []
+    real_plan = transfer.plan
+
+    def counting_plan(*args, **kwargs):
+        planned.append(args[6])  # n_episodes
+        return real_plan(*args, **kwargs)
+
+    monkeypatch.setattr(transfer, "plan", counting_plan)
+    base = TINY.transfer  # 1 initial, 2 real episodes, 1 planning episode each
+    for first, expected in ((None, [1, 1, 1]), (3, [1, 3, 1])):
+        config = dataclasses.replace(base, first_planning_episodes=first)
+        acrobot_identified._init(config, hip, average, {"model": [], "paper": []})
+        planned.clear()
+        acrobot_identified._job(("hipmdp", 0, 0, TINY.test_masses[0], (7, ())))
+        assert planned == expected
+    with pytest.raises(ValueError, match="first_planning_episodes: expected >= 0"):
+        dataclasses.replace(base, first_planning_episodes=-1)
