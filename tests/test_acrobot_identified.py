@@ -72,7 +72,10 @@ def test_rejects_a_folder_that_is_not_a_run_and_unknown_variants(tmp_path, run):
         acrobot_identified.main(run[0], variants=("oracle",))
 
 
-def test_model_free_variant_plans_nothing(run, monkeypatch):
+@pytest.fixture
+def planned(run, monkeypatch):
+    """The run's models, installed for ``_job`` with ``init(config)``, and the
+    ``n_episodes`` of every ``plan`` call the trials make."""
     from hipmdp import baselines
     from tasks import transfer
 
@@ -80,26 +83,35 @@ def test_model_free_variant_plans_nothing(run, monkeypatch):
     hip = hipmdp.load(out / "hipmdp_model.npz")
     batch = hipmdp.Transitions.load(out / "batch.npz")
     average = baselines.batch_only(batch, rng=np.random.default_rng(0), n_max=100)
-    planned = []
+    calls: list[int] = []
     real_plan = transfer.plan
 
     def counting_plan(*args, **kwargs):
-        planned.append(args[6])  # n_episodes
+        calls.append(args[6])  # n_episodes
         return real_plan(*args, **kwargs)
 
     monkeypatch.setattr(transfer, "plan", counting_plan)
-    acrobot_identified._init(TINY.transfer, hip, average, {"model": [], "paper": []})
+
+    def init(config):
+        acrobot_identified._init(config, hip, average, {"model": [], "paper": []})
+        calls.clear()
+
+    return init, calls
+
+
+def test_model_free_variant_plans_nothing(planned):
+    init, calls = planned
     seed = (7, ())
     for variant in ("model_free", "true"):
-        planned.clear()
+        init(TINY.transfer)
         v, *_, returns = acrobot_identified._job(
             (variant, 0, 0, TINY.test_masses[0], seed)
         )
         assert v == variant and len(returns) == TINY.transfer.n_episodes
         if variant == "model_free":
-            assert planned and set(planned) == {0}
+            assert calls and set(calls) == {0}
         else:
-            assert sum(planned) > 0
+            assert sum(calls) > 0
 
 
 def test_true_first_plans_on_the_simulator_until_the_first_update(run):
@@ -124,32 +136,14 @@ def test_true_first_plans_on_the_simulator_until_the_first_update(run):
     assert not np.allclose(after.predict(S, A), first)
 
 
-def test_first_planning_changes_only_the_planning_after_the_first_episode(
-    run, monkeypatch
-):
+def test_first_planning_changes_only_the_planning_after_the_first_episode(planned):
     import dataclasses
 
-    from hipmdp import baselines
-    from tasks import transfer
-
-    out, _ = run
-    hip = hipmdp.load(out / "hipmdp_model.npz")
-    batch = hipmdp.Transitions.load(out / "batch.npz")
-    average = baselines.batch_only(batch, rng=np.random.default_rng(0), n_max=100)
-    planned = []
-    real_plan = transfer.plan
-
-    def counting_plan(*args, **kwargs):
-        planned.append(args[6])  # n_episodes
-        return real_plan(*args, **kwargs)
-
-    monkeypatch.setattr(transfer, "plan", counting_plan)
+    init, calls = planned
     base = TINY.transfer  # 1 initial, 2 real episodes, 1 planning episode each
     for first, expected in ((None, [1, 1, 1]), (3, [1, 3, 1])):
-        config = dataclasses.replace(base, first_planning_episodes=first)
-        acrobot_identified._init(config, hip, average, {"model": [], "paper": []})
-        planned.clear()
+        init(dataclasses.replace(base, first_planning_episodes=first))
         acrobot_identified._job(("hipmdp", 0, 0, TINY.test_masses[0], (7, ())))
-        assert planned == expected
+        assert calls == expected
     with pytest.raises(ValueError, match="first_planning_episodes: expected >= 0"):
         dataclasses.replace(base, first_planning_episodes=-1)
