@@ -104,8 +104,8 @@ def main(
             for k, err in errors.items():
                 rmse[name][k].append(np.sqrt(np.mean(err**2, axis=0)))
                 p99[name][k].append(np.percentile(np.abs(err), 99, axis=0))
-        for k, err in errors.items():
-            windows[k].append(len(err))
+                if name == MODELS[0]:  # the same windows for every model
+                    windows[k].append(len(err))
     summary = {
         "run": str(run),
         "seed": seed,

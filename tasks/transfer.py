@@ -68,12 +68,14 @@ class TransferConfig:
         check_positive(
             self, ("n_episodes", "n_start_states", "max_steps", "planning_max_steps")
         )
-        names = ["planning_episodes", "initial_planning_episodes"]
-        if self.first_planning_episodes is not None:
-            names.append("first_planning_episodes")
-        for name in names:
-            if int(getattr(self, name)) < 0:
-                raise ValueError(f"{name}: expected >= 0, got {getattr(self, name)}")
+        for name in (
+            "planning_episodes",
+            "initial_planning_episodes",
+            "first_planning_episodes",
+        ):
+            value = getattr(self, name)  # first_planning_episodes may be None
+            if value is not None and int(value) < 0:
+                raise ValueError(f"{name}: expected >= 0, got {value}")
 
 
 class TrialJob(NamedTuple):
