@@ -60,6 +60,7 @@ ANGLE_DIMS = (0, 1)
 CONTROL_TIMESTEP = 0.2
 N_SUB_STEPS = 20
 DEFAULT_MAX_STEPS = 500
+GRAVITY = 9.8  # m/s², as assets/mjcf/acrobot.xml
 #: Half-width of the uniform initial-state noise around hanging at rest.
 INITIAL_NOISE = 0.1
 
@@ -136,6 +137,61 @@ def tip_height(states: Array, params: AcrobotParams | None = None) -> Array:
     return -params.link_length_1 * np.cos(theta_1) - params.link_length_2 * np.cos(
         theta_1 + theta_2
     )
+
+
+def mass_matrix(states: Array, params: AcrobotParams | None = None) -> Array:
+    """The generalised inertia matrix `M(θ₂)` of the book's equations of motion.
+
+    `M = [[d₁, d₂], [d₂, m₂ l_c2² + I₂]]` with `d₁ = m₁ l_c1² + m₂ (l₁² + l_c2² +
+    2 l₁ l_c2 cos θ₂) + I₁ + I₂`, `d₂ = m₂ (l_c2² + l₁ l_c2 cos θ₂) + I₂`,
+    `l_ci = l_i / 2` and `I_i = m_i l_i²` (Sutton & Barto 1998, §11.3).
+
+    Args:
+        states: `(..., 4)` states (only `θ₂` is used); params: the instance.
+
+    Returns:
+        `M`, shape `(..., 2, 2)`, in kg·m².
+    """
+    params = _check_params(params)
+    states = _check_states(states)
+    m1, m2 = params.link_mass_1, params.link_mass_2
+    l1, l2 = params.link_length_1, params.link_length_2
+    lc1, lc2, i1, i2 = l1 / 2, l2 / 2, m1 * l1**2, m2 * l2**2
+    c2 = np.cos(states[..., 1])
+    d1 = m1 * lc1**2 + m2 * (l1**2 + lc2**2 + 2 * l1 * lc2 * c2) + i1 + i2
+    d2 = m2 * (lc2**2 + l1 * lc2 * c2) + i2
+    out = np.empty(states.shape[:-1] + (2, 2))
+    out[..., 0, 0], out[..., 0, 1], out[..., 1, 0] = d1, d2, d2
+    out[..., 1, 1] = m2 * lc2**2 + i2
+    return out
+
+
+def energy(states: Array, params: AcrobotParams | None = None) -> Array:
+    """Mechanical energy `½ q̇ᵀ M q̇ + V`, with `V` zero at the shoulder's height.
+
+    `V = −g ((m₁ l_c1 + m₂ l₁) cos θ₁ + m₂ l_c2 cos(θ₁ + θ₂))`, `g = 9.8` m/s²: the
+    hanging acrobot at rest has `V = −g (m₁ l_c1 + m₂ (l₁ + l_c2))`. Without
+    torque the energy is conserved; the motor changes it by the work of the elbow
+    torque.
+
+    Args:
+        states: `(..., 4)` states `(θ₁, θ₂, θ̇₁, θ̇₂)`; params: the instance.
+
+    Returns:
+        `E`, shape `(...)`, in J.
+    """
+    params = _check_params(params)
+    states = _check_states(states)
+    m1, m2 = params.link_mass_1, params.link_mass_2
+    l1, l2 = params.link_length_1, params.link_length_2
+    t1, t2, q_dot = states[..., 0], states[..., 1], states[..., 2:]
+    kinetic = 0.5 * np.einsum(
+        "...i,...ij,...j->...", q_dot, mass_matrix(states, params), q_dot
+    )
+    potential = -GRAVITY * (
+        (m1 * l1 / 2 + m2 * l1) * np.cos(t1) + m2 * l2 / 2 * np.cos(t1 + t2)
+    )
+    return kinetic + potential
 
 
 def goal_reached(states: Array, params: AcrobotParams | None = None) -> Array:

@@ -198,3 +198,46 @@ def test_link_points_follow_the_book_kinematics():
     tip = elbow + 1.3 * np.c_[np.sin(t12), np.zeros(20), -np.cos(t12)]
     np.testing.assert_allclose(pts[:, 2], tip, atol=1e-12)
     np.testing.assert_allclose(pts[:, 2, 2], tip_height(states, params), atol=1e-12)
+
+
+@pytest.mark.parametrize("params", REWRITTEN, ids=str)
+def test_energy_and_mass_matrix_equal_mujocos(params):
+    """Against MuJoCo's own energy (mjENBL_ENERGY) and dense inertia matrix."""
+    rng = np.random.default_rng(7)
+    model = acrobot.make_model(params)
+    model.opt.enableflags |= int(mujoco.mjtEnableBit.mjENBL_ENERGY)
+    data = mujoco.MjData(model)
+    states = rng.uniform(-1, 1, (20, 4)) * [np.pi, np.pi, 4 * np.pi, 9 * np.pi]
+    energies, matrices = [], []
+    for s in states:
+        data.qpos[:], data.qvel[:] = s[:2], s[2:]
+        mujoco.mj_forward(model, data)
+        energies.append(data.energy.sum())
+        full = np.zeros((2, 2))
+        mujoco.mj_fullM(model, data, full)
+        matrices.append(full)
+    np.testing.assert_allclose(
+        acrobot.energy(states, params), energies, rtol=1e-10, atol=1e-10
+    )
+    np.testing.assert_allclose(
+        acrobot.mass_matrix(states, params), matrices, rtol=1e-10, atol=1e-12
+    )
+
+
+@pytest.mark.parametrize("params", REWRITTEN[1:3], ids=str)
+def test_energy_changes_by_the_elbow_torques_work(params):
+    """Along an accurate ODE solution of the book's equations, E(t) − E(0) is the
+    work ∫ τ θ̇₂ dt (zero without torque)."""
+    rng = np.random.default_rng(8)
+    for tau in (0.0, 1.0, -1.0):
+        s = rng.uniform(-1, 1, 4) * [np.pi, np.pi, 5, 8]
+        sol = solve_ivp(
+            lambda t, y, tau=tau: np.r_[y[2:4], book_accelerations(y[:4], tau, params),
+                                        tau * y[3]],
+            (0.0, 1.0), np.r_[s, 0.0], method="DOP853", rtol=1e-12, atol=1e-12,
+        )  # fmt: skip
+        y = sol.y[:, -1]
+        change = acrobot.energy(y[:4], params) - acrobot.energy(s, params)
+        assert change == pytest.approx(y[4], abs=1e-8)
+        if tau != 0.0:
+            assert abs(y[4]) > 1e-3  # the torque did work: the test can see it

@@ -1,0 +1,389 @@
+"""Do the learned models make the swing-up look easier than it is? A check on a
+finished swing-up run.
+
+    python -m tasks.acrobot_energy runs/acrobot_swingup [--trials 2]
+
+Reads a finished swing-up run (``config.json``, ``hipmdp_model.npz``,
+``batch.npz``), refits its average model exactly as the run did, and on each of the
+run's test settings, for ``--trials`` trials (seeds spawned from ``--seed``):
+
+1. **Promised and delivered.** A fresh agent plans the run's
+   ``initial_planning_episodes`` simulated episodes on each model, as the transfer
+   protocol's first planning does (tasks/transfer.py), then runs one real episode
+   on the instance, learning as in the protocol. The models: ``true`` (the
+   instance's simulator), ``average`` (one GP on all batch data), ``prior`` (the
+   HiP-MDP at its prior-mean weights, what its first planning uses),
+   ``identified`` (the HiP-MDP filtered on ``--identify`` transitions of the
+   instance, as ``tasks.acrobot_identified`` does) and, with ``--noise σ``,
+   ``noisy`` (the simulator with zero-mean Gaussian noise of standard deviation σ
+   rad/s added to both predicted velocities: a model whose errors have no bias).
+   Recorded: the mean steps of the last ``--last`` simulated episodes (what the
+   model promised) and the steps of the real episode (what the agent got).
+2. **Energy.** On a sample of ``--states`` of the (state, action) pairs the
+   ``true`` planner visited (where a good swing-up goes), each learned model's
+   one-step prediction ``ŝ'`` against the simulator's ``s'``: the error in
+   mechanical energy ``E(ŝ') − E(s')`` (``tasks.acrobot.energy``) and its parts.
+   With ``ε = ŝ'_q̇ − s'_q̇`` the velocity error and ``M`` the inertia matrix at
+   ``s'``, the kinetic part is ``ε ᵀ M q̇' + ½ εᵀ M ε``: the first term has the sign
+   of the error, the second is positive for any error, so velocity errors that
+   do not favour either sign still add energy on average (the positional part is
+   the rest). Beside them, the simulator's own energy change per step and the
+   RMS velocity errors in bands of ``|θ̇₂|`` with the share of visited states in
+   each band.
+
+Prints the means over trials with 95% intervals and writes ``energy.json`` in the
+run folder: per model the promised and delivered steps (settings × trials), the
+energy terms (settings × trials), the banded errors, and summaries (the paired
+``delivered_minus_true`` is in steps: above 0 is worse than the simulator's agent).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from hipmdp.planning import LearnedModel, plan
+from hipmdp.sarsa import init_state
+from tasks import acrobot
+from tasks.acrobot_identified import check_run, load_run
+from tasks.acrobot_swingup import _params
+from tasks.agents import ACROBOT, SimulatorModel, run_episode
+from tasks.experiment import mean_ci, pool_map, seed_value, write_json
+from tasks.prediction import gather_split
+from tasks.transfer import TransferConfig
+
+MODELS = ("true", "average", "prior", "identified", "noisy")
+LEARNED = ("average", "prior", "identified", "noisy")
+TERMS = ("total", "linear", "quadratic", "positional", "true_gain")
+BANDS = (0.0, 2.0, 4.0, 6.0, 8.0, 10.0, 14.0, np.inf)  # |θ̇₂| in rad/s
+
+
+class NoisySimulator:
+    """The instance's simulator with zero-mean Gaussian noise of standard
+    deviation ``sd`` rad/s added to each predicted velocity (a random stream of its
+    own): errors of a given size without any bias."""
+
+    def __init__(self, simulator: SimulatorModel, sd: float, rng) -> None:
+        self._simulator, self._sd, self._rng = simulator, sd, rng
+
+    def predict(self, states: np.ndarray, actions: np.ndarray) -> np.ndarray:
+        out = self._simulator.predict(states, actions)
+        out[:, 2:] += self._sd * self._rng.standard_normal(out[:, 2:].shape)
+        return out
+
+
+class _Recorder:
+    """A dynamics model that keeps every (state, action) batch it was asked."""
+
+    def __init__(self, model) -> None:
+        self.model, self.states, self.actions = model, [], []
+
+    def predict(self, states: np.ndarray, actions: np.ndarray) -> np.ndarray:
+        self.states.append(np.array(states))
+        self.actions.append(np.array(actions))
+        return self.model.predict(states, actions)
+
+
+def energy_terms(
+    predicted: np.ndarray,
+    true_next: np.ndarray,
+    states: np.ndarray,
+    params: acrobot.AcrobotParams,
+) -> dict[str, float]:
+    """Mean energy error of one-step predictions and its parts (module docstring).
+
+    Args:
+        predicted: ``ŝ'``, true_next: ``s'``, states: ``s``, each shape ``(N, 4)``.
+        params: the instance.
+
+    Returns:
+        ``{"total": mean E(ŝ') − E(s'), "linear": mean εᵀ M q̇', "quadratic": mean
+        ½ εᵀ M ε, "positional": total − linear − quadratic, "true_gain": mean
+        E(s') − E(s)}`` in J per step.
+    """
+    eps = predicted[:, 2:] - true_next[:, 2:]
+    mass = acrobot.mass_matrix(true_next, params)
+    total = acrobot.energy(predicted, params) - acrobot.energy(true_next, params)
+    linear = np.einsum("ni,nij,nj->n", eps, mass, true_next[:, 2:])
+    quadratic = 0.5 * np.einsum("ni,nij,nj->n", eps, mass, eps)
+    gain = acrobot.energy(true_next, params) - acrobot.energy(states, params)
+    out = {
+        "total": float(np.mean(total)),
+        "linear": float(np.mean(linear)),
+        "quadratic": float(np.mean(quadratic)),
+        "true_gain": float(np.mean(gain)),
+    }
+    out["positional"] = out["total"] - out["linear"] - out["quadratic"]
+    return out
+
+
+def banded_errors(
+    predicted: np.ndarray, true_next: np.ndarray, states: np.ndarray
+) -> dict[str, np.ndarray]:
+    """RMS velocity errors per ``|θ̇₂|`` band of the state (:data:`BANDS`).
+
+    Returns ``{"share": (B,), "rmse": (B, 2)}``; a band no state fell in has
+    share 0 and RMS NaN.
+    """
+    band = np.digitize(np.abs(states[:, 3]), BANDS[1:-1])
+    err = predicted[:, 2:] - true_next[:, 2:]
+    share = np.zeros(len(BANDS) - 1)
+    rmse = np.full((len(BANDS) - 1, 2), np.nan)
+    for b in range(len(BANDS) - 1):
+        inside = band == b
+        share[b] = inside.mean()
+        if inside.any():
+            rmse[b] = np.sqrt(np.mean(err[inside] ** 2, axis=0))
+    return {"share": share, "rmse": rmse}
+
+
+_STATE: dict[str, Any] = {}
+
+
+def _init(settings, hip, average, beliefs, options) -> None:
+    _STATE.update(
+        settings=settings, hip=hip, average=average, beliefs=beliefs, **options
+    )
+
+
+def _job(args) -> tuple[int, int, dict[str, Any]]:
+    setting, trial, seed = args
+    params = _params(*_STATE["settings"][setting])
+    ss_env, ss_starts, ss_plan, ss_noise, ss_sample = np.random.SeedSequence(
+        seed[0], spawn_key=seed[1]
+    ).spawn(5)
+    transfer = _STATE["transfer"]
+    start_env = ACROBOT.make_env(params, seed=np.random.default_rng(ss_starts))
+    starts = np.array(
+        [start_env.reset().observation["state"] for _ in range(transfer.n_start_states)]
+    )
+    task = ACROBOT.planning_task(params, transfer.planning_max_steps)
+    basis = ACROBOT.basis()
+    simulator = SimulatorModel(ACROBOT, params)
+    hip, names = _STATE["hip"], _STATE["models"]
+    models = {
+        "true": _Recorder(simulator),
+        "average": LearnedModel(_STATE["average"], None, ACROBOT.angle_dims),
+        "prior": LearnedModel(hip, hip.prior(), ACROBOT.angle_dims),
+        "identified": LearnedModel(hip, _STATE["beliefs"][setting], ACROBOT.angle_dims),
+        "noisy": NoisySimulator(
+            simulator, _STATE["noise"], np.random.default_rng(ss_noise)
+        ),
+    }
+    out: dict[str, Any] = {"promised": {}, "delivered": {}}
+    for name in names:
+        # every model: the same start states, exploration stream and real instance
+        rng = np.random.default_rng(ss_plan)
+        state = init_state(ACROBOT.n_actions, basis.n_features, ACROBOT.initial_value)
+        result = plan(
+            state, basis, ACROBOT.sarsa, models[name], task, starts,
+            transfer.initial_planning_episodes, rng=rng,
+        )  # fmt: skip
+        env = ACROBOT.make_env(
+            params,
+            seed=np.random.default_rng(ss_env),
+            max_steps=transfer.max_steps,
+        )
+        episode = run_episode(env, basis, ACROBOT.sarsa, result.state, rng=rng)
+        out["promised"][name] = float(np.mean(result.steps[-_STATE["last"] :]))
+        out["delivered"][name] = int(episode.actions.shape[0])
+    visited = np.concatenate(models["true"].states)
+    actions = np.concatenate(models["true"].actions)
+    rng = np.random.default_rng(ss_sample)
+    keep = rng.choice(len(visited), min(_STATE["n_states"], len(visited)), False)
+    visited, actions = visited[keep], actions[keep]
+    true_next = simulator.predict(visited, actions)
+    out["energy"], out["bands"] = {}, {}
+    for name in names:
+        if name == "true":
+            continue
+        predicted = models[name].predict(visited, actions)
+        out["energy"][name] = energy_terms(predicted, true_next, visited, params)
+        out["bands"][name] = banded_errors(predicted, true_next, visited)
+    return setting, trial, out
+
+
+class Results(NamedTuple):
+    """The file written and its content."""
+
+    out: Path
+    summary: dict[str, Any]
+
+
+def main(
+    run: str | Path,
+    *,
+    trials: int = 2,
+    identify: int = 1000,
+    noise: float | None = None,
+    n_states: int = 3000,
+    last: int = 10,
+    seed: int = 456,
+    workers: int = 2,
+    progress: bool = True,
+) -> Results:
+    """Run the check on the run folder ``run``; see the module docstring."""
+    run = Path(run)
+    check_run(run)
+    for name, value in (
+        ("trials", trials),
+        ("identify", identify),
+        ("n_states", n_states),
+        ("last", last),
+    ):
+        if int(value) < 1:
+            raise ValueError(f"{name}: expected >= 1, got {value}")
+    if noise is not None and not (np.isfinite(noise) and noise > 0):
+        raise ValueError(f"noise: expected a positive finite σ in rad/s, got {noise}")
+    config, hip, average = load_run(run)
+    transfer = TransferConfig(**config["transfer"])
+    if last > transfer.initial_planning_episodes:
+        raise ValueError(
+            f"last: expected <= the run's initial_planning_episodes "
+            f"({transfer.initial_planning_episodes}), got {last}"
+        )
+    settings = [tuple(m) for m in config["test_masses"]]
+    names = [m for m in MODELS if m != "noisy" or noise is not None]
+    ss_trials, ss_identify = np.random.SeedSequence(seed).spawn(2)
+    beliefs = []
+    for ss, masses in zip(ss_identify.spawn(len(settings)), settings, strict=True):
+        train = gather_split(
+            ACROBOT, _params(*masses), identify, 0, rng=np.random.default_rng(ss)
+        ).train
+        beliefs.append(hip.update(hip.prior(), train))
+    seeds = [seed_value(s) for s in ss_trials.spawn(len(settings) * trials)]
+    jobs = [
+        (i, t, seeds[i * trials + t])
+        for i in range(len(settings))
+        for t in range(trials)
+    ]
+    options = dict(
+        transfer=transfer, models=names, noise=noise, n_states=n_states, last=last
+    )
+    done = pool_map(
+        _job, jobs, workers=workers, desc="trials", progress=progress,
+        initializer=_init, initargs=(settings, hip, average, beliefs, options),
+    )  # fmt: skip
+    shape = (len(settings), trials)
+
+    def gather(get) -> np.ndarray:
+        first = np.asarray(get(done[0][2]))
+        out = np.empty(shape + first.shape)
+        for i, t, o in done:
+            out[i, t] = get(o)
+        return out
+
+    promised = {m: gather(lambda o, m=m: o["promised"][m]) for m in names}
+    delivered = {m: gather(lambda o, m=m: o["delivered"][m]) for m in names}
+    learned = [m for m in names if m != "true"]
+    energy = {
+        m: {k: gather(lambda o, m=m, k=k: o["energy"][m][k]) for k in TERMS}
+        for m in learned
+    }
+    band_rmse = {m: gather(lambda o, m=m: o["bands"][m]["rmse"]) for m in learned}
+    band_share = gather(lambda o: o["bands"][learned[0]]["share"])
+
+    def flat(x: np.ndarray) -> np.ndarray:
+        return x.reshape(-1, *x.shape[2:])
+
+    summary: dict[str, Any] = {
+        "run": str(run),
+        "seed": seed,
+        "trials_per_setting": trials,
+        "identify_transitions": identify,
+        "noise": noise,
+        "n_states": n_states,
+        "last": last,
+        "test_masses": [list(m) for m in settings],
+        "models": names,
+        "promised_steps": promised,
+        "delivered_steps": delivered,
+        "promised_steps_mean": {m: mean_ci(flat(v)) for m, v in promised.items()},
+        "delivered_steps_mean": {m: mean_ci(flat(v)) for m, v in delivered.items()},
+        "delivered_minus_promised": {
+            m: mean_ci(flat(delivered[m] - promised[m])) for m in names
+        },
+        "delivered_minus_true": {
+            m: mean_ci(flat(delivered[m] - delivered["true"])) for m in learned
+        },
+        "energy_terms": energy,
+        "energy_terms_mean": {
+            m: {k: mean_ci(flat(v)) for k, v in terms.items()}
+            for m, terms in energy.items()
+        },
+        "bands_theta2_dot": [list(BANDS[:-1]), list(BANDS[1:])],
+        "band_share": np.nanmean(flat(band_share), axis=0),
+        "band_rmse": {m: _nanmean(flat(v)) for m, v in band_rmse.items()},
+    }
+    return Results(write_json(run / "energy.json", summary), summary)
+
+
+def _nanmean(x: np.ndarray) -> np.ndarray:
+    """Mean over axis 0 of the finite entries; NaN where there are none."""
+    finite = np.isfinite(x)
+    count = finite.sum(axis=0)
+    total = np.where(finite, x, 0.0).sum(axis=0)
+    return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+
+
+def _interval(d: dict[str, Any], sign: str = "") -> str:
+    fmt = f"{{:{sign}.3g}}"
+    return f"{fmt.format(d['mean'])} [{d['low']:.3g}, {d['high']:.3g}]"
+
+
+def cli(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m tasks.acrobot_energy",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("run", help="a finished acrobot_swingup run folder")
+    parser.add_argument("--trials", type=int, default=2, help="trials per setting")
+    parser.add_argument("--identify", type=int, default=1000, help="transitions")
+    parser.add_argument(
+        "--noise", type=float, default=None, help="σ of the noisy simulator, rad/s"
+    )
+    parser.add_argument("--states", type=int, default=3000, help="states sampled")
+    parser.add_argument("--last", type=int, default=10, help="planning episodes")
+    parser.add_argument("--seed", type=int, default=456)
+    parser.add_argument("--workers", type=int, default=2)
+    args = parser.parse_args(argv)
+    try:
+        results = main(
+            args.run, trials=args.trials, identify=args.identify, noise=args.noise,
+            n_states=args.states, last=args.last, seed=args.seed,
+            workers=args.workers,
+        )  # fmt: skip
+    except (ValueError, FileNotFoundError) as err:
+        parser.error(str(err))
+    s = results.summary
+    n = s["promised_steps_mean"]["true"]["n"]
+    print(f"steps to the goal, mean [95% interval] over {n} trials")
+    print(f"{'model':>11} {'promised':>24} {'delivered':>24} {'delivered - true':>24}")
+    for m in s["models"]:
+        diff = s["delivered_minus_true"].get(m)
+        print(
+            f"{m:>11} {_interval(s['promised_steps_mean'][m]):>24} "
+            f"{_interval(s['delivered_steps_mean'][m]):>24} "
+            f"{_interval(diff, '+') if diff else '':>24}"
+        )
+    print("energy error of one-step predictions on the true planner's states, J/step")
+    print(f"{'model':>11} " + " ".join(f"{k:>24}" for k in TERMS))
+    for m, terms in s["energy_terms_mean"].items():
+        print(f"{m:>11} " + " ".join(f"{_interval(terms[k], '+'):>24}" for k in TERMS))
+    print("RMS velocity errors (θ̇₁, θ̇₂) by |θ̇₂| band, rad/s")
+    for b, (lo, hi) in enumerate(zip(*s["bands_theta2_dot"], strict=True)):
+        cells = "  ".join(
+            f"{m} {r[b][0]:.3g}, {r[b][1]:.3g}" for m, r in s["band_rmse"].items()
+        )
+        print(f"  {lo:>4g}-{hi:<4g} share {s['band_share'][b]:.3f}  {cells}")
+    print(f"wrote {results.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

@@ -1,0 +1,139 @@
+"""The energy check: its energy decomposition, banded errors and noisy simulator on
+known inputs, and the check itself on a finished (tiny) swing-up run."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from tasks import acrobot, acrobot_energy
+from tasks.acrobot import AcrobotParams
+from tasks.acrobot_swingup import main as swingup_main
+from tasks.agents import ACROBOT, SimulatorModel
+from tests.test_acrobot_swingup import TINY
+
+PARAMS = AcrobotParams(0.9, 1.1, 1.0, 1.0)
+
+
+def _states(rng, n):
+    return rng.uniform(-1, 1, (n, 4)) * [np.pi, np.pi, 4.0, 8.0]
+
+
+def test_velocity_errors_of_either_sign_add_half_eps_m_eps():
+    """Positions exact, velocity errors ±ε in pairs: the linear term cancels and
+    the energy error is the mean of ½ εᵀ M ε > 0, computed here directly."""
+    rng = np.random.default_rng(0)
+    true_next = _states(rng, 200)
+    true_next = np.concatenate([true_next, true_next])
+    eps = rng.normal(0, 0.3, (200, 2))
+    eps = np.concatenate([eps, -eps])
+    predicted = true_next.copy()
+    predicted[:, 2:] += eps
+    start = _states(rng, 400)
+    terms = acrobot_energy.energy_terms(predicted, true_next, start, PARAMS)
+    mass = acrobot.mass_matrix(true_next, PARAMS)
+    quadratic = np.mean([0.5 * e @ m @ e for e, m in zip(eps, mass, strict=True)])
+    assert terms["quadratic"] == pytest.approx(quadratic, rel=1e-12)
+    assert terms["quadratic"] > 0.05
+    assert terms["linear"] == pytest.approx(0.0, abs=1e-12)
+    assert terms["total"] == pytest.approx(quadratic, rel=1e-10)
+    assert terms["positional"] == pytest.approx(0.0, abs=1e-10)
+    gain = acrobot.energy(true_next, PARAMS) - acrobot.energy(start, PARAMS)
+    assert terms["true_gain"] == pytest.approx(gain.mean(), rel=1e-12)
+
+
+def test_position_errors_go_to_the_positional_term():
+    rng = np.random.default_rng(1)
+    true_next = _states(rng, 50)
+    predicted = true_next.copy()
+    predicted[:, 0] += 0.1  # the shoulder angle only: velocities exact
+    terms = acrobot_energy.energy_terms(predicted, true_next, true_next, PARAMS)
+    assert terms["linear"] == terms["quadratic"] == 0.0
+    total = acrobot.energy(predicted, PARAMS) - acrobot.energy(true_next, PARAMS)
+    assert terms["positional"] == pytest.approx(total.mean(), rel=1e-12)
+    assert abs(terms["positional"]) > 1e-3
+
+
+def test_banded_errors_put_each_state_in_its_band():
+    states = np.zeros((4, 4))
+    states[:, 3] = [1.0, -3.0, 3.5, 20.0]  # bands 0-2, 2-4, 2-4, 14-inf
+    true_next = np.zeros((4, 4))
+    predicted = np.zeros((4, 4))
+    predicted[:, 2:] = [[1.0, 2.0], [3.0, 0.0], [4.0, 0.0], [0.0, 5.0]]
+    out = acrobot_energy.banded_errors(predicted, true_next, states)
+    np.testing.assert_array_equal(out["share"], [0.25, 0.5, 0, 0, 0, 0, 0.25])
+    np.testing.assert_allclose(out["rmse"][0], [1.0, 2.0])
+    np.testing.assert_allclose(out["rmse"][1], [np.sqrt(12.5), 0.0])
+    np.testing.assert_allclose(out["rmse"][6], [0.0, 5.0])
+    assert np.all(np.isnan(out["rmse"][2:6]))
+
+
+def test_noisy_simulator_adds_unbiased_noise_to_velocities_only():
+    simulator = SimulatorModel(ACROBOT, PARAMS)
+    noisy = acrobot_energy.NoisySimulator(simulator, 0.25, np.random.default_rng(2))
+    rng = np.random.default_rng(3)
+    states = np.repeat(_states(rng, 1), 2000, axis=0)
+    actions = np.full(2000, 2)
+    err = noisy.predict(states, actions) - simulator.predict(states, actions)
+    np.testing.assert_array_equal(err[:, :2], 0.0)
+    assert np.all(np.abs(err[:, 2:].mean(axis=0)) < 3 * 0.25 / np.sqrt(2000))
+    np.testing.assert_allclose(err[:, 2:].std(axis=0), 0.25, rtol=0.05)
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    out = swingup_main(TINY, out=tmp_path_factory.mktemp("swingup")).out
+    options = dict(
+        trials=2, identify=30, noise=0.2, n_states=50, last=1, workers=1,
+        progress=False,
+    )  # fmt: skip
+    return out, options, acrobot_energy.main(out, **options)
+
+
+def test_writes_promised_delivered_and_energy_per_model(run, capsys):
+    out, options, results = run
+    data = json.loads((out / "energy.json").read_text())
+    assert data["models"] == list(acrobot_energy.MODELS)
+    shape = (len(TINY.test_masses), options["trials"])
+    for m in acrobot_energy.MODELS:
+        promised = np.array(data["promised_steps"][m])
+        delivered = np.array(data["delivered_steps"][m])
+        assert promised.shape == delivered.shape == shape
+        assert np.all((promised >= 1) & (promised <= TINY.transfer.planning_max_steps))
+        assert np.all((delivered >= 1) & (delivered <= TINY.transfer.max_steps))
+    for m in acrobot_energy.LEARNED:
+        for k in acrobot_energy.TERMS:
+            assert np.array(data["energy_terms"][m][k]).shape == shape
+        assert np.all(np.array(data["energy_terms"][m]["quadratic"]) > 0)
+        assert np.array(data["band_rmse"][m]).shape == (7, 2)
+    assert sum(data["band_share"]) == pytest.approx(1.0)
+    # the simulator's agent is its own reference
+    assert "true" not in data["delivered_minus_true"]
+    # the same seed, the same numbers
+    first = (out / "energy.json").read_text()
+    acrobot_energy.main(out, **options)
+    assert (out / "energy.json").read_text() == first
+    np.testing.assert_array_equal(
+        results.summary["delivered_steps"]["prior"], data["delivered_steps"]["prior"]
+    )
+
+
+def test_without_noise_there_is_no_noisy_model(run):
+    out, options, _ = run
+    summary = acrobot_energy.main(out, **{**options, "noise": None}).summary
+    assert summary["models"] == ["true", "average", "prior", "identified"]
+    assert "noisy" not in summary["energy_terms"]
+
+
+def test_rejects_bad_options(tmp_path, run):
+    out = run[0]
+    with pytest.raises(FileNotFoundError, match="has no config.json"):
+        acrobot_energy.main(tmp_path)
+    with pytest.raises(ValueError, match="trials: expected >= 1"):
+        acrobot_energy.main(out, trials=0)
+    with pytest.raises(ValueError, match="noise: expected a positive finite"):
+        acrobot_energy.main(out, noise=-1.0)
+    with pytest.raises(ValueError, match="last: expected <= the run's initial"):
+        acrobot_energy.main(out, last=2)
