@@ -9,16 +9,19 @@ run's test settings, for ``--trials`` trials (seeds spawned from ``--seed``):
 
 1. **Promised and delivered.** A fresh agent plans the run's
    ``initial_planning_episodes`` simulated episodes on each model, as the transfer
-   protocol's first planning does (tasks/transfer.py), then runs one real episode
-   on the instance, learning as in the protocol. The models: ``true`` (the
+   protocol's first planning does (tasks/transfer.py), then runs ``--real``
+   real episodes on the instance, each from the planned agent and learning as the
+   protocol's first real episode does (one episode is too noisy a measure: a few
+   run to the step limit). The models: ``true`` (the
    instance's simulator), ``average`` (one GP on all batch data), ``prior`` (the
    HiP-MDP at its prior-mean weights, what its first planning uses),
    ``identified`` (the HiP-MDP filtered on ``--identify`` transitions of the
    instance, as ``tasks.acrobot_identified`` does) and, with ``--noise σ``,
    ``noisy`` (the simulator with zero-mean Gaussian noise of standard deviation σ
    rad/s added to both predicted velocities: a model whose errors have no bias).
-   Recorded: the mean steps of the last ``--last`` simulated episodes (what the
-   model promised) and the steps of the real episode (what the agent got).
+   ``--models`` runs a subset (``true`` always). Recorded: the mean steps of the
+   last ``--last`` simulated episodes (what the model promised) and the mean steps
+   of the real episodes (what the agent got).
 2. **Energy.** On a sample of ``--states`` of the (state, action) pairs the
    ``true`` planner visited (where a good swing-up goes), each learned model's
    one-step prediction ``ŝ'`` against the simulator's ``s'``: the error in
@@ -169,11 +172,13 @@ def _job(args) -> tuple[int, int, dict[str, Any]]:
         "true": _Recorder(simulator),
         "average": LearnedModel(_STATE["average"], None, ACROBOT.angle_dims),
         "prior": LearnedModel(hip, hip.prior(), ACROBOT.angle_dims),
-        "identified": LearnedModel(hip, _STATE["beliefs"][setting], ACROBOT.angle_dims),
-        "noisy": NoisySimulator(
-            simulator, _STATE["noise"], np.random.default_rng(ss_noise)
-        ),
     }
+    if "identified" in names:
+        belief = _STATE["beliefs"][setting]
+        models["identified"] = LearnedModel(hip, belief, ACROBOT.angle_dims)
+    if "noisy" in names:
+        noise = np.random.default_rng(ss_noise)
+        models["noisy"] = NoisySimulator(simulator, _STATE["noise"], noise)
     out: dict[str, Any] = {"promised": {}, "delivered": {}}
     for name in names:
         # every model: the same start states, exploration stream and real instance
@@ -188,9 +193,12 @@ def _job(args) -> tuple[int, int, dict[str, Any]]:
             seed=np.random.default_rng(ss_env),
             max_steps=transfer.max_steps,
         )
-        episode = run_episode(env, basis, ACROBOT.sarsa, result.state, rng=rng)
+        real = [
+            run_episode(env, basis, ACROBOT.sarsa, result.state, rng=rng)
+            for _ in range(_STATE["real"])
+        ]  # each from the planned agent, on the instance's next reset
         out["promised"][name] = float(np.mean(result.steps[-_STATE["last"] :]))
-        out["delivered"][name] = int(episode.actions.shape[0])
+        out["delivered"][name] = float(np.mean([e.actions.shape[0] for e in real]))
     visited = np.concatenate(models["true"].states)
     actions = np.concatenate(models["true"].actions)
     rng = np.random.default_rng(ss_sample)
@@ -218,10 +226,12 @@ def main(
     run: str | Path,
     *,
     trials: int = 2,
+    models: tuple[str, ...] | None = None,
     identify: int = 1000,
     noise: float | None = None,
     n_states: int = 3000,
     last: int = 10,
+    real: int = 5,
     seed: int = 456,
     workers: int = 2,
     progress: bool = True,
@@ -234,6 +244,7 @@ def main(
         ("identify", identify),
         ("n_states", n_states),
         ("last", last),
+        ("real", real),
     ):
         if int(value) < 1:
             raise ValueError(f"{name}: expected >= 1, got {value}")
@@ -247,10 +258,20 @@ def main(
             f"({transfer.initial_planning_episodes}), got {last}"
         )
     settings = [tuple(m) for m in config["test_masses"]]
-    names = [m for m in MODELS if m != "noisy" or noise is not None]
+    if models is None:  # every model, the noisy one if it has a σ
+        models = tuple(m for m in MODELS if m != "noisy" or noise is not None)
+    names = [m for m in MODELS if m in models]  # in MODELS' order
+    if set(models) - set(MODELS) or "true" not in models or len(names) < 2:
+        raise ValueError(
+            f"models: expected 'true' and some of {MODELS[1:]}, got {tuple(models)}"
+        )
+    if "noisy" in names and noise is None:
+        raise ValueError("noise: the noisy model needs a σ (--noise), got None")
     ss_trials, ss_identify = np.random.SeedSequence(seed).spawn(2)
     beliefs = []
     for ss, masses in zip(ss_identify.spawn(len(settings)), settings, strict=True):
+        if "identified" not in names:
+            break
         train = gather_split(
             ACROBOT, _params(*masses), identify, 0, rng=np.random.default_rng(ss)
         ).train
@@ -262,7 +283,12 @@ def main(
         for t in range(trials)
     ]
     options = dict(
-        transfer=transfer, models=names, noise=noise, n_states=n_states, last=last
+        transfer=transfer,
+        models=names,
+        noise=noise,
+        n_states=n_states,
+        last=last,
+        real=real,
     )
     done = pool_map(
         _job, jobs, workers=workers, desc="trials", progress=progress,
@@ -298,6 +324,7 @@ def main(
         "noise": noise,
         "n_states": n_states,
         "last": last,
+        "real_episodes": real,
         "test_masses": [list(m) for m in settings],
         "models": names,
         "promised_steps": promised,
@@ -343,19 +370,29 @@ def cli(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("run", help="a finished acrobot_swingup run folder")
     parser.add_argument("--trials", type=int, default=2, help="trials per setting")
+    parser.add_argument(
+        "--models",
+        nargs="+",
+        default=None,
+        help=f"'true' and some of {', '.join(MODELS[1:])} (default: all; "
+        "noisy only with --noise)",
+    )
     parser.add_argument("--identify", type=int, default=1000, help="transitions")
     parser.add_argument(
         "--noise", type=float, default=None, help="σ of the noisy simulator, rad/s"
     )
     parser.add_argument("--states", type=int, default=3000, help="states sampled")
     parser.add_argument("--last", type=int, default=10, help="planning episodes")
+    parser.add_argument("--real", type=int, default=5, help="real episodes")
     parser.add_argument("--seed", type=int, default=456)
     parser.add_argument("--workers", type=int, default=2)
     args = parser.parse_args(argv)
     try:
         results = main(
-            args.run, trials=args.trials, identify=args.identify, noise=args.noise,
-            n_states=args.states, last=args.last, seed=args.seed,
+            args.run, trials=args.trials, models=args.models,
+            identify=args.identify, noise=args.noise,
+            n_states=args.states, last=args.last, real=args.real,
+            seed=args.seed,
             workers=args.workers,
         )  # fmt: skip
     except (ValueError, FileNotFoundError) as err:

@@ -137,3 +137,25 @@ def test_rejects_bad_options(tmp_path, run):
         acrobot_energy.main(out, noise=-1.0)
     with pytest.raises(ValueError, match="last: expected <= the run's initial"):
         acrobot_energy.main(out, last=2)
+    with pytest.raises(ValueError, match="models: expected 'true' and some of"):
+        acrobot_energy.main(out, last=1, models=("average", "prior"))
+    with pytest.raises(ValueError, match="models: expected 'true' and some of"):
+        acrobot_energy.main(out, last=1, models=("true",))
+    with pytest.raises(ValueError, match="noise: the noisy model needs a σ"):
+        acrobot_energy.main(out, last=1, models=("true", "noisy"))
+
+
+def test_a_subset_of_models_gives_the_same_numbers_for_them(run):
+    """Models do not share random streams: dropping some changes no other."""
+    out, options, results = run
+    subset = acrobot_energy.main(
+        out, **{**options, "models": ("true", "noisy")}
+    ).summary
+    assert subset["models"] == ["true", "noisy"]
+    for key in ("promised_steps", "delivered_steps"):
+        for m in ("true", "noisy"):
+            np.testing.assert_array_equal(subset[key][m], results.summary[key][m])
+    np.testing.assert_array_equal(
+        subset["energy_terms"]["noisy"]["total"],
+        results.summary["energy_terms"]["noisy"]["total"],
+    )
