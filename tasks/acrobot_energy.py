@@ -32,7 +32,7 @@ run's test settings, for ``--trials`` trials (seeds spawned from ``--seed``):
    do not favour either sign still add energy on average (the positional part is
    the rest). Beside them, the simulator's own energy change per step and the
    RMS velocity errors in bands of ``|θ̇₂|`` with the share of visited states in
-   each band.
+   each band and its share of the ``½ εᵀ M ε`` summed over all states.
 
 Prints the means over trials with 95% intervals and writes ``energy.json`` in the
 run folder: per model the promised and delivered steps (settings × trials), the
@@ -125,23 +125,35 @@ def energy_terms(
 
 
 def banded_errors(
-    predicted: np.ndarray, true_next: np.ndarray, states: np.ndarray
+    predicted: np.ndarray,
+    true_next: np.ndarray,
+    states: np.ndarray,
+    params: acrobot.AcrobotParams,
 ) -> dict[str, np.ndarray]:
     """RMS velocity errors per ``|θ̇₂|`` band of the state (:data:`BANDS`).
 
-    Returns ``{"share": (B,), "rmse": (B, 2)}``; a band no state fell in has
-    share 0 and RMS NaN.
+    Returns ``{"share": (B,), "rmse": (B, 2), "kinetic_share": (B,)}``: the
+    share of states in each band, their RMS errors in ``(θ̇₁, θ̇₂)``, and the
+    band's share of the summed ``½ εᵀ M ε`` (the energy velocity errors add
+    whatever their sign; ``M`` at ``true_next``, of instance ``params``). A band
+    no state fell in has shares 0 and RMS NaN.
     """
     band = np.digitize(np.abs(states[:, 3]), BANDS[1:-1])
     err = predicted[:, 2:] - true_next[:, 2:]
+    mass = acrobot.mass_matrix(true_next, params)
+    quadratic = 0.5 * np.einsum("ni,nij,nj->n", err, mass, err)
     share = np.zeros(len(BANDS) - 1)
+    kinetic = np.zeros(len(BANDS) - 1)
     rmse = np.full((len(BANDS) - 1, 2), np.nan)
     for b in range(len(BANDS) - 1):
         inside = band == b
         share[b] = inside.mean()
+        kinetic[b] = quadratic[inside].sum() / max(
+            quadratic.sum(), np.finfo(float).tiny
+        )
         if inside.any():
             rmse[b] = np.sqrt(np.mean(err[inside] ** 2, axis=0))
-    return {"share": share, "rmse": rmse}
+    return {"share": share, "rmse": rmse, "kinetic_share": kinetic}
 
 
 _STATE: dict[str, Any] = {}
@@ -211,7 +223,7 @@ def _job(args) -> tuple[int, int, dict[str, Any]]:
             continue
         predicted = models[name].predict(visited, actions)
         out["energy"][name] = energy_terms(predicted, true_next, visited, params)
-        out["bands"][name] = banded_errors(predicted, true_next, visited)
+        out["bands"][name] = banded_errors(predicted, true_next, visited, params)
     return setting, trial, out
 
 
@@ -312,6 +324,9 @@ def main(
     }
     band_rmse = {m: gather(lambda o, m=m: o["bands"][m]["rmse"]) for m in learned}
     band_share = gather(lambda o: o["bands"][learned[0]]["share"])
+    kinetic_share = {
+        m: gather(lambda o, m=m: o["bands"][m]["kinetic_share"]) for m in learned
+    }
 
     def flat(x: np.ndarray) -> np.ndarray:
         return x.reshape(-1, *x.shape[2:])
@@ -345,6 +360,9 @@ def main(
         "bands_theta2_dot": [list(BANDS[:-1]), list(BANDS[1:])],
         "band_share": np.nanmean(flat(band_share), axis=0),
         "band_rmse": {m: _nanmean(flat(v)) for m, v in band_rmse.items()},
+        "band_kinetic_share": {
+            m: flat(v).mean(axis=0) for m, v in kinetic_share.items()
+        },
     }
     return Results(write_json(run / "energy.json", summary), summary)
 
@@ -412,10 +430,14 @@ def cli(argv: list[str] | None = None) -> int:
     print(f"{'model':>11} " + " ".join(f"{k:>24}" for k in TERMS))
     for m, terms in s["energy_terms_mean"].items():
         print(f"{m:>11} " + " ".join(f"{_interval(terms[k], '+'):>24}" for k in TERMS))
-    print("RMS velocity errors (θ̇₁, θ̇₂) by |θ̇₂| band, rad/s")
+    print(
+        "RMS velocity errors (θ̇₁, θ̇₂) in rad/s by |θ̇₂| band, and the band's "
+        "share of ½ εᵀ M ε"
+    )
     for b, (lo, hi) in enumerate(zip(*s["bands_theta2_dot"], strict=True)):
         cells = "  ".join(
-            f"{m} {r[b][0]:.3g}, {r[b][1]:.3g}" for m, r in s["band_rmse"].items()
+            f"{m} {r[b][0]:.3g}, {r[b][1]:.3g} ({s['band_kinetic_share'][m][b]:.0%})"
+            for m, r in s["band_rmse"].items()
         )
         print(f"  {lo:>4g}-{hi:<4g} share {s['band_share'][b]:.3f}  {cells}")
     print(f"wrote {results.out}")

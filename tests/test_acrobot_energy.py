@@ -62,8 +62,14 @@ def test_banded_errors_put_each_state_in_its_band():
     true_next = np.zeros((4, 4))
     predicted = np.zeros((4, 4))
     predicted[:, 2:] = [[1.0, 2.0], [3.0, 0.0], [4.0, 0.0], [0.0, 5.0]]
-    out = acrobot_energy.banded_errors(predicted, true_next, states)
+    out = acrobot_energy.banded_errors(predicted, true_next, states, PARAMS)
     np.testing.assert_array_equal(out["share"], [0.25, 0.5, 0, 0, 0, 0, 0.25])
+    mass = acrobot.mass_matrix(true_next[0], PARAMS)  # θ₂ = 0 in every row
+    energies = [0.5 * e @ mass @ e for e in predicted[:, 2:]]
+    expected = np.array(
+        [energies[0], energies[1] + energies[2], 0, 0, 0, 0, energies[3]]
+    )
+    np.testing.assert_allclose(out["kinetic_share"], expected / sum(energies))
     np.testing.assert_allclose(out["rmse"][0], [1.0, 2.0])
     np.testing.assert_allclose(out["rmse"][1], [np.sqrt(12.5), 0.0])
     np.testing.assert_allclose(out["rmse"][6], [0.0, 5.0])
@@ -108,6 +114,7 @@ def test_writes_promised_delivered_and_energy_per_model(run, capsys):
             assert np.array(data["energy_terms"][m][k]).shape == shape
         assert np.all(np.array(data["energy_terms"][m]["quadratic"]) > 0)
         assert np.array(data["band_rmse"][m]).shape == (7, 2)
+        assert sum(data["band_kinetic_share"][m]) == pytest.approx(1.0)
     assert sum(data["band_share"]) == pytest.approx(1.0)
     # the simulator's agent is its own reference
     assert "true" not in data["delivered_minus_true"]
