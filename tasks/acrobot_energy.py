@@ -19,6 +19,10 @@ run's test settings, for ``--trials`` trials (seeds spawned from ``--seed``):
    instance, as ``tasks.acrobot_identified`` does) and, with ``--noise σ``,
    ``noisy`` (the simulator with zero-mean Gaussian noise of standard deviation σ
    rad/s added to both predicted velocities: a model whose errors have no bias).
+   Two more locate the harm, each the prior-mean HiP-MDP with the simulator's
+   exact predictions in part of the state space: ``exact_fast`` where
+   ``|θ̇₂| ≥ --fast`` rad/s (default 8: about a tenth of the true planner's
+   states, where the learned models err most), ``exact_slow`` everywhere else.
    ``--models`` runs a subset (``true`` always). Recorded: the mean steps of the
    last ``--last`` simulated episodes (what the model promised) and the mean steps
    of the real episodes (what the agent got).
@@ -59,8 +63,9 @@ from tasks.experiment import mean_ci, pool_map, seed_value, write_json
 from tasks.prediction import gather_split
 from tasks.transfer import TransferConfig
 
-MODELS = ("true", "average", "prior", "identified", "noisy")
-LEARNED = ("average", "prior", "identified", "noisy")
+MODELS = ("true", "average", "prior", "identified", "noisy", "exact_fast", "exact_slow")
+LEARNED = MODELS[1:]
+DEFAULT_MODELS = ("true", "average", "prior", "identified")
 TERMS = ("total", "linear", "quadratic", "positional", "true_gain")
 BANDS = (0.0, 2.0, 4.0, 6.0, 8.0, 10.0, 14.0, np.inf)  # |θ̇₂| in rad/s
 
@@ -76,6 +81,23 @@ class NoisySimulator:
     def predict(self, states: np.ndarray, actions: np.ndarray) -> np.ndarray:
         out = self._simulator.predict(states, actions)
         out[:, 2:] += self._sd * self._rng.standard_normal(out[:, 2:].shape)
+        return out
+
+
+class Split:
+    """``fast`` where the state's ``|θ̇₂| ≥ threshold`` rad/s, ``slow`` elsewhere
+    (two dynamics models, each asked only for its own rows)."""
+
+    def __init__(self, slow, fast, threshold: float) -> None:
+        self._slow, self._fast, self._threshold = slow, fast, threshold
+
+    def predict(self, states: np.ndarray, actions: np.ndarray) -> np.ndarray:
+        states = np.asarray(states, dtype=np.float64)
+        fast = np.abs(states[:, 3]) >= self._threshold
+        out = np.empty_like(states)
+        for model, rows in ((self._fast, fast), (self._slow, ~fast)):
+            if rows.any():
+                out[rows] = model.predict(states[rows], np.asarray(actions)[rows])
         return out
 
 
@@ -191,6 +213,9 @@ def _job(args) -> tuple[int, int, dict[str, Any]]:
     if "noisy" in names:
         noise = np.random.default_rng(ss_noise)
         models["noisy"] = NoisySimulator(simulator, _STATE["noise"], noise)
+    fast = _STATE["fast"]
+    models["exact_fast"] = Split(models["prior"], simulator, fast)
+    models["exact_slow"] = Split(simulator, models["prior"], fast)
     out: dict[str, Any] = {"promised": {}, "delivered": {}}
     for name in names:
         # every model: the same start states, exploration stream and real instance
@@ -241,6 +266,7 @@ def main(
     models: tuple[str, ...] | None = None,
     identify: int = 1000,
     noise: float | None = None,
+    fast: float = 8.0,
     n_states: int = 3000,
     last: int = 10,
     real: int = 5,
@@ -270,8 +296,10 @@ def main(
             f"({transfer.initial_planning_episodes}), got {last}"
         )
     settings = [tuple(m) for m in config["test_masses"]]
-    if models is None:  # every model, the noisy one if it has a σ
-        models = tuple(m for m in MODELS if m != "noisy" or noise is not None)
+    if not (np.isfinite(fast) and fast > 0):
+        raise ValueError(f"fast: expected a positive finite |θ̇₂| in rad/s, got {fast}")
+    if models is None:  # the four models, and the noisy one if it has a σ
+        models = DEFAULT_MODELS + (("noisy",) if noise is not None else ())
     names = [m for m in MODELS if m in models]  # in MODELS' order
     if set(models) - set(MODELS) or "true" not in models or len(names) < 2:
         raise ValueError(
@@ -298,6 +326,7 @@ def main(
         transfer=transfer,
         models=names,
         noise=noise,
+        fast=fast,
         n_states=n_states,
         last=last,
         real=real,
@@ -337,6 +366,7 @@ def main(
         "trials_per_setting": trials,
         "identify_transitions": identify,
         "noise": noise,
+        "fast": fast,
         "n_states": n_states,
         "last": last,
         "real_episodes": real,
@@ -392,12 +422,15 @@ def cli(argv: list[str] | None = None) -> int:
         "--models",
         nargs="+",
         default=None,
-        help=f"'true' and some of {', '.join(MODELS[1:])} (default: all; "
-        "noisy only with --noise)",
+        help=f"'true' and some of {', '.join(MODELS[1:])} (default: "
+        f"{', '.join(DEFAULT_MODELS)}, and noisy with --noise)",
     )
     parser.add_argument("--identify", type=int, default=1000, help="transitions")
     parser.add_argument(
         "--noise", type=float, default=None, help="σ of the noisy simulator, rad/s"
+    )
+    parser.add_argument(
+        "--fast", type=float, default=8.0, help="|θ̇₂| of exact_fast/slow, rad/s"
     )
     parser.add_argument("--states", type=int, default=3000, help="states sampled")
     parser.add_argument("--last", type=int, default=10, help="planning episodes")
@@ -409,6 +442,7 @@ def cli(argv: list[str] | None = None) -> int:
         results = main(
             args.run, trials=args.trials, models=args.models,
             identify=args.identify, noise=args.noise,
+            fast=args.fast,
             n_states=args.states, last=args.last, real=args.real,
             seed=args.seed,
             workers=args.workers,

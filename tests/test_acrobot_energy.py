@@ -88,12 +88,33 @@ def test_noisy_simulator_adds_unbiased_noise_to_velocities_only():
     np.testing.assert_allclose(err[:, 2:].std(axis=0), 0.25, rtol=0.05)
 
 
+class _Constant:
+    def __init__(self, value):
+        self.value, self.asked = value, []
+
+    def predict(self, states, actions):
+        self.asked.append(len(states))
+        return np.full_like(states, self.value)
+
+
+def test_split_asks_each_model_for_its_own_rows_only():
+    slow, fast = _Constant(1.0), _Constant(2.0)
+    split = acrobot_energy.Split(slow, fast, 8.0)
+    states = np.zeros((4, 4))
+    states[:, 3] = [0.0, -8.0, 7.9, 12.0]
+    out = split.predict(states, np.zeros(4, dtype=int))
+    np.testing.assert_array_equal(out[:, 0], [1.0, 2.0, 1.0, 2.0])
+    assert slow.asked == [2] and fast.asked == [2]
+    split.predict(states[:1], np.zeros(1, dtype=int))  # no fast rows: not asked
+    assert fast.asked == [2]
+
+
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     out = swingup_main(TINY, out=tmp_path_factory.mktemp("swingup")).out
     options = dict(
-        trials=2, identify=30, noise=0.2, n_states=50, last=1, workers=1,
-        progress=False,
+        trials=2, models=acrobot_energy.MODELS, identify=30, noise=0.2, fast=1.0,
+        n_states=50, last=1, workers=1, progress=False,
     )  # fmt: skip
     return out, options, acrobot_energy.main(out, **options)
 
@@ -103,7 +124,7 @@ def test_writes_promised_delivered_and_energy_per_model(run, capsys):
     data = json.loads((out / "energy.json").read_text())
     assert data["models"] == list(acrobot_energy.MODELS)
     shape = (len(TINY.test_masses), options["trials"])
-    for m in acrobot_energy.MODELS:
+    for m in data["models"]:
         promised = np.array(data["promised_steps"][m])
         delivered = np.array(data["delivered_steps"][m])
         assert promised.shape == delivered.shape == shape
@@ -129,7 +150,9 @@ def test_writes_promised_delivered_and_energy_per_model(run, capsys):
 
 def test_without_noise_there_is_no_noisy_model(run):
     out, options, _ = run
-    summary = acrobot_energy.main(out, **{**options, "noise": None}).summary
+    summary = acrobot_energy.main(
+        out, **{**options, "models": None, "noise": None}
+    ).summary
     assert summary["models"] == ["true", "average", "prior", "identified"]
     assert "noisy" not in summary["energy_terms"]
 
@@ -148,6 +171,8 @@ def test_rejects_bad_options(tmp_path, run):
         acrobot_energy.main(out, last=1, models=("average", "prior"))
     with pytest.raises(ValueError, match="models: expected 'true' and some of"):
         acrobot_energy.main(out, last=1, models=("true",))
+    with pytest.raises(ValueError, match="fast: expected a positive finite"):
+        acrobot_energy.main(out, last=1, fast=0.0)
     with pytest.raises(ValueError, match="noise: the noisy model needs a σ"):
         acrobot_energy.main(out, last=1, models=("true", "noisy"))
 
@@ -156,11 +181,11 @@ def test_a_subset_of_models_gives_the_same_numbers_for_them(run):
     """Models do not share random streams: dropping some changes no other."""
     out, options, results = run
     subset = acrobot_energy.main(
-        out, **{**options, "models": ("true", "noisy")}
+        out, **{**options, "models": ("exact_slow", "true", "noisy")}
     ).summary
-    assert subset["models"] == ["true", "noisy"]
+    assert subset["models"] == ["true", "noisy", "exact_slow"]
     for key in ("promised_steps", "delivered_steps"):
-        for m in ("true", "noisy"):
+        for m in ("true", "noisy", "exact_slow"):
             np.testing.assert_array_equal(subset[key][m], results.summary[key][m])
     np.testing.assert_array_equal(
         subset["energy_terms"]["noisy"]["total"],
