@@ -273,8 +273,10 @@ def main(
     seed: int = 456,
     workers: int = 2,
     progress: bool = True,
+    out: str | Path | None = None,
 ) -> Results:
-    """Run the check on the run folder ``run``; see the module docstring."""
+    """Run the check on the run folder ``run``; see the module docstring.
+    ``out`` is the JSON file to write (default ``run / "energy.json"``)."""
     run = Path(run)
     check_run(run)
     for name, value in (
@@ -394,7 +396,8 @@ def main(
             m: flat(v).mean(axis=0) for m, v in kinetic_share.items()
         },
     }
-    return Results(write_json(run / "energy.json", summary), summary)
+    path = run / "energy.json" if out is None else Path(out)
+    return Results(write_json(path, summary), summary)
 
 
 def _nanmean(x: np.ndarray) -> np.ndarray:
@@ -437,6 +440,9 @@ def cli(argv: list[str] | None = None) -> int:
     parser.add_argument("--real", type=int, default=5, help="real episodes")
     parser.add_argument("--seed", type=int, default=456)
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument(
+        "--out", default=None, help="the JSON file to write (default: RUN/energy.json)"
+    )
     args = parser.parse_args(argv)
     try:
         results = main(
@@ -445,7 +451,7 @@ def cli(argv: list[str] | None = None) -> int:
             fast=args.fast,
             n_states=args.states, last=args.last, real=args.real,
             seed=args.seed,
-            workers=args.workers,
+            workers=args.workers, out=args.out,
         )  # fmt: skip
     except (ValueError, FileNotFoundError) as err:
         parser.error(str(err))

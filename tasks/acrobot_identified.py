@@ -186,8 +186,11 @@ def main(
     seed: int = 123,
     workers: int = 2,
     progress: bool = True,
+    out: str | Path | None = None,
 ) -> Results:
-    """Run the check on the run folder ``run``; see the module docstring."""
+    """Run the check on the run folder ``run``; see the module docstring.
+    ``out`` is the JSON file to write (default ``run / "identified.json"``)."""
+    out_path = Path(run) / "identified.json" if out is None else Path(out)
     run = Path(run)
     check_run(run)
     unknown = set(variants) - set(VARIANTS)
@@ -259,7 +262,7 @@ def main(
         for v, paper in pairs
         if v in returns and paper in returns
     }
-    path = write_json(run / "identified.json", out)
+    path = write_json(out_path, out)
     return Results(path, returns, out)
 
 
@@ -283,13 +286,18 @@ def cli(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--seed", type=int, default=123)
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument(
+        "--out",
+        default=None,
+        help="the JSON file to write (default: RUN/identified.json)",
+    )
     args = parser.parse_args(argv)
     try:
         results = main(
             args.run, variants=tuple(args.variants), trials=args.trials,
             episodes=args.episodes, identify=args.identify,
             first_planning=args.first_planning, seed=args.seed,
-            workers=args.workers,
+            workers=args.workers, out=args.out,
         )  # fmt: skip
     except (ValueError, FileNotFoundError) as err:
         parser.error(str(err))

@@ -148,10 +148,10 @@ def test_writes_promised_delivered_and_energy_per_model(run, capsys):
     )
 
 
-def test_without_noise_there_is_no_noisy_model(run):
+def test_without_noise_there_is_no_noisy_model(run, tmp_path):
     out, options, _ = run
     summary = acrobot_energy.main(
-        out, **{**options, "models": None, "noise": None}
+        out, **{**options, "models": None, "noise": None, "out": tmp_path / "e.json"}
     ).summary
     assert summary["models"] == ["true", "average", "prior", "identified"]
     assert "noisy" not in summary["energy_terms"]
@@ -177,11 +177,12 @@ def test_rejects_bad_options(tmp_path, run):
         acrobot_energy.main(out, last=1, models=("true", "noisy"))
 
 
-def test_a_subset_of_models_gives_the_same_numbers_for_them(run):
+def test_a_subset_of_models_gives_the_same_numbers_for_them(run, tmp_path):
     """Models do not share random streams: dropping some changes no other."""
     out, options, results = run
+    models = ("exact_slow", "true", "noisy")
     subset = acrobot_energy.main(
-        out, **{**options, "models": ("exact_slow", "true", "noisy")}
+        out, **{**options, "models": models, "out": tmp_path / "e.json"}
     ).summary
     assert subset["models"] == ["true", "noisy", "exact_slow"]
     for key in ("promised_steps", "delivered_steps"):
@@ -191,3 +192,15 @@ def test_a_subset_of_models_gives_the_same_numbers_for_them(run):
         subset["energy_terms"]["noisy"]["total"],
         results.summary["energy_terms"]["noisy"]["total"],
     )
+
+
+def test_out_writes_the_named_file_and_leaves_the_default_alone(run, tmp_path):
+    out, options, _ = run
+    before = (out / "energy.json").read_text()
+    path = tmp_path / "split.json"
+    result = acrobot_energy.main(
+        out, **{**options, "models": ("true", "exact_fast"), "out": path}
+    )
+    assert result.out == path
+    assert json.loads(path.read_text())["models"] == ["true", "exact_fast"]
+    assert (out / "energy.json").read_text() == before

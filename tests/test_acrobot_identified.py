@@ -147,3 +147,15 @@ def test_first_planning_changes_only_the_planning_after_the_first_episode(planne
         assert calls == expected
     with pytest.raises(ValueError, match="first_planning_episodes: expected >= 0"):
         dataclasses.replace(base, first_planning_episodes=-1)
+
+
+def test_out_writes_the_named_file_and_leaves_the_default_alone(run, tmp_path):
+    out, results = run
+    before = (out / "identified.json").read_text()
+    other = acrobot_identified.main(
+        out, variants=("true", "average"), trials=1, episodes=1, identify=30,
+        workers=1, progress=False, out=tmp_path / "two.json",
+    )  # fmt: skip
+    assert other.out == tmp_path / "two.json"
+    assert set(json.loads(other.out.read_text())["returns"]) == {"true", "average"}
+    assert (out / "identified.json").read_text() == before
