@@ -36,7 +36,10 @@ run's test settings, for ``--trials`` trials (seeds spawned from ``--seed``):
    do not favour either sign still add energy on average (the positional part is
    the rest). Beside them, the simulator's own energy change per step and the
    RMS velocity errors in bands of ``|θ̇₂|`` with the share of visited states in
-   each band and its share of the ``½ εᵀ M ε`` summed over all states.
+   each band, its share of the ``½ εᵀ M ε`` summed over all states, and the
+   median distance from its states to the nearest batch state (normalised
+   units, :class:`BatchDistance`): how thin the data the models learnt from are
+   there.
 
 Prints the means over trials with 95% intervals and writes ``energy.json`` in the
 run folder: per model the promised and delivered steps (settings × trials), the
@@ -53,6 +56,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from hipmdp.data import Transitions
 from hipmdp.planning import LearnedModel, plan
 from hipmdp.sarsa import init_state
 from tasks import acrobot
@@ -99,6 +103,43 @@ class Split:
             if rows.any():
                 out[rows] = model.predict(states[rows], np.asarray(actions)[rows])
         return out
+
+
+class BatchDistance:
+    """Distance from states to the nearest batch state, in the Fourier basis's
+    normalised units: angles over π (wrapped: a periodic box), θ̇₁ over 4π and θ̇₂
+    over 9π rad/s (tasks.agents.ACROBOT's box)."""
+
+    def __init__(self, batch_states: np.ndarray) -> None:
+        from scipy.spatial import cKDTree
+
+        scale = np.array(ACROBOT.high)
+        self._scale = scale
+        # angles in [0, 2) with period 2; velocities shifted into a box too wide
+        # to wrap
+        self._shift = np.array([1.0, 1.0, 1e3, 1e3])
+        self._box = np.array([2.0, 2.0, 1e7, 1e7])
+        self._tree = cKDTree(self._normalise(batch_states), boxsize=self._box)
+
+    def _normalise(self, states: np.ndarray) -> np.ndarray:
+        x = np.asarray(states, dtype=np.float64) / self._scale + self._shift
+        x[:, :2] = np.mod(x[:, :2], 2.0)
+        return x
+
+    def __call__(self, states: np.ndarray) -> np.ndarray:
+        """Distances, shape ``(N,)``, for ``states`` ``(N, 4)``."""
+        return self._tree.query(self._normalise(states))[0]
+
+
+def band_medians(values: np.ndarray, states: np.ndarray) -> np.ndarray:
+    """Median of ``values`` ``(N,)`` per ``|θ̇₂|`` band of ``states`` (NaN where
+    a band is empty), shape ``(B,)``."""
+    band = np.digitize(np.abs(states[:, 3]), BANDS[1:-1])
+    out = np.full(len(BANDS) - 1, np.nan)
+    for b in range(len(BANDS) - 1):
+        if np.any(band == b):
+            out[b] = np.median(values[band == b])
+    return out
 
 
 class _Recorder:
@@ -242,6 +283,7 @@ def _job(args) -> tuple[int, int, dict[str, Any]]:
     keep = rng.choice(len(visited), min(_STATE["n_states"], len(visited)), False)
     visited, actions = visited[keep], actions[keep]
     true_next = simulator.predict(visited, actions)
+    out["batch_distance"] = band_medians(_STATE["batch_distance"](visited), visited)
     out["energy"], out["bands"] = {}, {}
     for name in names:
         if name == "true":
@@ -291,6 +333,7 @@ def main(
     if noise is not None and not (np.isfinite(noise) and noise > 0):
         raise ValueError(f"noise: expected a positive finite σ in rad/s, got {noise}")
     config, hip, average = load_run(run)
+    batch_distance = BatchDistance(Transitions.load(run / "batch.npz").states)
     transfer = TransferConfig(**config["transfer"])
     if last > transfer.initial_planning_episodes:
         raise ValueError(
@@ -332,6 +375,7 @@ def main(
         n_states=n_states,
         last=last,
         real=real,
+        batch_distance=batch_distance,
     )
     done = pool_map(
         _job, jobs, workers=workers, desc="trials", progress=progress,
@@ -355,6 +399,7 @@ def main(
     }
     band_rmse = {m: gather(lambda o, m=m: o["bands"][m]["rmse"]) for m in learned}
     band_share = gather(lambda o: o["bands"][learned[0]]["share"])
+    band_distance = gather(lambda o: o["batch_distance"])
     kinetic_share = {
         m: gather(lambda o, m=m: o["bands"][m]["kinetic_share"]) for m in learned
     }
@@ -391,6 +436,7 @@ def main(
         },
         "bands_theta2_dot": [list(BANDS[:-1]), list(BANDS[1:])],
         "band_share": np.nanmean(flat(band_share), axis=0),
+        "band_batch_distance": _nanmean(flat(band_distance)),
         "band_rmse": {m: _nanmean(flat(v)) for m, v in band_rmse.items()},
         "band_kinetic_share": {
             m: flat(v).mean(axis=0) for m, v in kinetic_share.items()
@@ -479,7 +525,10 @@ def cli(argv: list[str] | None = None) -> int:
             f"{m} {r[b][0]:.3g}, {r[b][1]:.3g} ({s['band_kinetic_share'][m][b]:.0%})"
             for m, r in s["band_rmse"].items()
         )
-        print(f"  {lo:>4g}-{hi:<4g} share {s['band_share'][b]:.3f}  {cells}")
+        print(
+            f"  {lo:>4g}-{hi:<4g} share {s['band_share'][b]:.3f} "
+            f"batch distance {s['band_batch_distance'][b]:.3f}  {cells}"
+        )
     print(f"wrote {results.out}")
     return 0
 

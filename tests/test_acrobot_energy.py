@@ -88,6 +88,28 @@ def test_noisy_simulator_adds_unbiased_noise_to_velocities_only():
     np.testing.assert_allclose(err[:, 2:].std(axis=0), 0.25, rtol=0.05)
 
 
+def test_batch_distance_is_normalised_and_wraps_the_angles():
+    batch = np.array([[0.0, 0.0, 0.0, 0.0], [np.pi - 0.01, 0.0, 0.0, 0.0]])
+    distance = acrobot_energy.BatchDistance(batch)
+    queries = np.array(
+        [
+            [0.0, 0.0, 4 * np.pi, 0.0],  # one box half-width in θ̇₁
+            [0.0, 0.0, 0.0, -4.5 * np.pi],  # half of one in θ̇₂
+            [-np.pi + 0.01, 0.0, 0.0, 0.0],  # 0.02 rad across the wrap
+            [0.0, np.pi / 2, 0.0, 0.0],
+        ]
+    )
+    np.testing.assert_allclose(distance(queries), [1.0, 0.5, 0.02 / np.pi, 0.5])
+
+
+def test_band_medians_take_each_bands_own_values():
+    states = np.zeros((5, 4))
+    states[:, 3] = [0.5, 1.0, 1.5, -3.0, 20.0]
+    medians = acrobot_energy.band_medians(np.array([1.0, 2.0, 9.0, 4.0, 5.0]), states)
+    np.testing.assert_array_equal(medians[[0, 1, 6]], [2.0, 4.0, 5.0])
+    assert np.all(np.isnan(medians[2:6]))
+
+
 class _Constant:
     def __init__(self, value):
         self.value, self.asked = value, []
@@ -137,6 +159,9 @@ def test_writes_promised_delivered_and_energy_per_model(run, capsys):
         assert np.array(data["band_rmse"][m]).shape == (7, 2)
         assert sum(data["band_kinetic_share"][m]) == pytest.approx(1.0)
     assert sum(data["band_share"]) == pytest.approx(1.0)
+    distance = np.array(data["band_batch_distance"], dtype=float)
+    assert distance.shape == (7,) and np.all(distance[np.isfinite(distance)] >= 0)
+    assert np.isfinite(distance[0])  # slow states: every trial has some
     # the simulator's agent is its own reference
     assert "true" not in data["delivered_minus_true"]
     # the same seed, the same numbers
