@@ -31,13 +31,14 @@ run's test settings, for ``--trials`` trials (seeds spawned from ``--seed``):
    one-step prediction ``ŝ'`` against the simulator's ``s'``: the error in
    mechanical energy ``E(ŝ') − E(s')`` (``tasks.acrobot.energy``) and its parts.
    With ``ε = ŝ'_q̇ − s'_q̇`` the velocity error and ``M`` the inertia matrix at
-   ``s'``, the kinetic part is ``ε ᵀ M q̇' + ½ εᵀ M ε``: the first term has the sign
-   of the error, the second is positive for any error, so velocity errors that
-   do not favour either sign still add energy on average (the positional part is
-   the rest). Beside them, the simulator's own energy change per step and the
-   RMS velocity errors in bands of ``|θ̇₂|`` with the share of visited states in
-   each band, its share of the ``½ εᵀ M ε`` summed over all states, and the
-   median distance from its states to the nearest batch state (normalised
+   ``s'``, the kinetic part is ``εᵀ M q̇' + ½ εᵀ M ε``: the first term has the
+   sign of the error's projection on the momentum ``M q̇'``, the second is
+   positive for any error, so velocity errors that do not favour either sign
+   still add energy on average (the positional part is the rest). Beside them,
+   the simulator's own energy change per step and, in bands of ``|θ̇₂|``: the
+   RMS velocity errors (per trial, then averaged over trials), the share of
+   visited states, the band's share of ``½ εᵀ M ε`` summed over all states, and
+   the median distance from its states to the nearest batch state (normalised
    units, :class:`BatchDistance`): how thin the data the models learnt from are
    there.
 
@@ -124,6 +125,7 @@ class BatchDistance:
     def _normalise(self, states: np.ndarray) -> np.ndarray:
         x = np.asarray(states, dtype=np.float64) / self._scale + self._shift
         x[:, :2] = np.mod(x[:, :2], 2.0)
+        x[:, :2][x[:, :2] >= 2.0] = 0.0  # mod of a tiny negative rounds up to 2
         return x
 
     def __call__(self, states: np.ndarray) -> np.ndarray:
@@ -321,10 +323,10 @@ def main(
     ``out`` is the JSON file to write (default ``run / "energy.json"``)."""
     run = Path(run)
     check_run(run)
-    for name, value in (
+    for name, value in (  # the names are the command line's
         ("trials", trials),
         ("identify", identify),
-        ("n_states", n_states),
+        ("states", n_states),
         ("last", last),
         ("real", real),
     ):
@@ -332,26 +334,31 @@ def main(
             raise ValueError(f"{name}: expected >= 1, got {value}")
     if noise is not None and not (np.isfinite(noise) and noise > 0):
         raise ValueError(f"noise: expected a positive finite σ in rad/s, got {noise}")
+    if not (np.isfinite(fast) and fast > 0):
+        raise ValueError(f"fast: expected a positive finite |θ̇₂| in rad/s, got {fast}")
+    if models is None:  # the four models, and the noisy one if it has a σ
+        models = DEFAULT_MODELS + (("noisy",) if noise is not None else ())
+    unknown = sorted(set(models) - set(MODELS))
+    names = [m for m in MODELS if m in models]  # in MODELS' order
+    if unknown or "true" not in models or len(names) < 2:
+        raise ValueError(
+            f"models: expected 'true' and some of {MODELS[1:]}, got {tuple(models)}"
+            + (f" (unknown: {', '.join(unknown)})" if unknown else "")
+        )
+    if ("noisy" in names) != (noise is not None):
+        raise ValueError(
+            "noise: expected a σ (--noise) exactly when the models include 'noisy', "
+            f"got noise={noise} with models {tuple(names)}"
+        )
     config, hip, average = load_run(run)
-    batch_distance = BatchDistance(Transitions.load(run / "batch.npz").states)
     transfer = TransferConfig(**config["transfer"])
     if last > transfer.initial_planning_episodes:
         raise ValueError(
             f"last: expected <= the run's initial_planning_episodes "
             f"({transfer.initial_planning_episodes}), got {last}"
         )
+    batch_distance = BatchDistance(Transitions.load(run / "batch.npz").states)
     settings = [tuple(m) for m in config["test_masses"]]
-    if not (np.isfinite(fast) and fast > 0):
-        raise ValueError(f"fast: expected a positive finite |θ̇₂| in rad/s, got {fast}")
-    if models is None:  # the four models, and the noisy one if it has a σ
-        models = DEFAULT_MODELS + (("noisy",) if noise is not None else ())
-    names = [m for m in MODELS if m in models]  # in MODELS' order
-    if set(models) - set(MODELS) or "true" not in models or len(names) < 2:
-        raise ValueError(
-            f"models: expected 'true' and some of {MODELS[1:]}, got {tuple(models)}"
-        )
-    if "noisy" in names and noise is None:
-        raise ValueError("noise: the noisy model needs a σ (--noise), got None")
     ss_trials, ss_identify = np.random.SeedSequence(seed).spawn(2)
     beliefs = []
     for ss, masses in zip(ss_identify.spawn(len(settings)), settings, strict=True):

@@ -44,6 +44,28 @@ def test_velocity_errors_of_either_sign_add_half_eps_m_eps():
     assert terms["true_gain"] == pytest.approx(gain.mean(), rel=1e-12)
 
 
+def test_the_kinetic_terms_take_m_at_the_true_next_state():
+    """Errors in θ₂ and the velocities together: linear and quadratic use M(s'),
+    not M(ŝ'); the positional term is the rest."""
+    rng = np.random.default_rng(4)
+    true_next = _states(rng, 100)
+    predicted = true_next.copy()
+    predicted[:, 1] += 0.5
+    eps = rng.normal(0, 0.3, (100, 2))
+    predicted[:, 2:] += eps
+    terms = acrobot_energy.energy_terms(predicted, true_next, true_next, PARAMS)
+    mass = acrobot.mass_matrix(true_next, PARAMS)
+    linear = [e @ m @ q for e, m, q in zip(eps, mass, true_next[:, 2:], strict=True)]
+    quadratic = [0.5 * e @ m @ e for e, m in zip(eps, mass, strict=True)]
+    assert terms["linear"] == pytest.approx(np.mean(linear), rel=1e-10)
+    assert terms["quadratic"] == pytest.approx(np.mean(quadratic), rel=1e-10)
+    total = acrobot.energy(predicted, PARAMS) - acrobot.energy(true_next, PARAMS)
+    assert terms["total"] == pytest.approx(total.mean(), rel=1e-10)
+    rest = total.mean() - np.mean(linear) - np.mean(quadratic)
+    assert terms["positional"] == pytest.approx(rest, rel=1e-8)
+    assert abs(rest) > 0.1  # M(ŝ') differs from M(s') here: the test can see it
+
+
 def test_position_errors_go_to_the_positional_term():
     rng = np.random.default_rng(1)
     true_next = _states(rng, 50)
@@ -58,14 +80,15 @@ def test_position_errors_go_to_the_positional_term():
 
 def test_banded_errors_put_each_state_in_its_band():
     states = np.zeros((4, 4))
-    states[:, 3] = [1.0, -3.0, 3.5, 20.0]  # bands 0-2, 2-4, 2-4, 14-inf
+    states[:, 3] = [1.0, -2.0, 3.5, 20.0]  # bands 0-2, 2-4 (its lower edge), 2-4, 14-
     true_next = np.zeros((4, 4))
-    predicted = np.zeros((4, 4))
+    true_next[:, 1] = [0.3, 1.0, 2.0, 3.0]  # M differs row by row, and from M(s)
+    predicted = true_next.copy()
     predicted[:, 2:] = [[1.0, 2.0], [3.0, 0.0], [4.0, 0.0], [0.0, 5.0]]
     out = acrobot_energy.banded_errors(predicted, true_next, states, PARAMS)
     np.testing.assert_array_equal(out["share"], [0.25, 0.5, 0, 0, 0, 0, 0.25])
-    mass = acrobot.mass_matrix(true_next[0], PARAMS)  # θ₂ = 0 in every row
-    energies = [0.5 * e @ mass @ e for e in predicted[:, 2:]]
+    mass = acrobot.mass_matrix(true_next, PARAMS)
+    energies = [0.5 * e @ m @ e for e, m in zip(predicted[:, 2:], mass, strict=True)]
     expected = np.array(
         [energies[0], energies[1] + energies[2], 0, 0, 0, 0, energies[3]]
     )
@@ -86,6 +109,8 @@ def test_noisy_simulator_adds_unbiased_noise_to_velocities_only():
     np.testing.assert_array_equal(err[:, :2], 0.0)
     assert np.all(np.abs(err[:, 2:].mean(axis=0)) < 3 * 0.25 / np.sqrt(2000))
     np.testing.assert_allclose(err[:, 2:].std(axis=0), 0.25, rtol=0.05)
+    # one draw per velocity: the two columns are independent
+    assert abs(np.corrcoef(err[:, 2], err[:, 3])[0, 1]) < 3 / np.sqrt(2000)
 
 
 def test_batch_distance_is_normalised_and_wraps_the_angles():
@@ -97,9 +122,13 @@ def test_batch_distance_is_normalised_and_wraps_the_angles():
             [0.0, 0.0, 0.0, -4.5 * np.pi],  # half of one in θ̇₂
             [-np.pi + 0.01, 0.0, 0.0, 0.0],  # 0.02 rad across the wrap
             [0.0, np.pi / 2, 0.0, 0.0],
+            [0.0, 0.0, 7 * np.pi, 0.0],  # 1.75 box half-widths: velocities do not wrap
+            [-np.pi - 1e-17, 0.0, 0.0, 0.0],  # a hair below −π still wraps
         ]
     )
-    np.testing.assert_allclose(distance(queries), [1.0, 0.5, 0.02 / np.pi, 0.5])
+    np.testing.assert_allclose(
+        distance(queries), [1.0, 0.5, 0.02 / np.pi, 0.5, 1.75, 0.01 / np.pi]
+    )
 
 
 def test_band_medians_take_each_bands_own_values():
@@ -115,7 +144,7 @@ class _Constant:
         self.value, self.asked = value, []
 
     def predict(self, states, actions):
-        self.asked.append(len(states))
+        self.asked.append((states[:, 3].tolist(), list(actions)))
         return np.full_like(states, self.value)
 
 
@@ -124,11 +153,12 @@ def test_split_asks_each_model_for_its_own_rows_only():
     split = acrobot_energy.Split(slow, fast, 8.0)
     states = np.zeros((4, 4))
     states[:, 3] = [0.0, -8.0, 7.9, 12.0]
-    out = split.predict(states, np.zeros(4, dtype=int))
+    out = split.predict(states, np.array([0, 1, 2, 0]))
     np.testing.assert_array_equal(out[:, 0], [1.0, 2.0, 1.0, 2.0])
-    assert slow.asked == [2] and fast.asked == [2]
+    assert slow.asked == [([0.0, 7.9], [0, 2])]
+    assert fast.asked == [([-8.0, 12.0], [1, 0])]
     split.predict(states[:1], np.zeros(1, dtype=int))  # no fast rows: not asked
-    assert fast.asked == [2]
+    assert len(fast.asked) == 1
 
 
 @pytest.fixture(scope="module")
@@ -198,8 +228,14 @@ def test_rejects_bad_options(tmp_path, run):
         acrobot_energy.main(out, last=1, models=("true",))
     with pytest.raises(ValueError, match="fast: expected a positive finite"):
         acrobot_energy.main(out, last=1, fast=0.0)
-    with pytest.raises(ValueError, match="noise: the noisy model needs a σ"):
+    with pytest.raises(ValueError, match=r"unknown: exact, prior2"):
+        acrobot_energy.main(out, last=1, models=("true", "prior2", "exact"))
+    with pytest.raises(ValueError, match="states: expected >= 1"):
+        acrobot_energy.main(out, last=1, n_states=0)
+    with pytest.raises(ValueError, match="noise: expected a σ .* exactly when"):
         acrobot_energy.main(out, last=1, models=("true", "noisy"))
+    with pytest.raises(ValueError, match="noise: expected a σ .* exactly when"):
+        acrobot_energy.main(out, last=1, models=("true", "prior"), noise=0.1)
 
 
 def test_a_subset_of_models_gives_the_same_numbers_for_them(run, tmp_path):
@@ -224,7 +260,7 @@ def test_out_writes_the_named_file_and_leaves_the_default_alone(run, tmp_path):
     before = (out / "energy.json").read_text()
     path = tmp_path / "split.json"
     result = acrobot_energy.main(
-        out, **{**options, "models": ("true", "exact_fast"), "out": path}
+        out, **{**options, "models": ("true", "exact_fast"), "noise": None, "out": path}
     )
     assert result.out == path
     assert json.loads(path.read_text())["models"] == ["true", "exact_fast"]
