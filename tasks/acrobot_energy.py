@@ -40,7 +40,9 @@ run's test settings, for ``--trials`` trials (seeds spawned from ``--seed``):
    visited states, the band's share of ``½ εᵀ M ε`` summed over all states, and
    the median distance from its states to the nearest batch state (normalised
    units, :class:`BatchDistance`): how thin the data the models learnt from are
-   there.
+   there. Last, the share of ``½ εᵀ M ε`` on the steps at the elbow's wrap
+   ``θ₂ = ±π`` (:func:`elbow_wrap`), where the models' kernels, on wrapped
+   angles, split one neighbourhood in two.
 
 Prints the means over trials with 95% intervals and writes ``energy.json`` in the
 run folder: per model the promised and delivered steps (settings × trials), the
@@ -197,11 +199,13 @@ def banded_errors(
 ) -> dict[str, np.ndarray]:
     """RMS velocity errors per ``|θ̇₂|`` band of the state (:data:`BANDS`).
 
-    Returns ``{"share": (B,), "rmse": (B, 2), "kinetic_share": (B,)}``: the
-    share of states in each band, their RMS errors in ``(θ̇₁, θ̇₂)``, and the
-    band's share of the summed ``½ εᵀ M ε`` (the energy velocity errors add
-    whatever their sign; ``M`` at ``true_next``, of instance ``params``). A band
-    no state fell in has shares 0 and RMS NaN.
+    Returns ``{"share": (B,), "rmse": (B, 2), "kinetic_share": (B,),
+    "wrap_share", "wrap_kinetic_share"}``: the share of states in each band,
+    their RMS errors in ``(θ̇₁, θ̇₂)``, and the band's share of the summed
+    ``½ εᵀ M ε`` (the energy velocity errors add whatever their sign; ``M`` at
+    ``true_next``, of instance ``params``); then the same two shares for the steps
+    at the elbow's wrap (:func:`elbow_wrap`), over all bands. A band no state fell
+    in has shares 0 and RMS NaN.
     """
     band = np.digitize(np.abs(states[:, 3]), BANDS[1:-1])
     err = predicted[:, 2:] - true_next[:, 2:]
@@ -218,7 +222,28 @@ def banded_errors(
         )
         if inside.any():
             rmse[b] = np.sqrt(np.mean(err[inside] ** 2, axis=0))
-    return {"share": share, "rmse": rmse, "kinetic_share": kinetic}
+    wrap = elbow_wrap(states, true_next)
+    return {
+        "share": share,
+        "rmse": rmse,
+        "kinetic_share": kinetic,
+        "wrap_share": float(wrap.mean()),
+        "wrap_kinetic_share": float(
+            quadratic[wrap].sum() / max(quadratic.sum(), np.finfo(float).tiny)
+        ),
+    }
+
+
+NEAR_WRAP = 0.6  # rad from θ₂ = ±π
+
+
+def elbow_wrap(states: np.ndarray, true_next: np.ndarray) -> np.ndarray:
+    """Whether each step starts within :data:`NEAR_WRAP` rad of the elbow's wrap
+    ``θ₂ = ±π`` or crosses it (``|θ₂' − θ₂| > π`` before wrapping the difference):
+    where the models' kernels, on the wrapped angle, see one neighbourhood as two
+    ends of the interval. Shape ``(N,)``."""
+    near = np.pi - np.abs(states[:, 1]) < NEAR_WRAP
+    return near | (np.abs(true_next[:, 1] - states[:, 1]) > np.pi)
 
 
 _STATE: dict[str, Any] = {}
@@ -410,6 +435,10 @@ def main(
     kinetic_share = {
         m: gather(lambda o, m=m: o["bands"][m]["kinetic_share"]) for m in learned
     }
+    wrap_share = gather(lambda o: o["bands"][learned[0]]["wrap_share"])
+    wrap_kinetic = {
+        m: gather(lambda o, m=m: o["bands"][m]["wrap_kinetic_share"]) for m in learned
+    }
 
     def flat(x: np.ndarray) -> np.ndarray:
         return x.reshape(-1, *x.shape[2:])
@@ -447,6 +476,10 @@ def main(
         "band_rmse": {m: _nanmean(flat(v)) for m, v in band_rmse.items()},
         "band_kinetic_share": {
             m: flat(v).mean(axis=0) for m, v in kinetic_share.items()
+        },
+        "elbow_wrap_share": float(wrap_share.mean()),
+        "elbow_wrap_kinetic_share": {
+            m: mean_ci(flat(v)) for m, v in wrap_kinetic.items()
         },
     }
     path = run / "energy.json" if out is None else Path(out)
@@ -536,6 +569,12 @@ def cli(argv: list[str] | None = None) -> int:
             f"  {lo:>4g}-{hi:<4g} share {s['band_share'][b]:.3f} "
             f"batch distance {s['band_batch_distance'][b]:.3f}  {cells}"
         )
+    print(
+        f"steps at the elbow's wrap (within {NEAR_WRAP} rad of θ₂ = ±π, or across "
+        f"it): {s['elbow_wrap_share']:.1%} of the states, carrying of ½ εᵀ M ε:"
+    )
+    for m, d in s["elbow_wrap_kinetic_share"].items():
+        print(f"{m:>11} {_interval(d)}")
     print(f"wrote {results.out}")
     return 0
 

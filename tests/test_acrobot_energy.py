@@ -99,6 +99,24 @@ def test_banded_errors_put_each_state_in_its_band():
     assert np.all(np.isnan(out["rmse"][2:6]))
 
 
+def test_elbow_wrap_marks_steps_near_or_across_theta2_pi():
+    states = np.zeros((4, 4))
+    true_next = np.zeros((4, 4))
+    states[:, 1] = [0.0, np.pi - 0.5, 3.0, -1.0]
+    true_next[:, 1] = [0.3, np.pi - 0.4, -3.0, -1.2]  # the third crosses ±π
+    states[2, 1] = np.pi - 0.7  # ... from outside the band
+    np.testing.assert_array_equal(
+        acrobot_energy.elbow_wrap(states, true_next), [False, True, True, False]
+    )
+    predicted = true_next.copy()
+    predicted[:, 2] = [1.0, 0.0, 2.0, 0.0]
+    out = acrobot_energy.banded_errors(predicted, true_next, states, PARAMS)
+    assert out["wrap_share"] == 0.5
+    mass = acrobot.mass_matrix(true_next, PARAMS)
+    energies = 0.5 * mass[:, 0, 0] * predicted[:, 2] ** 2
+    assert out["wrap_kinetic_share"] == pytest.approx(energies[2] / energies.sum())
+
+
 def test_noisy_simulator_adds_unbiased_noise_to_velocities_only():
     simulator = SimulatorModel(ACROBOT, PARAMS)
     noisy = acrobot_energy.NoisySimulator(simulator, 0.25, np.random.default_rng(2))
@@ -188,6 +206,7 @@ def test_writes_promised_delivered_and_energy_per_model(run, capsys):
         assert np.all(np.array(data["energy_terms"][m]["quadratic"]) > 0)
         assert np.array(data["band_rmse"][m]).shape == (7, 2)
         assert sum(data["band_kinetic_share"][m]) == pytest.approx(1.0)
+        assert 0 <= data["elbow_wrap_kinetic_share"][m]["mean"] <= 1
     assert sum(data["band_share"]) == pytest.approx(1.0)
     distance = np.array(data["band_batch_distance"], dtype=float)
     assert distance.shape == (7,) and np.all(distance[np.isfinite(distance)] >= 0)
