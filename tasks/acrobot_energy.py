@@ -571,7 +571,7 @@ def cli(argv: list[str] | None = None) -> int:
         )
     print(
         f"steps at the elbow's wrap (within {NEAR_WRAP} rad of θ₂ = ±π, or across "
-        f"it): {s['elbow_wrap_share']:.1%} of the states, carrying of ½ εᵀ M ε:"
+        f"it): {s['elbow_wrap_share']:.1%} of the states; their share of ½ εᵀ M ε:"
     )
     for m, d in s["elbow_wrap_kinetic_share"].items():
         print(f"{m:>11} {_interval(d)}")
