@@ -65,8 +65,10 @@ def main(
     evaluate: int = 500,
     seed: int = 321,
     progress: bool = True,
+    out: str | Path | None = None,
 ) -> Results:
-    """Run the check on the run folder ``run``; see the module docstring."""
+    """Run the check on the run folder ``run``; see the module docstring.
+    ``out`` is the JSON file to write (default ``run / "horizon.json"``)."""
     run = Path(run)
     check_run(run)
     horizons = tuple(int(k) for k in horizons)
@@ -122,7 +124,8 @@ def main(
             for stat, values in (("rmse", rmse), ("p99", p99))
         },
     }
-    return Results(write_json(run / "horizon.json", summary), summary)
+    path = run / "horizon.json" if out is None else Path(out)
+    return Results(write_json(path, summary), summary)
 
 
 def cli(argv: list[str] | None = None) -> int:
@@ -138,11 +141,14 @@ def cli(argv: list[str] | None = None) -> int:
         "--evaluate", type=int, default=500, help="held-out transitions per setting"
     )
     parser.add_argument("--seed", type=int, default=321)
+    parser.add_argument(
+        "--out", default=None, help="the JSON file to write (default: RUN/horizon.json)"
+    )
     args = parser.parse_args(argv)
     try:
         results = main(
             args.run, horizons=tuple(args.horizons), identify=args.identify,
-            evaluate=args.evaluate, seed=args.seed,
+            evaluate=args.evaluate, seed=args.seed, out=args.out,
         )  # fmt: skip
     except (ValueError, FileNotFoundError) as err:
         parser.error(str(err))

@@ -50,3 +50,15 @@ def test_rejects_bad_options(tmp_path, run):
         acrobot_horizon.main(run[0], horizons=(0,))
     with pytest.raises(ValueError, match="evaluate: expected >= 1"):
         acrobot_horizon.main(run[0], evaluate=0)
+
+
+def test_out_writes_the_named_file_and_leaves_the_default_alone(run, tmp_path):
+    out = run[0]
+    before = (out / "horizon.json").read_text()
+    other = acrobot_horizon.main(
+        out, horizons=(2,), identify=30, evaluate=40, progress=False,
+        out=tmp_path / "h.json",
+    )  # fmt: skip
+    assert other.out == tmp_path / "h.json"
+    assert json.loads(other.out.read_text())["horizons"] == [2]
+    assert (out / "horizon.json").read_text() == before
