@@ -59,14 +59,20 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from hipmdp.data import Transitions
 from hipmdp.planning import LearnedModel, plan
 from hipmdp.sarsa import init_state
 from tasks import acrobot
 from tasks.acrobot_identified import check_run, load_run
 from tasks.acrobot_swingup import _params
 from tasks.agents import ACROBOT, SimulatorModel, run_episode
-from tasks.experiment import mean_ci, pool_map, seed_value, write_json
+from tasks.experiment import (
+    check_counts,
+    fmt_ci,
+    mean_ci,
+    pool_map,
+    seed_value,
+    write_json,
+)
 from tasks.prediction import gather_split
 from tasks.transfer import TransferConfig
 
@@ -135,10 +141,24 @@ class BatchDistance:
         return self._tree.query(self._normalise(states))[0]
 
 
+def _bands(states: np.ndarray) -> np.ndarray:
+    """The :data:`BANDS` index of each state's ``|θ̇₂|``, shape ``(N,)``."""
+    return np.digitize(np.abs(states[:, 3]), BANDS[1:-1])
+
+
+def _kinetic_error(
+    predicted: np.ndarray, true_next: np.ndarray, params: acrobot.AcrobotParams
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``ε`` ``(N, 2)``, ``M(s')`` ``(N, 2, 2)`` and ``½ εᵀ M ε`` ``(N,)``."""
+    eps = predicted[:, 2:] - true_next[:, 2:]
+    mass = acrobot.mass_matrix(true_next, params)
+    return eps, mass, 0.5 * np.einsum("ni,nij,nj->n", eps, mass, eps)
+
+
 def band_medians(values: np.ndarray, states: np.ndarray) -> np.ndarray:
     """Median of ``values`` ``(N,)`` per ``|θ̇₂|`` band of ``states`` (NaN where
     a band is empty), shape ``(B,)``."""
-    band = np.digitize(np.abs(states[:, 3]), BANDS[1:-1])
+    band = _bands(states)
     out = np.full(len(BANDS) - 1, np.nan)
     for b in range(len(BANDS) - 1):
         if np.any(band == b):
@@ -175,12 +195,11 @@ def energy_terms(
         ½ εᵀ M ε, "positional": total − linear − quadratic, "true_gain": mean
         E(s') − E(s)}`` in J per step.
     """
-    eps = predicted[:, 2:] - true_next[:, 2:]
-    mass = acrobot.mass_matrix(true_next, params)
-    total = acrobot.energy(predicted, params) - acrobot.energy(true_next, params)
+    eps, mass, quadratic = _kinetic_error(predicted, true_next, params)
+    true_energy = acrobot.energy(true_next, params)
+    total = acrobot.energy(predicted, params) - true_energy
     linear = np.einsum("ni,nij,nj->n", eps, mass, true_next[:, 2:])
-    quadratic = 0.5 * np.einsum("ni,nij,nj->n", eps, mass, eps)
-    gain = acrobot.energy(true_next, params) - acrobot.energy(states, params)
+    gain = true_energy - acrobot.energy(states, params)
     out = {
         "total": float(np.mean(total)),
         "linear": float(np.mean(linear)),
@@ -207,19 +226,16 @@ def banded_errors(
     at the elbow's wrap (:func:`elbow_wrap`), over all bands. A band no state fell
     in has shares 0 and RMS NaN.
     """
-    band = np.digitize(np.abs(states[:, 3]), BANDS[1:-1])
-    err = predicted[:, 2:] - true_next[:, 2:]
-    mass = acrobot.mass_matrix(true_next, params)
-    quadratic = 0.5 * np.einsum("ni,nij,nj->n", err, mass, err)
+    band = _bands(states)
+    err, _, quadratic = _kinetic_error(predicted, true_next, params)
+    total = max(quadratic.sum(), np.finfo(float).tiny)
     share = np.zeros(len(BANDS) - 1)
     kinetic = np.zeros(len(BANDS) - 1)
     rmse = np.full((len(BANDS) - 1, 2), np.nan)
     for b in range(len(BANDS) - 1):
         inside = band == b
         share[b] = inside.mean()
-        kinetic[b] = quadratic[inside].sum() / max(
-            quadratic.sum(), np.finfo(float).tiny
-        )
+        kinetic[b] = quadratic[inside].sum() / total
         if inside.any():
             rmse[b] = np.sqrt(np.mean(err[inside] ** 2, axis=0))
     wrap = elbow_wrap(states, true_next)
@@ -228,9 +244,7 @@ def banded_errors(
         "rmse": rmse,
         "kinetic_share": kinetic,
         "wrap_share": float(wrap.mean()),
-        "wrap_kinetic_share": float(
-            quadratic[wrap].sum() / max(quadratic.sum(), np.finfo(float).tiny)
-        ),
+        "wrap_kinetic_share": float(quadratic[wrap].sum() / total),
     }
 
 
@@ -269,21 +283,21 @@ def _job(args) -> tuple[int, int, dict[str, Any]]:
     task = ACROBOT.planning_task(params, transfer.planning_max_steps)
     basis = ACROBOT.basis()
     simulator = SimulatorModel(ACROBOT, params)
-    hip, names = _STATE["hip"], _STATE["models"]
-    models = {
-        "true": _Recorder(simulator),
-        "average": LearnedModel(_STATE["average"], None, ACROBOT.angle_dims),
-        "prior": LearnedModel(hip, hip.prior(), ACROBOT.angle_dims),
+    hip, names, fast = _STATE["hip"], _STATE["models"], _STATE["fast"]
+    dims = ACROBOT.angle_dims
+    prior = LearnedModel(hip, hip.prior(), dims)
+    build = {  # only the asked models are built; exact_* share the prior-mean one
+        "true": lambda: _Recorder(simulator),
+        "average": lambda: LearnedModel(_STATE["average"], None, dims),
+        "prior": lambda: prior,
+        "identified": lambda: LearnedModel(hip, _STATE["beliefs"][setting], dims),
+        "noisy": lambda: NoisySimulator(
+            simulator, _STATE["noise"], np.random.default_rng(ss_noise)
+        ),
+        "exact_fast": lambda: Split(prior, simulator, fast),
+        "exact_slow": lambda: Split(simulator, prior, fast),
     }
-    if "identified" in names:
-        belief = _STATE["beliefs"][setting]
-        models["identified"] = LearnedModel(hip, belief, ACROBOT.angle_dims)
-    if "noisy" in names:
-        noise = np.random.default_rng(ss_noise)
-        models["noisy"] = NoisySimulator(simulator, _STATE["noise"], noise)
-    fast = _STATE["fast"]
-    models["exact_fast"] = Split(models["prior"], simulator, fast)
-    models["exact_slow"] = Split(simulator, models["prior"], fast)
+    models = {name: build[name]() for name in names}
     out: dict[str, Any] = {"promised": {}, "delivered": {}}
     for name in names:
         # every model: the same start states, exploration stream and real instance
@@ -348,15 +362,10 @@ def main(
     ``out`` is the JSON file to write (default ``run / "energy.json"``)."""
     run = Path(run)
     check_run(run)
-    for name, value in (  # the names are the command line's
-        ("trials", trials),
-        ("identify", identify),
-        ("states", n_states),
-        ("last", last),
-        ("real", real),
-    ):
-        if int(value) < 1:
-            raise ValueError(f"{name}: expected >= 1, got {value}")
+    # the names are the command line's
+    check_counts(
+        trials=trials, identify=identify, states=n_states, last=last, real=real
+    )
     if noise is not None and not (np.isfinite(noise) and noise > 0):
         raise ValueError(f"noise: expected a positive finite σ in rad/s, got {noise}")
     if not (np.isfinite(fast) and fast > 0):
@@ -375,14 +384,14 @@ def main(
             "noise: expected a σ (--noise) exactly when the models include 'noisy', "
             f"got noise={noise} with models {tuple(names)}"
         )
-    config, hip, average = load_run(run)
+    config, hip, average, batch = load_run(run)
     transfer = TransferConfig(**config["transfer"])
     if last > transfer.initial_planning_episodes:
         raise ValueError(
             f"last: expected <= the run's initial_planning_episodes "
             f"({transfer.initial_planning_episodes}), got {last}"
         )
-    batch_distance = BatchDistance(Transitions.load(run / "batch.npz").states)
+    batch_distance = BatchDistance(batch.states)
     settings = [tuple(m) for m in config["test_masses"]]
     ss_trials, ss_identify = np.random.SeedSequence(seed).spawn(2)
     beliefs = []
@@ -471,7 +480,7 @@ def main(
             for m, terms in energy.items()
         },
         "bands_theta2_dot": [list(BANDS[:-1]), list(BANDS[1:])],
-        "band_share": np.nanmean(flat(band_share), axis=0),
+        "band_share": flat(band_share).mean(axis=0),
         "band_batch_distance": _nanmean(flat(band_distance)),
         "band_rmse": {m: _nanmean(flat(v)) for m, v in band_rmse.items()},
         "band_kinetic_share": {
@@ -492,11 +501,6 @@ def _nanmean(x: np.ndarray) -> np.ndarray:
     count = finite.sum(axis=0)
     total = np.where(finite, x, 0.0).sum(axis=0)
     return np.where(count > 0, total / np.maximum(count, 1), np.nan)
-
-
-def _interval(d: dict[str, Any], sign: str = "") -> str:
-    fmt = f"{{:{sign}.3g}}"
-    return f"{fmt.format(d['mean'])} [{d['low']:.3g}, {d['high']:.3g}]"
 
 
 def cli(argv: list[str] | None = None) -> int:
@@ -548,14 +552,15 @@ def cli(argv: list[str] | None = None) -> int:
     for m in s["models"]:
         diff = s["delivered_minus_true"].get(m)
         print(
-            f"{m:>11} {_interval(s['promised_steps_mean'][m]):>24} "
-            f"{_interval(s['delivered_steps_mean'][m]):>24} "
-            f"{_interval(diff, '+') if diff else '':>24}"
+            f"{m:>11} {fmt_ci(s['promised_steps_mean'][m]):>24} "
+            f"{fmt_ci(s['delivered_steps_mean'][m]):>24} "
+            f"{fmt_ci(diff, signed=True) if diff else '':>24}"
         )
     print("energy error of one-step predictions on the true planner's states, J/step")
     print(f"{'model':>11} " + " ".join(f"{k:>24}" for k in TERMS))
     for m, terms in s["energy_terms_mean"].items():
-        print(f"{m:>11} " + " ".join(f"{_interval(terms[k], '+'):>24}" for k in TERMS))
+        cells = " ".join(f"{fmt_ci(terms[k], signed=True):>24}" for k in TERMS)
+        print(f"{m:>11} {cells}")
     print(
         "RMS velocity errors (θ̇₁, θ̇₂) in rad/s by |θ̇₂| band, and the band's "
         "share of ½ εᵀ M ε"
@@ -574,7 +579,7 @@ def cli(argv: list[str] | None = None) -> int:
         f"it): {s['elbow_wrap_share']:.1%} of the states; their share of ½ εᵀ M ε:"
     )
     for m, d in s["elbow_wrap_kinetic_share"].items():
-        print(f"{m:>11} {_interval(d)}")
+        print(f"{m:>11} {fmt_ci(d)}")
     print(f"wrote {results.out}")
     return 0
 

@@ -42,7 +42,7 @@ from hipmdp.planning import LearnedModel, open_loop_errors
 from tasks.acrobot_identified import check_run, load_run
 from tasks.acrobot_swingup import _params
 from tasks.agents import ACROBOT
-from tasks.experiment import write_json
+from tasks.experiment import check_counts, write_json
 from tasks.prediction import gather_split
 
 MODELS = ("average", "prior", "identified")
@@ -74,10 +74,8 @@ def main(
     horizons = tuple(int(k) for k in horizons)
     if not horizons or min(horizons) < 1:
         raise ValueError(f"horizons: expected integers >= 1, got {horizons}")
-    for name, value in (("identify", identify), ("evaluate", evaluate)):
-        if value < 1:
-            raise ValueError(f"{name}: expected >= 1, got {value}")
-    config, hip, average = load_run(run)
+    check_counts(identify=identify, evaluate=evaluate)
+    config, hip, average, _ = load_run(run)
     masses = [tuple(m) for m in config["test_masses"]]
     rmse = {m: {k: [] for k in horizons} for m in MODELS}
     p99 = {m: {k: [] for k in horizons} for m in MODELS}

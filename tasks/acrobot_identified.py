@@ -55,6 +55,7 @@ from tasks import transfer
 from tasks.acrobot_swingup import _params
 from tasks.agents import ACROBOT, SimulatorModel
 from tasks.experiment import (
+    check_counts,
     mean_ci,
     paired_difference,
     pool_map,
@@ -162,9 +163,19 @@ def check_run(run: Path) -> None:
             raise FileNotFoundError(f"run: {run} has no {name}; is it a swing-up run?")
 
 
-def load_run(run: Path) -> tuple[dict[str, Any], Any, Any]:
-    """A finished run's config, its HiP-MDP, and its average model refitted exactly
-    as the run fitted it (the same data, seed and size)."""
+class FinishedRun(NamedTuple):
+    """What :func:`load_run` reads: ``config.json``, the HiP-MDP, the average model
+    and the batch data."""
+
+    config: dict[str, Any]
+    hip: Any
+    average: Any
+    batch: hipmdp.Transitions
+
+
+def load_run(run: Path) -> FinishedRun:
+    """A finished run's config, its HiP-MDP, its average model refitted exactly as
+    the run fitted it (the same data, seed and size), and its batch data."""
     config = json.loads((run / "config.json").read_text())
     hip = hipmdp.load(run / "hipmdp_model.npz")
     batch = hipmdp.Transitions.load(run / "batch.npz")
@@ -172,7 +183,7 @@ def load_run(run: Path) -> tuple[dict[str, Any], Any, Any]:
     average = baselines.batch_only(
         batch, rng=np.random.default_rng(ss_avg), n_max=config["average_n_max"]
     )
-    return config, hip, average
+    return FinishedRun(config, hip, average, batch)
 
 
 def main(
@@ -190,19 +201,15 @@ def main(
 ) -> Results:
     """Run the check on the run folder ``run``; see the module docstring.
     ``out`` is the JSON file to write (default ``run / "identified.json"``)."""
-    out_path = Path(run) / "identified.json" if out is None else Path(out)
     run = Path(run)
+    out_path = run / "identified.json" if out is None else Path(out)
     check_run(run)
     unknown = set(variants) - set(VARIANTS)
     if unknown or not variants:
         raise ValueError(f"variants: expected some of {VARIANTS}, got {variants}")
-    for name, value in (("trials", trials), ("episodes", episodes)):
-        if value < 1:
-            raise ValueError(f"{name}: expected >= 1, got {value}")
-    if identify < 1:
-        raise ValueError(f"identify: expected >= 1, got {identify}")
+    check_counts(trials=trials, episodes=episodes, identify=identify)
 
-    config, hip, average = load_run(run)
+    config, hip, average, _ = load_run(run)
     masses = [tuple(m) for m in config["test_masses"]]
     protocol = dataclasses.replace(
         transfer.TransferConfig(**config["transfer"]), n_episodes=episodes

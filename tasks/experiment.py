@@ -132,14 +132,17 @@ def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
     return "\n".join(lines)
 
 
-def fmt_ci(ci: dict, digits: int = 3) -> str:
-    """``mean [low, high]`` in scientific notation for small values."""
+def fmt_ci(ci: dict, digits: int = 3, signed: bool = False) -> str:
+    """``mean [low, high]`` in scientific notation for small values; ``signed``
+    puts ``+`` before a positive mean (for differences)."""
 
-    def f(v: float) -> str:
+    def f(v: float, sign: str = "") -> str:
         v = float(v)
-        return f"{v:.{digits}g}" if abs(v) >= 1e-3 or v == 0 else f"{v:.{digits - 1}e}"
+        if abs(v) >= 1e-3 or v == 0:
+            return f"{v:{sign}.{digits}g}"
+        return f"{v:{sign}.{digits - 1}e}"
 
-    return f"{f(ci['mean'])} [{f(ci['low'])}, {f(ci['high'])}]"
+    return f"{f(ci['mean'], '+' if signed else '')} [{f(ci['low'])}, {f(ci['high'])}]"
 
 
 def seed_value(ss: np.random.SeedSequence) -> tuple[int, tuple[int, ...]]:
@@ -197,8 +200,12 @@ def check_settings(config: Any, train: str, test: str, make, what: str) -> None:
 
 def check_positive(config: Any, names: Sequence[str]) -> None:
     """Raise ``ValueError`` naming the first of ``names`` that is not >= 1."""
-    for name in names:
-        value = getattr(config, name)
+    check_counts(**{name: getattr(config, name) for name in names})
+
+
+def check_counts(**values: Any) -> None:
+    """Raise ``ValueError`` naming the first keyword whose value is not >= 1."""
+    for name, value in values.items():
         if int(value) < 1:
             raise ValueError(f"{name}: expected >= 1, got {value}")
 

@@ -9,7 +9,9 @@ import pytest
 from scipy import stats
 
 from tasks.experiment import (
+    check_counts,
     first_episode_within,
+    fmt_ci,
     mean_ci,
     paired_difference,
     to_jsonable,
@@ -78,3 +80,17 @@ def test_json_artefacts_are_plain_and_nan_free(tmp_path):
     assert to_jsonable(obj) == {"a": [0, 1, 2], "b": None, "c": [1, 2]}
     path = write_json(tmp_path / "m.json", obj)
     assert json.loads(path.read_text())["a"] == [0, 1, 2]
+
+
+def test_fmt_ci_signs_a_positive_mean_only_when_asked():
+    ci = {"mean": 1.5, "low": -0.25, "high": 3.0}
+    assert fmt_ci(ci) == "1.5 [-0.25, 3]"
+    assert fmt_ci(ci, signed=True) == "+1.5 [-0.25, 3]"
+    assert fmt_ci({**ci, "mean": -1.5}, signed=True) == "-1.5 [-0.25, 3]"
+    assert fmt_ci({**ci, "mean": 2e-4}, signed=True) == "+2.00e-04 [-0.25, 3]"
+
+
+def test_check_counts_names_the_first_value_below_one():
+    check_counts(trials=1, states=3000)
+    with pytest.raises(ValueError, match=r"^states: expected >= 1, got 0$"):
+        check_counts(trials=2, states=0, real=-1)
