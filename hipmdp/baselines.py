@@ -23,7 +23,7 @@ import numpy as np
 
 from hipmdp.data import Transitions, check_queries
 from hipmdp.gp import GPPosterior, HyperSet, condition, fit_hyperparameters, subsample
-from hipmdp.kernels import KernelMeans
+from hipmdp.kernels import KernelMeans, check_periodic
 
 Array = np.ndarray
 
@@ -77,7 +77,7 @@ class GPBaseline:
                 ell[a, d], sf2[a, d] = p.hyper.lengthscales, p.hyper.signal_var
             inputs.append(posts[0].X)
             coef.append(np.array([p.alpha for p in posts]))
-        return KernelMeans(inputs, ell, sf2, coef)
+        return KernelMeans(inputs, ell, sf2, coef, self.hyper.periodic)
 
     def predict(self, states: Array, actions: Array) -> tuple[Array, Array]:
         """Predictive mean and variance (noise included) of Δs, each (n, D).
@@ -125,12 +125,15 @@ def fit_gp_baseline(
     n_hyper: int = 500,
     keep: Array | None = None,
     name: str = "gp",
+    periodic: tuple[int, ...] | None = None,
 ) -> GPBaseline:
     """Condition one GP per (a, d) on `data`, pooled over instances.
 
     n_actions: A (default data.n_actions); hyper: fixed hyperparameters, else fitted
     per (a, d) on at most n_hyper of the transitions used; n_max: at most this many
-    transitions per action (subset of data); keep: bool (N,), transitions always kept.
+    transitions per action (subset of data); keep: bool (N,), transitions always kept;
+    periodic: the angle dimensions the kernels treat as periodic (`hipmdp.kernels`;
+    default: `hyper.periodic` if hyper is given, else none).
     """
     if not isinstance(data, Transitions):
         raise ValueError(
@@ -143,6 +146,14 @@ def fit_gp_baseline(
     if hyper is not None and hyper.signal_var.shape != (A, D):
         raise ValueError(
             f"hyper: expected (A, D) = ({A}, {D}), got {hyper.signal_var.shape}"
+        )
+    if periodic is None:
+        periodic = () if hyper is None else hyper.periodic
+    periodic = check_periodic(periodic, D)
+    if hyper is not None and hyper.periodic != periodic:
+        raise ValueError(
+            f"periodic: expected hyper.periodic = {hyper.periodic} (hyper is given), "
+            f"got {periodic}"
         )
     keep = np.zeros(len(data), dtype=bool) if keep is None else np.asarray(keep, bool)
     deltas = data.deltas
@@ -165,10 +176,10 @@ def fit_gp_baseline(
                 )
             sub = idx[subsample(len(idx), n_hyper, rng=rng)]
             for d in range(D):
-                h = fit_hyperparameters([(data.states[sub], deltas[sub, d])])
-                ell[a, d], sf2[a, d], sn2[a, d] = h
+                h = fit_hyperparameters([(data.states[sub], deltas[sub, d])], periodic)
+                ell[a, d], sf2[a, d], sn2[a, d] = h[:3]
     if hyper is None:
-        hyper = HyperSet(ell, sf2, sn2)
+        hyper = HyperSet(ell, sf2, sn2, periodic)
     posteriors = tuple(
         tuple(
             condition(data.states[idx], deltas[idx, d], hyper.get(a, d))

@@ -55,7 +55,12 @@ class FitConfig:
     | n_candidates | candidate states for the support selection     | 3000    | >= m  |
     | n_smooth     | transitions per (instance, action), smoothing  | 1000    | >= 1  |
     | n_residual   | transitions per action, model-error variance   | 2000    | >= 1  |
+    | periodic     | kernels periodic in data.angle_dims            | False   |       |
     | progress     | show progress bars                             | True    |       |
+
+    `periodic`: every kernel measures an angle difference by its chord
+    `2 sin(Δθ / 2)` (`hipmdp.kernels`), so states either side of `θ = ±π` are
+    neighbours; without it they are `2π` apart.
 
     The paper's cartpole run: n_support=750, n_sweeps=250, alpha=2, sigma_w=4.
     """
@@ -71,6 +76,7 @@ class FitConfig:
     n_candidates: int = 3000
     n_smooth: int = 1000
     n_residual: int = 2000
+    periodic: bool = False
     progress: bool = True
 
     def __post_init__(self) -> None:
@@ -105,10 +111,11 @@ class FitConfig:
                 f"FitConfig.n_candidates: expected >= n_support={self.n_support}, "
                 f"got {self.n_candidates}"
             )
-        if not isinstance(self.progress, bool):
-            raise ValueError(
-                f"FitConfig.progress: expected a bool, got {self.progress!r}"
-            )
+        for name in ("periodic", "progress"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(
+                    f"FitConfig.{name}: expected a bool, got {getattr(self, name)!r}"
+                )
 
 
 def check_batch(data: Transitions, config: FitConfig) -> None:
@@ -221,6 +228,7 @@ def fit(data: Transitions, config: FitConfig, *, rng: np.random.Generator) -> Hi
         A,
         n_subsample=config.n_hyper,
         rng=rng_hyper,
+        periodic=data.angle_dims if config.periodic else (),
     )
     support = select_support(
         data.states,
@@ -242,7 +250,11 @@ def fit(data: Transitions, config: FitConfig, *, rng: np.random.Generator) -> Hi
     Kss = np.stack(
         [
             se_kernel(
-                support, support, hyper.lengthscales[a, d], hyper.signal_var[a, d]
+                support,
+                support,
+                hyper.lengthscales[a, d],
+                hyper.signal_var[a, d],
+                hyper.periodic,
             )
             for a in range(A)
             for d in range(D)

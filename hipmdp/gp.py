@@ -20,7 +20,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy import linalg, optimize
 
-from hipmdp.kernels import se_kernel, se_kernel_grad
+from hipmdp.kernels import check_periodic, se_kernel, se_kernel_grad
 
 Array = np.ndarray
 
@@ -31,11 +31,14 @@ _NOISE_RANGE = (1e-8, 1.0)  # σ_n² within this factor of mean(y²)
 
 
 class GPHyper(NamedTuple):
-    """GP hyperparameters: lengthscales ℓ (D,), signal_var σ_f², noise_var σ_n²."""
+    """GP hyperparameters: lengthscales ℓ (D,), signal_var σ_f², noise_var σ_n²;
+    periodic: the input dimensions that are angles (`hipmdp.kernels`), fixed, not
+    fitted."""
 
     lengthscales: Array
     signal_var: float
     noise_var: float
+    periodic: tuple[int, ...] = ()
 
     def to_theta(self) -> Array:
         """θ = (log ℓ, log σ_f², log σ_n²), shape (D + 2,)."""
@@ -47,11 +50,14 @@ class GPHyper(NamedTuple):
         )
 
     @classmethod
-    def from_theta(cls, theta: Array) -> GPHyper:
-        """Inverse of `to_theta`."""
+    def from_theta(cls, theta: Array, periodic: tuple[int, ...] = ()) -> GPHyper:
+        """Inverse of `to_theta` (θ does not hold `periodic`)."""
         theta = np.asarray(theta, dtype=float)
         return cls(
-            np.exp(theta[:-2]), float(np.exp(theta[-2])), float(np.exp(theta[-1]))
+            np.exp(theta[:-2]),
+            float(np.exp(theta[-2])),
+            float(np.exp(theta[-1])),
+            tuple(periodic),
         )
 
 
@@ -60,12 +66,18 @@ class HyperSet:
     """Hyperparameters of every `(a, d)` GP.
 
     lengthscales: ℓ[a,d], shape (A, D, D); signal_var: σ_f²[a,d], shape (A, D);
-    noise_var: σ²[a,d], shape (A, D).
+    noise_var: σ²[a,d], shape (A, D); periodic: the state dimensions every kernel
+    treats as angles (`hipmdp.kernels`), default none.
     """
 
     lengthscales: Array
     signal_var: Array
     noise_var: Array
+    periodic: tuple[int, ...] = ()
+
+    def __post_init__(self) -> None:
+        dim = np.shape(self.lengthscales)[-1]
+        object.__setattr__(self, "periodic", check_periodic(self.periodic, dim))
 
     def get(self, a: int, d: int) -> GPHyper:
         """The hyperparameters of action `a`, state dimension `d`."""
@@ -73,6 +85,7 @@ class HyperSet:
             self.lengthscales[a, d],
             float(self.signal_var[a, d]),
             float(self.noise_var[a, d]),
+            self.periodic,
         )
 
 
@@ -84,7 +97,7 @@ class NLML(NamedTuple):
 
 
 def neg_log_marginal_likelihood(
-    theta: Array, groups: list[tuple[Array, Array]]
+    theta: Array, groups: list[tuple[Array, Array]], periodic: tuple[int, ...] = ()
 ) -> NLML:
     """Negative log marginal likelihood of independent zero-mean GPs sharing θ.
 
@@ -93,16 +106,17 @@ def neg_log_marginal_likelihood(
         -log p(y_b | X_b, θ) = ½ yᵀα + ½ log|C| + ½ n_b log 2π
         ∂/∂θ_i = -½ tr((α αᵀ - C⁻¹) ∂C/∂θ_i)
 
-    with ∂C/∂log σ_n² = σ_n² I. The value and gradient are summed over groups.
+    with ∂C/∂log σ_n² = σ_n² I. The value and gradient are summed over groups;
+    `periodic` are the angle dimensions of X (`hipmdp.kernels`).
     """
-    hyper = GPHyper.from_theta(theta)
+    hyper = GPHyper.from_theta(theta, periodic)
     value = 0.0
     grad = np.zeros(len(theta))
     for X, y in groups:
         n = len(y)
         if n == 0:
             continue
-        kg = se_kernel_grad(X, hyper.lengthscales, hyper.signal_var)
+        kg = se_kernel_grad(X, hyper.lengthscales, hyper.signal_var, hyper.periodic)
         C = kg.K + hyper.noise_var * np.eye(n)
         L = linalg.cholesky(C, lower=True)
         alpha = linalg.cho_solve((L, True), y)
@@ -134,12 +148,15 @@ def _bounds(
     return theta0, bounds
 
 
-def fit_hyperparameters(groups: list[tuple[Array, Array]]) -> GPHyper:
+def fit_hyperparameters(
+    groups: list[tuple[Array, Array]], periodic: tuple[int, ...] = ()
+) -> GPHyper:
     """Maximise the summed marginal likelihood over θ (L-BFGS-B, analytic gradient).
 
-    groups: list of (X_b (n_b, D), y_b (n_b,)), one per instance. Deterministic given
-    the data. The search starts at ℓ = std(X), σ_f² = mean(y²), σ_n² = mean(y²)/100
-    and is boxed relative to those scales.
+    groups: list of (X_b (n_b, D), y_b (n_b,)), one per instance; periodic: the angle
+    dimensions of X (`hipmdp.kernels`). Deterministic given the data. The search
+    starts at ℓ = std(X), σ_f² = mean(y²), σ_n² = mean(y²)/100 and is boxed
+    relative to those scales.
     """
     if not groups or sum(len(g[1]) for g in groups) < 2:
         raise ValueError("groups: expected at least 2 data points in total")
@@ -147,13 +164,13 @@ def fit_hyperparameters(groups: list[tuple[Array, Array]]) -> GPHyper:
 
     def fun(theta: Array) -> tuple[float, Array]:
         try:
-            res = neg_log_marginal_likelihood(theta, groups)
+            res = neg_log_marginal_likelihood(theta, groups, periodic)
         except linalg.LinAlgError:
             return 1e300, np.zeros_like(theta)
         return res.value, res.grad
 
     result = optimize.minimize(fun, theta0, jac=True, method="L-BFGS-B", bounds=bounds)
-    return GPHyper.from_theta(result.x)
+    return GPHyper.from_theta(result.x, periodic)
 
 
 class GPPosterior(NamedTuple):
@@ -168,7 +185,9 @@ class GPPosterior(NamedTuple):
     def predict_mean(self, Xs: Array) -> Array:
         """Predictive mean K(Xs, X) α at Xs (n_s, D), shape (n_s,)."""
         h = self.hyper
-        return se_kernel(Xs, self.X, h.lengthscales, h.signal_var) @ self.alpha
+        return se_kernel(Xs, self.X, h.lengthscales, h.signal_var, h.periodic) @ (
+            self.alpha
+        )
 
     def predict(self, Xs: Array, include_noise: bool = False) -> tuple[Array, Array]:
         """Predictive mean and variance at Xs (n_s, D).
@@ -177,7 +196,7 @@ class GPPosterior(NamedTuple):
         var  = σ_f² - diag(K(Xs, X) (K + σ_n² I)⁻¹ K(X, Xs))  [+ σ_n²]
         """
         h = self.hyper
-        Ks = se_kernel(Xs, self.X, h.lengthscales, h.signal_var)
+        Ks = se_kernel(Xs, self.X, h.lengthscales, h.signal_var, h.periodic)
         mean = Ks @ self.alpha
         V = linalg.solve_triangular(self.L, Ks.T, lower=True)
         var = np.maximum(h.signal_var - (V * V).sum(0), 0.0)
@@ -194,7 +213,7 @@ def condition(X: Array, y: Array, hyper: GPHyper) -> GPPosterior:
         raise ValueError(
             f"X and y: expected the same length, got {len(X)} and {len(y)}"
         )
-    K = se_kernel(X, X, hyper.lengthscales, hyper.signal_var)
+    K = se_kernel(X, X, hyper.lengthscales, hyper.signal_var, hyper.periodic)
     L = linalg.cholesky(K + hyper.noise_var * np.eye(len(y)), lower=True)
     alpha = linalg.cho_solve((L, True), y)
     return GPPosterior(X, alpha, L, hyper)
@@ -216,13 +235,15 @@ def fit_hyper_set(
     *,
     n_subsample: int,
     rng: np.random.Generator,
+    periodic: tuple[int, ...] = (),
 ) -> HyperSet:
     """Fit the hyperparameters of every `(a, d)` GP on a reproducible subsample.
 
     states: (N, D); actions: (N,); deltas: Δs, (N, D); instances: (N,).
     For each action a, at most `n_subsample // B` transitions per instance are drawn
     (without replacement, from `rng`), and for each d the summed per-instance marginal
-    likelihood is maximised (`fit_hyperparameters`). Returns a HyperSet.
+    likelihood is maximised (`fit_hyperparameters`); periodic: the angle dimensions
+    of the states (`hipmdp.kernels`). Returns a HyperSet.
     """
     D = states.shape[1]
     ids = np.unique(instances)
@@ -237,6 +258,6 @@ def fit_hyper_set(
             rows.append(idx[subsample(len(idx), per_instance, rng=rng)])
         for d in range(D):
             groups = [(states[r], deltas[r, d]) for r in rows if len(r)]
-            h = fit_hyperparameters(groups)
-            ell[a, d], sf2[a, d], sn2[a, d] = h
-    return HyperSet(ell, sf2, sn2)
+            h = fit_hyperparameters(groups, periodic)
+            ell[a, d], sf2[a, d], sn2[a, d] = h[:3]
+    return HyperSet(ell, sf2, sn2, periodic)

@@ -3,7 +3,15 @@
 Symbols: `x, x'` states of dimension `D`; `ℓ` length scales, shape (D,); `σ_f²` signal
 variance; `σ_n²` noise variance (added by the GP, not by the kernel).
 
-    k(x, x') = σ_f² exp(-½ Σ_j (x_j - x'_j)² / ℓ_j²)
+    k(x, x') = σ_f² exp(-½ Σ_j δ_j(x_j, x'_j)² / ℓ_j²)
+
+with `δ_j = x_j - x'_j`, or, for a periodic dimension `j` (an angle: `periodic`
+lists them), the chord `δ_j = 2 sin((x_j - x'_j) / 2)`. The chord is the distance
+between `(cos x_j, sin x_j)` and `(cos x'_j, sin x'_j)`, so the kernel is the SE
+kernel of that embedding (MacKay's periodic kernel, period 2π): positive definite,
+smooth across `x_j = ±π`, and equal to the plain kernel to O(δ⁴) for small
+differences. Every function here takes `periodic` (default none) and computes
+distances in the embedding (`embed`).
 
 Hyperparameters are optimised on the log scale, `θ = (log ℓ_1..log ℓ_D, log σ_f²,
 log σ_n²)`, so every gradient here is with respect to log-parameters.
@@ -46,25 +54,68 @@ def _check_params(lengthscales: Array, signal_var: float, dim: int) -> Array:
     return ell
 
 
-def scaled_sqdist(X1: Array, X2: Array, lengthscales: Array) -> Array:
+def check_periodic(periodic, dim: int) -> tuple[int, ...]:
+    """`periodic` as a sorted tuple of distinct dimensions in [0, dim), or raise."""
+    try:
+        dims = tuple(sorted(int(j) for j in periodic))
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"periodic: expected a sequence of dimension indices, got {periodic!r}"
+        ) from None
+    if len(set(dims)) != len(dims) or any(not 0 <= j < dim for j in dims):
+        raise ValueError(
+            f"periodic: expected distinct dimensions in [0, {dim}), got {periodic!r}"
+        )
+    return dims
+
+
+def embed(X: Array, periodic: tuple[int, ...] = ()) -> tuple[Array, Array]:
+    """Inputs in the space where the kernel's distance is Euclidean.
+
+    X: (n, D); periodic: dimensions replaced by (cos x_j, sin x_j). Returns the
+    embedded inputs (n, D + P) and, per embedded column, the input dimension it came
+    from, (D + P,) (index the length scales with it). Non-periodic columns keep their
+    values and come first, in order; with no periodic dimensions X is returned as is.
+    """
+    D = X.shape[1]
+    if not periodic:
+        return X, np.arange(D)
+    plain = [j for j in range(D) if j not in periodic]
+    p = list(periodic)
+    cols = np.concatenate([X[:, plain], np.cos(X[:, p]), np.sin(X[:, p])], axis=1)
+    return cols, np.array(plain + p + p)
+
+
+def scaled_sqdist(
+    X1: Array, X2: Array, lengthscales: Array, periodic: tuple[int, ...] = ()
+) -> Array:
     """Squared distance after scaling by the length scales.
 
-        r²(x, x') = Σ_j (x_j - x'_j)² / ℓ_j²
+        r²(x, x') = Σ_j δ_j(x_j, x'_j)² / ℓ_j²
 
-    X1: (n1, D); X2: (n2, D); lengthscales: ℓ, (D,). Returns (n1, n2), clipped at 0
-    (the expanded form |a|² + |b|² - 2 a·b can go slightly negative by round-off).
+    (δ_j the chord on `periodic` dimensions, module docstring). X1: (n1, D); X2:
+    (n2, D); lengthscales: ℓ, (D,). Returns (n1, n2), clipped at 0 (the expanded form
+    |a|² + |b|² - 2 a·b can go slightly negative by round-off).
     """
-    A = X1 / lengthscales
-    Bm = X2 / lengthscales
+    E1, col = embed(X1, periodic)
+    E2, _ = embed(X2, periodic)
+    A = E1 / lengthscales[col]
+    Bm = E2 / lengthscales[col]
     d2 = (A * A).sum(1)[:, None] + (Bm * Bm).sum(1)[None, :] - 2.0 * (A @ Bm.T)
     return np.maximum(d2, 0.0)
 
 
-def se_kernel(X1: Array, X2: Array, lengthscales: Array, signal_var: float) -> Array:
+def se_kernel(
+    X1: Array,
+    X2: Array,
+    lengthscales: Array,
+    signal_var: float,
+    periodic: tuple[int, ...] = (),
+) -> Array:
     """Cross-covariance `k(X1, X2) = σ_f² exp(-½ r²)`.
 
-    X1: (n1, D); X2: (n2, D); lengthscales: ℓ, (D,); signal_var: σ_f².
-    Returns shape (n1, n2).
+    X1: (n1, D); X2: (n2, D); lengthscales: ℓ, (D,); signal_var: σ_f²; periodic:
+    the angle dimensions (module docstring). Returns shape (n1, n2).
     """
     X1 = np.atleast_2d(np.asarray(X1, dtype=float))
     X2 = np.atleast_2d(np.asarray(X2, dtype=float))
@@ -74,26 +125,33 @@ def se_kernel(X1: Array, X2: Array, lengthscales: Array, signal_var: float) -> A
             f"{X2.shape[1]}"
         )
     ell = _check_params(lengthscales, signal_var, X1.shape[1])
-    return signal_var * np.exp(-0.5 * scaled_sqdist(X1, X2, ell))
+    periodic = check_periodic(periodic, X1.shape[1])
+    return signal_var * np.exp(-0.5 * scaled_sqdist(X1, X2, ell, periodic))
 
 
-def se_kernel_grad(X: Array, lengthscales: Array, signal_var: float) -> KernelGrad:
+def se_kernel_grad(
+    X: Array, lengthscales: Array, signal_var: float, periodic: tuple[int, ...] = ()
+) -> KernelGrad:
     """k(X, X) and its gradient with respect to (log ℓ, log σ_f²).
 
-        ∂K/∂log ℓ_j = K ⊙ (x_j - x'_j)² / ℓ_j²
+        ∂K/∂log ℓ_j = K ⊙ δ_j(x_j, x'_j)² / ℓ_j²
         ∂K/∂log σ_f² = K
 
-    X: (n, D). Returns KernelGrad with K (n, n) and dK (D + 1, n, n).
+    X: (n, D); periodic: the angle dimensions, whose δ_j² is the chord's
+    (cos x_j - cos x'_j)² + (sin x_j - sin x'_j)². Returns KernelGrad with K (n, n)
+    and dK (D + 1, n, n).
     """
     X = np.atleast_2d(np.asarray(X, dtype=float))
     n, D = X.shape
     ell = _check_params(lengthscales, signal_var, D)
-    K = signal_var * np.exp(-0.5 * scaled_sqdist(X, X, ell))
-    dK = np.empty((D + 1, n, n))
-    Xs = X / ell
-    for j in range(D):
-        diff = Xs[:, j, None] - Xs[None, :, j]
-        dK[j] = K * diff * diff
+    periodic = check_periodic(periodic, D)
+    K = signal_var * np.exp(-0.5 * scaled_sqdist(X, X, ell, periodic))
+    dK = np.zeros((D + 1, n, n))
+    E, col = embed(X, periodic)
+    Es = E / ell[col]
+    for c, j in enumerate(col):  # a periodic dimension sums its two columns
+        diff = Es[:, c, None] - Es[None, :, c]
+        dK[j] += K * diff * diff
     dK[D] = K
     return KernelGrad(K=K, dK=dK)
 
@@ -115,9 +173,12 @@ class KernelMeans:
         lengthscales: ``ℓ[a,d]``, shape ``(A, E, D)`` for ``E`` outputs.
         signal_var: ``σ_f²[a,d]``, shape ``(A, E)``.
         coefficients: per action ``β_a``, shape ``(E, n_a)``.
+        periodic: the angle dimensions (module docstring), shared by every kernel.
     """
 
-    def __init__(self, inputs, lengthscales, signal_var, coefficients) -> None:
+    def __init__(
+        self, inputs, lengthscales, signal_var, coefficients, periodic=()
+    ) -> None:
         ell = np.asarray(lengthscales, dtype=float)
         sf2 = np.asarray(signal_var, dtype=float)
         if ell.ndim != 3 or sf2.shape != ell.shape[:2]:
@@ -132,6 +193,8 @@ class KernelMeans:
                 f"{len(coefficients)}"
             )
         self.n_actions, self.n_outputs, self.state_dim = A, E, D
+        self.periodic = check_periodic(periodic, D)
+        col = embed(np.zeros((0, D)), self.periodic)[1]
         self._scaled, self._sqnorm, self._coef = [], [], []
         for a in range(A):
             x = np.asarray(inputs[a], dtype=float).reshape(-1, D)
@@ -143,12 +206,13 @@ class KernelMeans:
                 )
             for d in range(E):
                 _check_params(ell[a, d], float(sf2[a, d]), D)
-            B = x[None] / ell[a][:, None, :]  # (E, n_a, D)
-            self._scaled.append(B.transpose(0, 2, 1).copy())  # (E, D, n_a)
+            x = embed(x, self.periodic)[0]  # (n_a, D + P)
+            B = x[None] / ell[a][:, None, col]  # (E, n_a, D + P)
+            self._scaled.append(B.transpose(0, 2, 1).copy())  # (E, D + P, n_a)
             self._sqnorm.append((B * B).sum(-1)[:, None, :])  # (E, 1, n_a)
             # σ_f² folded into β: μ = exp(-½ r²) @ (σ_f² β)
             self._coef.append((sf2[a][:, None] * beta)[:, :, None])  # (E, n_a, 1)
-        self._inv_ell = 1.0 / ell  # (A, E, D)
+        self._inv_ell = 1.0 / ell[..., col]  # (A, E, D + P)
 
     def __call__(self, states, actions) -> Array:
         """``μ_ad(s_i)`` for each row's action, shape ``(n, E)``.
@@ -156,6 +220,7 @@ class KernelMeans:
         states: ``(n, D)`` finite; actions: ``(n,)`` integers in ``[0, A)``.
         """
         states, actions = check_queries(states, actions, self.state_dim, self.n_actions)
+        states = embed(states, self.periodic)[0]
         out = np.zeros((len(states), self.n_outputs))
         if len(actions) and np.all(actions == actions[0]):  # e.g. planning's state
             groups = [(int(actions[0]), None)]  # every row: slices, no gather
@@ -172,7 +237,7 @@ class KernelMeans:
         return out
 
     def _means(self, a: int, states: Array) -> Array:
-        S = states[None] * self._inv_ell[a][:, None, :]  # (E, n, D)
+        S = states[None] * self._inv_ell[a][:, None, :]  # (E, n, D + P), embedded
         d2 = (S * S).sum(-1)[:, :, None] + self._sqnorm[a] - 2.0 * (S @ self._scaled[a])
         k = np.exp(-0.5 * np.maximum(d2, 0.0))  # (E, n, n_a)
         return (k @ self._coef[a])[..., 0].T

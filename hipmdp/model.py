@@ -94,7 +94,7 @@ def interpolation_coefficients(support: Array, hyper: HyperSet, f: Array) -> Arr
     for a in range(A):
         for d in range(D):
             h = hyper.get(a, d)
-            Kss = se_kernel(support, support, h.lengthscales, h.signal_var)
+            Kss = se_kernel(support, support, h.lengthscales, h.signal_var, h.periodic)
             cf = linalg.cho_factor(Kss + h.noise_var * np.eye(m), lower=True)
             c[:, a, d] = linalg.cho_solve(cf, f[:, a, d].T).T
     return c
@@ -159,7 +159,9 @@ class HipMDP:
         if (a, d) not in self._factors:
             h = self.hyper.get(a, d)
             m = len(self.support)
-            Kss = se_kernel(self.support, self.support, h.lengthscales, h.signal_var)
+            Kss = se_kernel(
+                self.support, self.support, h.lengthscales, h.signal_var, h.periodic
+            )
             self._factors[a, d] = linalg.cho_factor(
                 Kss + h.noise_var * np.eye(m), lower=True
             )
@@ -212,7 +214,9 @@ class HipMDP:
             idx = np.flatnonzero(actions == a)
             for d in range(self.state_dim):
                 h = self.hyper.get(a, d)
-                Kx = se_kernel(states[idx], self.support, h.lengthscales, h.signal_var)
+                Kx = se_kernel(
+                    states[idx], self.support, h.lengthscales, h.signal_var, h.periodic
+                )
                 F[idx, d] = (Kx @ self._coef[:, a, d].T) * self.z[:, a, d]
                 if with_var:
                     L, _ = self._factor(a, d)
@@ -304,6 +308,7 @@ class HipMDP:
             self.hyper.lengthscales,
             self.hyper.signal_var,
             list(beta),
+            self.hyper.periodic,
         )
 
     def log_likelihood(self, data: Transitions, belief: Belief) -> float:
@@ -339,6 +344,8 @@ class HipMDP:
         for name in ("residual_var", "interp_var_scale"):
             if getattr(self, name) is not None:
                 arrays[name] = getattr(self, name)
+        if self.hyper.periodic:
+            arrays["periodic"] = np.array(self.hyper.periodic, dtype=np.int64)
         meta = {
             "format_version": FORMAT_VERSION,
             "sigma_w": self.sigma_w,
@@ -363,13 +370,16 @@ def load(path: str | os.PathLike) -> HipMDP:
             k: npz[k] if k in npz.files else None
             for k in ("residual_var", "interp_var_scale")
         }
+        periodic = (
+            tuple(int(j) for j in npz["periodic"]) if "periodic" in npz.files else ()
+        )
         meta = json.loads(str(npz["meta_json"]))
     if meta.get("format_version") != FORMAT_VERSION:
         raise ValueError(
             f"{path}: expected format_version {FORMAT_VERSION}, got "
             f"{meta.get('format_version')}"
         )
-    hyper = HyperSet(arr["lengthscales"], arr["signal_var"], arr["noise_var"])
+    hyper = HyperSet(arr["lengthscales"], arr["signal_var"], arr["noise_var"], periodic)
     return HipMDP(
         support=arr["support"],
         hyper=hyper,

@@ -65,12 +65,17 @@ def _kernels(hyper: HyperSet) -> list[tuple[Array, float, float]]:
 
 
 def greedy_support(
-    X: Array, kernels: list[tuple[Array, float, float]], m: int, progress: bool = False
+    X: Array,
+    kernels: list[tuple[Array, float, float]],
+    m: int,
+    progress: bool = False,
+    periodic: tuple[int, ...] = (),
 ) -> Support:
     """Greedy max-error selection of `m` rows of X (n, D), incremental Cholesky.
 
-    kernels: one (ℓ_r (D,), σ_f,r², σ_r²) per task r. Deterministic; ties go to the
-    lowest index. Returns Support with index into X.
+    kernels: one (ℓ_r (D,), σ_f,r², σ_r²) per task r; periodic: the angle dimensions
+    of X (`hipmdp.kernels`). Deterministic; ties go to the lowest index. Returns
+    Support with index into X.
     """
     X = np.asarray(X, dtype=float)
     n = X.shape[0]
@@ -92,14 +97,18 @@ def greedy_support(
         for r, (ell, sf2, sn2) in enumerate(kernels):
             cp = C[r, :j, p]
             diag = np.sqrt(max(sf2 + sn2 - cp @ cp, 1e-300))
-            col = (se_kernel(X, X[p : p + 1], ell, sf2)[:, 0] - cp @ C[r, :j]) / diag
+            kp = se_kernel(X, X[p : p + 1], ell, sf2, periodic)[:, 0]
+            col = (kp - cp @ C[r, :j]) / diag
             C[r, j] = col
             var[r] -= col * col
     return Support(points=X[chosen], index=chosen, errors=errors)
 
 
 def greedy_support_dense(
-    X: Array, kernels: list[tuple[Array, float, float]], m: int
+    X: Array,
+    kernels: list[tuple[Array, float, float]],
+    m: int,
+    periodic: tuple[int, ...] = (),
 ) -> Support:
     """Plain reference of `greedy_support`: every step recomputes each e_r(s) from a
     fresh dense solve with (K_r + σ_r² I) on the chosen points. For tests, O(R n m³)."""
@@ -113,8 +122,8 @@ def greedy_support_dense(
             v = np.full(n, sf2)
             if chosen:
                 S = X[chosen]
-                Kss = se_kernel(S, S, ell, sf2) + sn2 * np.eye(len(chosen))
-                Kxs = se_kernel(X, S, ell, sf2)
+                Kss = se_kernel(S, S, ell, sf2, periodic) + sn2 * np.eye(len(chosen))
+                Kxs = se_kernel(X, S, ell, sf2, periodic)
                 v = sf2 - np.einsum("ij,ji->i", Kxs, np.linalg.solve(Kss, Kxs.T))
             err += v / sf2
         err /= len(kernels)
@@ -150,5 +159,7 @@ def select_support(
             f"n_support: expected at most {len(cand)} distinct candidate states, "
             f"got {m}"
         )
-    sup = greedy_support(states[cand], _kernels(hyper), m, progress=progress)
+    sup = greedy_support(
+        states[cand], _kernels(hyper), m, progress=progress, periodic=hyper.periodic
+    )
     return Support(points=sup.points, index=cand[sup.index], errors=sup.errors)

@@ -67,7 +67,12 @@ def test_mean_predictor_is_predict_mean():
     acts = rng.integers(0, 3, size=12)
     # 3 actions, the last with no data: its mean is 0, as in predict_mean
     fitted = batch_only(batch, rng=np.random.default_rng(1), n_max=50).hyper
-    hyper = HyperSet(*(np.concatenate([v, v[:1]]) for v in vars(fitted).values()))
+    hyper = HyperSet(
+        *(
+            np.concatenate([v, v[:1]])
+            for v in (fitted.lengthscales, fitted.signal_var, fitted.noise_var)
+        )
+    )
     model = batch_only(
         batch, rng=np.random.default_rng(1), n_actions=3, n_max=50, hyper=hyper
     )
@@ -154,3 +159,32 @@ def test_bad_queries(states, actions, match):
     model = batch_only(_batch(np.random.default_rng(7)), rng=np.random.default_rng(7))
     with pytest.raises(ValueError, match=match):
         model.predict(states, actions)
+
+
+def test_periodic_baseline_fast_path_and_options():
+    # dimension 1 declared an angle: the fitted GPs carry it, mean_predictor agrees
+    # with predict_mean and both see a 2π shift of s_1 as the same state
+    rng = np.random.default_rng(4)
+    batch = _batch(rng)
+    model = batch_only(batch, rng=np.random.default_rng(1), n_max=50, periodic=(1,))
+    assert model.hyper.periodic == (1,)
+    assert model.posteriors[0][0].hyper.periodic == (1,)
+    Xs = rng.normal(size=(12, D))
+    acts = rng.integers(0, 2, size=12)
+    want = model.predict_mean(Xs, acts)
+    shifted = Xs + [0.0, -2 * np.pi]
+    np.testing.assert_allclose(model.mean_predictor()(Xs, acts), want, rtol=1e-10)
+    np.testing.assert_allclose(model.predict(shifted, acts)[0], want, rtol=1e-9)
+    np.testing.assert_allclose(model.mean_predictor()(shifted, acts), want, rtol=1e-9)
+    plain = batch_only(batch, rng=np.random.default_rng(1), n_max=50)
+    assert plain.hyper.periodic == ()
+    assert not np.allclose(plain.predict_mean(Xs, acts), want)
+    # given hyperparameters bring their periodic dimensions; a different ask fails
+    again = batch_only(batch, rng=np.random.default_rng(1), n_max=50, hyper=model.hyper)
+    np.testing.assert_allclose(again.predict_mean(Xs, acts), want, rtol=1e-12)
+    with pytest.raises(ValueError, match=r"periodic: expected hyper.periodic = \(1,\)"):
+        batch_only(
+            batch, rng=np.random.default_rng(1), hyper=model.hyper, periodic=(0,)
+        )
+    with pytest.raises(ValueError, match="periodic: expected distinct"):
+        batch_only(batch, rng=np.random.default_rng(1), periodic=(2,))

@@ -92,3 +92,95 @@ def test_kernel_means_reject_bad_input():
         means(np.zeros((1, 3)), np.array([1]))
     with pytest.raises(ValueError, match="states"):
         means(np.full((1, 3), np.nan), np.array([0]))
+
+
+# -- periodic dimensions ----------------------------------------------------------
+
+
+def test_periodic_kernel_is_the_chord_definition_and_the_embedding_kernel():
+    # dims 0 and 2 periodic: δ = 2 sin(Δ/2) there, the plain difference on dim 1
+    rng = np.random.default_rng(4)
+    X1, X2 = rng.uniform(-4, 4, size=(5, 3)), rng.uniform(-4, 4, size=(4, 3))
+    ell, sf2 = np.array([0.5, 1.0, 2.0]), 1.7
+    K = se_kernel(X1, X2, ell, sf2, periodic=(2, 0))
+    for i in range(5):
+        for j in range(4):
+            delta = X1[i] - X2[j]
+            delta[[0, 2]] = 2 * np.sin(delta[[0, 2]] / 2)
+            r2 = np.sum(delta**2 / ell**2)
+            assert K[i, j] == pytest.approx(sf2 * np.exp(-0.5 * r2), rel=1e-12)
+
+    # the same as the plain kernel of (cos, sin) columns, each with its angle's ℓ
+    def lift(X):
+        return np.column_stack(
+            [
+                np.cos(X[:, 0]),
+                np.sin(X[:, 0]),
+                X[:, 1],
+                np.cos(X[:, 2]),
+                np.sin(X[:, 2]),
+            ]
+        )
+
+    ell5 = ell[[0, 0, 1, 2, 2]]
+    np.testing.assert_allclose(K, se_kernel(lift(X1), lift(X2), ell5, sf2), rtol=1e-12)
+    # 2π shifts of an angle change nothing; of the plain dimension they do
+    shift = np.zeros(3)
+    shift[[0, 2]] = 2 * np.pi * np.array([1, -3])
+    np.testing.assert_allclose(
+        se_kernel(X1 + shift, X2, ell, sf2, periodic=(0, 2)), K, rtol=1e-10
+    )
+    assert not np.allclose(
+        se_kernel(X1 + [0, 2 * np.pi, 0], X2, ell, sf2, periodic=(0, 2)), K
+    )
+    assert not np.allclose(se_kernel(X1, X2, ell, sf2), K)  # the option matters
+
+
+def test_periodic_kernel_gradient_matches_finite_differences():
+    rng = np.random.default_rng(5)
+    X = rng.uniform(-4, 4, size=(6, 3))
+    log_params = np.array([np.log(0.7), np.log(1.3), np.log(2.1), np.log(0.9)])
+
+    def kern(p):
+        return se_kernel(X, X, np.exp(p[:3]), np.exp(p[3]), periodic=(1,))
+
+    kg = se_kernel_grad(X, np.exp(log_params[:3]), np.exp(log_params[3]), (1,))
+    np.testing.assert_allclose(kg.K, kern(log_params), rtol=1e-14)
+    eps = 1e-6
+    for i in range(4):
+        e = np.zeros(4)
+        e[i] = eps
+        fd = (kern(log_params + e) - kern(log_params - e)) / (2 * eps)
+        np.testing.assert_allclose(kg.dK[i], fd, atol=1e-8)
+
+
+def test_periodic_kernel_means_are_the_per_output_kernel_sums():
+    rng = np.random.default_rng(6)
+    inputs = [rng.uniform(-3, 3, size=(7, 3)), rng.uniform(-3, 3, size=(4, 3))]
+    ell = rng.uniform(0.3, 2.0, size=(2, 2, 3))
+    sf2 = rng.uniform(0.5, 2.0, size=(2, 2))
+    coef = [rng.normal(size=(2, len(x))) for x in inputs]
+    means = KernelMeans(inputs, ell, sf2, coef, periodic=(0, 1))
+    states = rng.uniform(-3, 3, size=(9, 3))
+    actions = np.array([0, 1, 1, 0, 1, 0, 0, 1, 1])
+    got = means(states, actions)
+    for i, a in enumerate(actions):
+        for d in range(2):
+            k = se_kernel(states[i : i + 1], inputs[a], ell[a, d], sf2[a, d], (0, 1))
+            assert got[i, d] == pytest.approx((k @ coef[a][d])[0], rel=1e-12)
+    plain = KernelMeans(inputs, ell, sf2, coef)(states, actions)
+    assert not np.allclose(plain, got)
+
+
+@pytest.mark.parametrize(
+    ("periodic", "match"),
+    [((3,), r"\[0, 3\)"), ((0, 0), "distinct"), ((-1,), r"\[0, 3\)"), (1, "sequence")],
+)
+def test_bad_periodic_dimensions_raise(periodic, match):
+    X = np.zeros((2, 3))
+    with pytest.raises(ValueError, match=f"periodic: expected.*{match}"):
+        se_kernel(X, X, np.ones(3), 1.0, periodic=periodic)
+    with pytest.raises(ValueError, match="periodic"):
+        KernelMeans(
+            [X], np.ones((1, 1, 3)), np.ones((1, 1)), [np.zeros((1, 2))], periodic
+        )

@@ -12,6 +12,7 @@ import hipmdp
 from hipmdp import fitting
 from hipmdp.data import Transitions
 from hipmdp.fitting import FitConfig, fit
+from hipmdp.gp import HyperSet
 from hipmdp.model import HipMDP, load
 
 A, D, NOISE_SD = 2, 2, 0.05
@@ -186,6 +187,7 @@ def test_load_rejects_other_files(tmp_path):
         ("n_smooth", 0),
         ("n_sweeps", 2.5),
         ("progress", "yes"),
+        ("periodic", 1),
     ],
 )
 def test_config_out_of_range(field, value):
@@ -256,3 +258,51 @@ def test_unseen_instance_prior_is_centred_on_the_training_weights(fitted):
     # flat-hyperprior limit of E[μ_w | w] (see hipmdp.fitting.fit)
     np.testing.assert_allclose(fitted.mu_w[1:], fitted.weights[1:].mean(1))
     np.testing.assert_allclose(fitted.prior().mean, fitted.weights[1:].mean(1))
+
+
+def test_periodic_model_is_periodic_and_its_fast_paths_agree(fitted, tmp_path):
+    # The fitted model with dimension 0 declared an angle: every path that evaluates
+    # its kernels (basis, variance, mean_predictor, a saved and loaded copy) must see
+    # a 2π shift of s_0 as the same state, and the plain model must not.
+    h = fitted.hyper
+    hyper = HyperSet(h.lengthscales, h.signal_var, h.noise_var, periodic=(0,))
+    periodic = dataclasses.replace(fitted, hyper=hyper)
+    rng = np.random.default_rng(8)
+    S = rng.uniform(-2, 2, size=(25, D))
+    acts = rng.integers(0, A, size=25)
+    shifted = S + [2 * np.pi, 0.0]
+    belief = periodic.update(
+        periodic.prior(), _instance(0, np.array([1.0, -0.5]), 30, rng)
+    )
+    mean, var = periodic.predict(S, acts, belief)
+    for x, y in zip(mean, periodic.predict(shifted, acts, belief)[0], strict=True):
+        np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(
+        periodic.predict(shifted, acts, belief)[1], var, rtol=1e-8, atol=1e-12
+    )
+    np.testing.assert_allclose(
+        periodic.mean_predictor(belief)(shifted, acts), mean, rtol=1e-9, atol=1e-12
+    )
+    assert not np.allclose(fitted.predict_mean(shifted, acts, belief), mean)
+    assert not np.allclose(fitted.predict_mean(S, acts, belief), mean)
+    path = tmp_path / "periodic.npz"
+    periodic.save(path)
+    loaded = load(path)
+    assert loaded.hyper.periodic == (0,)
+    np.testing.assert_array_equal(loaded.predict(S, acts, belief)[0], mean)
+    fitted.save(tmp_path / "plain.npz")  # models without the field load as plain
+    assert load(tmp_path / "plain.npz").hyper.periodic == ()
+
+
+def test_periodic_fit_uses_the_data_angle_dims():
+    batch = dataclasses.replace(_batch(), angle_dims=(1,))
+    config = dataclasses.replace(CONFIG, n_sweeps=5, n_chains=1, periodic=True)
+    model = fit(batch, config, rng=np.random.default_rng(1))
+    assert model.hyper.periodic == (1,)
+    plain = fit(
+        batch,
+        dataclasses.replace(config, periodic=False),
+        rng=np.random.default_rng(1),
+    )
+    assert plain.hyper.periodic == ()
+    assert not np.allclose(model.hyper.lengthscales, plain.hyper.lengthscales)

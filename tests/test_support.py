@@ -51,3 +51,25 @@ def test_too_many_support_points_raises():
     S = np.concatenate([S, S])  # 5 distinct states
     with pytest.raises(ValueError, match="n_support"):
         select_support(S, _hyper(), 6, n_candidates=100, rng=np.random.default_rng(0))
+
+
+def test_periodic_incremental_matches_dense_reference():
+    rng = np.random.default_rng(2)
+    X = rng.uniform(-np.pi, np.pi, size=(120, 2))
+    kernels = _kernels(_hyper())
+    fast = greedy_support(X, kernels, 25, periodic=(1,))
+    dense = greedy_support_dense(X, kernels, 25, periodic=(1,))
+    np.testing.assert_array_equal(fast.index, dense.index)
+    np.testing.assert_allclose(fast.errors, dense.errors, atol=1e-9)
+    assert not np.array_equal(fast.index, greedy_support(X, kernels, 25).index)
+    # select_support takes the periodic dimensions from the hyperparameters
+    h = _hyper()
+    periodic = HyperSet(h.lengthscales, h.signal_var, h.noise_var, periodic=(1,))
+    picks = [
+        select_support(X, hyper, 20, n_candidates=120, rng=np.random.default_rng(3))
+        for hyper in (periodic, h)
+    ]
+    np.testing.assert_array_equal(
+        picks[0].index, greedy_support(X, kernels, 20, periodic=(1,)).index
+    )
+    assert not np.array_equal(picks[0].index, picks[1].index)
