@@ -117,6 +117,12 @@ class FitConfig:
                     f"FitConfig.{name}: expected a bool, got {getattr(self, name)!r}"
                 )
 
+    def periodic_dims(self, data: Transitions) -> tuple[int, ...]:
+        """The dimensions every kernel treats as angles: `data.angle_dims` if
+        `periodic`, else none. Baselines meant to compare with this fit take it
+        (`hipmdp.baselines.fit_gp_baseline(..., periodic=)`)."""
+        return tuple(data.angle_dims) if self.periodic else ()
+
 
 def check_batch(data: Transitions, config: FitConfig) -> None:
     """Raise ValueError unless `data` can be fitted: a Transitions with at least two
@@ -228,7 +234,7 @@ def fit(data: Transitions, config: FitConfig, *, rng: np.random.Generator) -> Hi
         A,
         n_subsample=config.n_hyper,
         rng=rng_hyper,
-        periodic=data.angle_dims if config.periodic else (),
+        periodic=config.periodic_dims(data),
     )
     support = select_support(
         data.states,

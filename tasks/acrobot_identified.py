@@ -180,8 +180,12 @@ def load_run(run: Path) -> FinishedRun:
     hip = hipmdp.load(run / "hipmdp_model.npz")
     batch = hipmdp.Transitions.load(run / "batch.npz")
     ss_avg = np.random.SeedSequence(config["seed"]).spawn(5)[2]  # as the run did
+    fit = hipmdp.FitConfig(**config["fit"])  # runs before `periodic` lack it
     average = baselines.batch_only(
-        batch, rng=np.random.default_rng(ss_avg), n_max=config["average_n_max"]
+        batch,
+        rng=np.random.default_rng(ss_avg),
+        n_max=config["average_n_max"],
+        periodic=fit.periodic_dims(batch),
     )
     return FinishedRun(config, hip, average, batch)
 

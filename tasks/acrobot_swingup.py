@@ -244,7 +244,10 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
 
     t0 = time.perf_counter()
     average = baselines.batch_only(
-        batch, rng=np.random.default_rng(ss_avg), n_max=config.average_n_max
+        batch,
+        rng=np.random.default_rng(ss_avg),
+        n_max=config.average_n_max,
+        periodic=config.fit.periodic_dims(batch),
     )
     timings["average_model"] = time.perf_counter() - t0
 

@@ -165,7 +165,10 @@ def main(config: PredictionConfig, out: str | os.PathLike | None = None) -> Resu
 
     t0 = time.perf_counter()
     average = baselines.batch_only(
-        batch, rng=np.random.default_rng(ss_avg), n_max=config.average_n_max
+        batch,
+        rng=np.random.default_rng(ss_avg),
+        n_max=config.average_n_max,
+        periodic=config.fit.periodic_dims(batch),
     )
     seconds["average_model"] = time.perf_counter() - t0
 

@@ -119,7 +119,10 @@ def score_instance(
 
     ``hips``: one or more fitted HiP-MDPs; their scores are averaged.
     """
-    train_gp = baselines.train_only(train, rng=rng, n_actions=average.n_actions)
+    # every GP measures angles as the average model does (FitConfig.periodic)
+    train_gp = baselines.train_only(
+        train, rng=rng, n_actions=average.n_actions, periodic=average.hyper.periodic
+    )
     both_gp = baselines.batch_plus_train(
         batch, train, rng=rng, hyper=average.hyper, n_max=n_max
     )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -159,3 +160,19 @@ def test_out_writes_the_named_file_and_leaves_the_default_alone(run, tmp_path):
     assert other.out == tmp_path / "two.json"
     assert set(json.loads(other.out.read_text())["returns"]) == {"true", "average"}
     assert (out / "identified.json").read_text() == before
+
+
+def test_load_run_refits_the_average_model_with_the_runs_kernels(run, tmp_path):
+    # a run fitted with FitConfig(periodic=True) gets a periodic average model;
+    # a config written before the field existed loads as the plain kernel
+    copy = tmp_path / "run"
+    shutil.copytree(run[0], copy)
+    config = json.loads((copy / "config.json").read_text())
+    for value, want in ((True, (0, 1)), (False, ()), (None, ())):
+        if value is None:
+            config["fit"].pop("periodic")
+        else:
+            config["fit"]["periodic"] = value
+        (copy / "config.json").write_text(json.dumps(config))
+        average = acrobot_identified.load_run(copy).average
+        assert average.hyper.periodic == want
