@@ -1,0 +1,145 @@
+"""Refit a finished swing-up run's HiP-MDP with other fit settings (an ablation).
+
+    python -m tasks.acrobot_refit runs/acrobot_swingup runs/refit --fit n_smooth=4000
+
+Reads a finished swing-up run (``config.json``, ``batch.npz``), changes the named
+fields of its ``FitConfig`` (``--fit name=value ...``; see ``hipmdp.FitConfig``), and
+fits the HiP-MDP again on the same batch data with the run's own fit stream (the
+same ``--seed`` spawn as ``tasks.acrobot_swingup``), so that only the changed
+settings differ. It writes the folder ``OUT`` in the layout the checks read:
+
+- ``batch.npz``, a copy of the run's;
+- ``hipmdp_model.npz``, the refitted model;
+- ``config.json``, the run's config with the new fit settings, written last (a
+  folder without it is not a finished run, so a killed refit is never read as one).
+
+``tasks.acrobot_energy``, ``tasks.acrobot_identified`` and ``tasks.acrobot_horizon``
+then run on ``OUT`` exactly as on the run; their average model is refitted as the
+run did, with the new ``FitConfig.periodic`` if that was changed. The transfer
+experiment itself is not rerun: for its numbers, run ``tasks.acrobot_swingup`` with
+the settings changed in its preset.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+import hipmdp
+from hipmdp.data import atomic_write
+from tasks.acrobot_identified import check_run
+from tasks.experiment import write_json
+
+_FIELDS = {f.name: f for f in dataclasses.fields(hipmdp.FitConfig)}
+
+
+class Results(NamedTuple):
+    """What ``main`` returns: the folder written, the new fit settings, the fit's
+    seconds and the refitted model."""
+
+    out: Path
+    fit: dict[str, Any]
+    seconds: float
+    model: hipmdp.HipMDP
+
+
+def parse_fit(items: list[str]) -> dict[str, Any]:
+    """``["name=value", ...]`` as FitConfig changes: integers, numbers and
+    ``true``/``false`` by the field's type. Raises ValueError naming the item."""
+    changes: dict[str, Any] = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        if not sep or name not in _FIELDS or name == "progress":
+            known = ", ".join(n for n in _FIELDS if n != "progress")
+            raise ValueError(
+                f"--fit {item!r}: expected name=value with name in {known}"
+            )
+        kind = type(_FIELDS[name].default)
+        try:
+            if kind is bool:
+                if text.lower() not in ("true", "false"):
+                    raise ValueError
+                value: Any = text.lower() == "true"
+            else:
+                value = kind(text)
+        except ValueError:
+            raise ValueError(
+                f"--fit {item!r}: expected a {kind.__name__} value for {name}"
+            ) from None
+        changes[name] = value
+    return changes
+
+
+def main(
+    run: str | Path,
+    out: str | Path,
+    fit: dict[str, Any],
+    *,
+    progress: bool = True,
+) -> Results:
+    """Refit ``run``'s HiP-MDP with ``fit`` (FitConfig field changes) into ``out``;
+    see the module docstring."""
+    run, out = Path(run), Path(out)
+    check_run(run)
+    if out.resolve() == run.resolve():
+        raise ValueError(f"out: expected a folder other than the run ({run})")
+    if out.exists() and any(out.iterdir()):
+        raise ValueError(f"out: {out} exists and is not empty")
+    config = json.loads((run / "config.json").read_text())
+    # every check happens here, before any work (FitConfig validates the values)
+    fit_config = hipmdp.FitConfig(**{**config["fit"], **fit, "progress": progress})
+    config["fit"] = {**dataclasses.asdict(fit_config), "progress": False}
+    config["refit"] = {"from": str(run), "changes": fit}
+
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write(
+        out / "batch.npz",
+        lambda fh: fh.write((run / "batch.npz").read_bytes()),
+    )
+    batch = hipmdp.Transitions.load(out / "batch.npz")
+    ss_fit = np.random.SeedSequence(config["seed"]).spawn(5)[1]  # as the run did
+    t0 = time.perf_counter()
+    model = hipmdp.fit(batch, fit_config, rng=np.random.default_rng(ss_fit))
+    seconds = time.perf_counter() - t0
+    model.save(out / "hipmdp_model.npz")
+    write_json(out / "config.json", config)
+    return Results(out, fit, seconds, model)
+
+
+def cli(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m tasks.acrobot_refit",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("run", help="a finished acrobot_swingup run folder")
+    parser.add_argument("out", help="the new run folder (absent or empty)")
+    parser.add_argument(
+        "--fit", nargs="+", default=[], metavar="NAME=VALUE",
+        help="FitConfig fields to change, e.g. n_smooth=4000 periodic=true",
+    )  # fmt: skip
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    args = parser.parse_args(argv)
+    try:
+        changes = parse_fit(args.fit)
+        results = main(args.run, args.out, changes, progress=not args.no_progress)
+    except (ValueError, FileNotFoundError) as err:
+        parser.error(str(err))
+    m = results.model
+    print(
+        f"fitted in {results.seconds:.0f} s: {m.n_features} features, "
+        f"{len(m.support)} support points, log joint {m.info['best_log_joint']:.4g}"
+    )
+    print(f"wrote {results.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

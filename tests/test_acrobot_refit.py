@@ -1,0 +1,88 @@
+"""Refitting a finished (tiny) swing-up run's HiP-MDP with changed fit settings."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import hipmdp
+from tasks import acrobot_energy, acrobot_refit
+from tasks.acrobot_swingup import main as swingup_main
+from tests.test_acrobot_swingup import TINY
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    return swingup_main(TINY, out=tmp_path_factory.mktemp("swingup")).out
+
+
+def _arrays(path):
+    with np.load(path, allow_pickle=False) as f:
+        return {k: f[k] for k in f.files if k != "meta_json"}
+
+
+def test_no_change_reproduces_the_runs_model(run, tmp_path):
+    # the run's own fit stream and settings: the same model, array for array
+    out = acrobot_refit.main(run, tmp_path / "same", {}, progress=False).out
+    want, got = _arrays(run / "hipmdp_model.npz"), _arrays(out / "hipmdp_model.npz")
+    assert want.keys() == got.keys()
+    for k in want:
+        np.testing.assert_array_equal(got[k], want[k], err_msg=k)
+    assert (out / "batch.npz").read_bytes() == (run / "batch.npz").read_bytes()
+    old = json.loads((run / "config.json").read_text())
+    new = json.loads((out / "config.json").read_text())
+    assert new["fit"] == {**old["fit"], "periodic": False}
+    assert new["refit"] == {"from": str(run), "changes": {}}
+
+
+def test_changed_settings_reach_the_model_and_the_checks(run, tmp_path):
+    out = tmp_path / "periodic"
+    res = acrobot_refit.main(
+        run, out, {"periodic": True, "n_support": 40}, progress=False
+    )
+    model = hipmdp.load(out / "hipmdp_model.npz")
+    assert model.hyper.periodic == (0, 1) and len(model.support) == 40
+    assert res.model.n_features == model.n_features
+    config = json.loads((out / "config.json").read_text())
+    assert config["fit"]["periodic"] is True and config["fit"]["n_support"] == 40
+    # a check reads the new folder as a run, its average model periodic too
+    finished = acrobot_energy.load_run(out)
+    assert finished.hip.hyper.periodic == finished.average.hyper.periodic == (0, 1)
+
+
+def test_parse_fit_types_and_errors():
+    got = acrobot_refit.parse_fit(["n_smooth=4000", "alpha=1.5", "periodic=TRUE"])
+    assert got == {"n_smooth": 4000, "alpha": 1.5, "periodic": True}
+    for item, match in [
+        ("n_smooth", "expected name=value"),
+        ("nope=1", "expected name=value with name in n_support"),
+        ("progress=true", "expected name=value"),
+        ("n_smooth=4e3", "expected a int value for n_smooth"),
+        ("periodic=yes", "expected a bool value for periodic"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            acrobot_refit.parse_fit([item])
+
+
+def test_bad_folders_and_values_fail_before_any_file_is_written(run, tmp_path):
+    with pytest.raises(ValueError, match="other than the run"):
+        acrobot_refit.main(run, run, {})
+    full = tmp_path / "full"
+    full.mkdir()
+    (full / "x").write_text("")
+    with pytest.raises(ValueError, match="not empty"):
+        acrobot_refit.main(run, full, {})
+    with pytest.raises(FileNotFoundError, match="config.json"):
+        acrobot_refit.main(tmp_path / "none", tmp_path / "o", {})
+    with pytest.raises(ValueError, match="FitConfig.n_support"):
+        acrobot_refit.main(run, tmp_path / "bad", {"n_support": 0})
+    assert not (tmp_path / "bad").exists()
+
+
+def test_cli_reports_bad_options(run, tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        acrobot_refit.cli([str(run), str(tmp_path / "o"), "--fit", "nope=1"])
+    assert "--fit 'nope=1'" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
