@@ -1,0 +1,63 @@
+"""The batch-error check on a finished (tiny) swing-up run."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import hipmdp
+from tasks import acrobot_batch_errors
+from tasks.acrobot_identified import load_run
+from tasks.acrobot_swingup import main as swingup_main
+from tests.test_acrobot_swingup import TINY
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    return swingup_main(TINY, out=tmp_path_factory.mktemp("swingup")).out
+
+
+def test_errors_are_the_plain_predictions_on_each_instances_rows(run, tmp_path):
+    # against predict_mean / predict (not the fast mean_predictor), row by row
+    res = acrobot_batch_errors.main(run, fast=3.0, out=tmp_path / "e.json")
+    s = json.loads(res.out.read_text())
+    assert s == json.loads(json.dumps(res.summary))
+    _, hip, average, batch = load_run(run)
+    K = hip.n_features - 1
+    for col, b in enumerate(hip.instance_ids):
+        data = batch.select(instances=[int(b)])
+        fast = np.abs(data.states[:, 3]) >= 3.0
+        assert s["fast_share"][col] == pytest.approx(fast.mean())
+        weights = {"own": hip.weights[1:, col], "prior": hip.mu_w[1:]}
+        for m in ("own", "prior", "average"):
+            if m == "average":
+                pred = average.predict(data.states, data.actions)[0]
+            else:
+                belief = hipmdp.Belief(weights[m], np.eye(K))
+                pred = hip.predict(data.states, data.actions, belief)[0]
+            err = (pred - data.deltas)[:, 2:]
+            for band, rows in (("fast", fast), ("slow", ~fast)):
+                want = np.sqrt((err[rows] ** 2).mean(0))
+                np.testing.assert_allclose(s["rmse"][m][band][col], want, rtol=1e-8)
+    # own weights fit their own instance's transitions: better than the prior mean
+    own, prior = (np.array(s["rmse"][m]["slow"]) for m in ("own", "prior"))
+    assert np.mean(own) < np.mean(prior)
+
+
+def test_a_threshold_above_every_state_leaves_no_fast_rows(run, tmp_path):
+    res = acrobot_batch_errors.main(run, fast=1e6, out=tmp_path / "e.json")
+    s = res.summary
+    assert s["fast_share"] == [0.0] * len(s["instance_ids"])
+    assert np.isnan(s["rmse"]["own"]["fast"]).all()
+    assert json.loads(res.out.read_text())["rmse"]["own"]["fast"][0] == [None, None]
+
+
+def test_bad_options_fail_before_loading(tmp_path, run, capsys):
+    with pytest.raises(FileNotFoundError, match="config.json"):
+        acrobot_batch_errors.main(tmp_path)
+    with pytest.raises(ValueError, match="fast: expected a finite number > 0"):
+        acrobot_batch_errors.main(run, fast=0.0)
+    assert acrobot_batch_errors.cli([str(run), "--out", str(tmp_path / "c.json")]) == 0
+    assert "wrote" in capsys.readouterr().out
