@@ -24,7 +24,6 @@ fit has left to gain.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -33,7 +32,7 @@ import numpy as np
 
 import hipmdp
 from tasks.acrobot_identified import check_run, load_run
-from tasks.experiment import write_json
+from tasks.experiment import run_parser, write_json
 
 MODELS = ("own", "prior", "average")
 
@@ -96,12 +95,7 @@ def main(run: str | Path, *, fast: float = 10.0, out: str | Path | None = None):
 
 
 def cli(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="python -m tasks.acrobot_batch_errors",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    parser.add_argument("run", help="a finished acrobot_swingup run folder")
+    parser = run_parser("python -m tasks.acrobot_batch_errors", __doc__)
     parser.add_argument("--fast", type=float, default=10.0, help="rad/s (default 10)")
     parser.add_argument(
         "--out", default=None, help="the JSON file (default: RUN/batch_errors.json)"

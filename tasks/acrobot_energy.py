@@ -52,7 +52,6 @@ energy terms (settings × trials), the banded errors, and summaries (the paired
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -70,6 +69,7 @@ from tasks.experiment import (
     fmt_ci,
     mean_ci,
     pool_map,
+    run_parser,
     seed_value,
     write_json,
 )
@@ -504,12 +504,7 @@ def _nanmean(x: np.ndarray) -> np.ndarray:
 
 
 def cli(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="python -m tasks.acrobot_energy",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    parser.add_argument("run", help="a finished acrobot_swingup run folder")
+    parser = run_parser("python -m tasks.acrobot_energy", __doc__)
     parser.add_argument("--trials", type=int, default=2, help="trials per setting")
     parser.add_argument(
         "--models",

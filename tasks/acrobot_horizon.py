@@ -30,7 +30,6 @@ settings, the horizons and the numbers of windows. All randomness is spawned fro
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -42,7 +41,7 @@ from hipmdp.planning import LearnedModel, open_loop_errors
 from tasks.acrobot_identified import check_run, load_run
 from tasks.acrobot_swingup import _params
 from tasks.agents import ACROBOT
-from tasks.experiment import check_counts, write_json
+from tasks.experiment import check_counts, run_parser, write_json
 from tasks.prediction import gather_split
 
 MODELS = ("average", "prior", "identified")
@@ -127,12 +126,7 @@ def main(
 
 
 def cli(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="python -m tasks.acrobot_horizon",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    parser.add_argument("run", help="a finished acrobot_swingup run folder")
+    parser = run_parser("python -m tasks.acrobot_horizon", __doc__)
     parser.add_argument("--horizons", type=int, nargs="+", default=[1, 5, 10, 20])
     parser.add_argument("--identify", type=int, default=1000, help="transitions")
     parser.add_argument(

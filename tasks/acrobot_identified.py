@@ -39,7 +39,6 @@ against ``true`` and between the two filters.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import sys
@@ -59,6 +58,7 @@ from tasks.experiment import (
     mean_ci,
     paired_difference,
     pool_map,
+    run_parser,
     seed_value,
     write_json,
 )
@@ -278,12 +278,7 @@ def main(
 
 
 def cli(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="python -m tasks.acrobot_identified",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    parser.add_argument("run", help="a finished acrobot_swingup run folder")
+    parser = run_parser("python -m tasks.acrobot_identified", __doc__)
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS))
     parser.add_argument("--trials", type=int, default=10, help="trials per setting")
     parser.add_argument("--episodes", type=int, default=3, help="real episodes")

@@ -22,7 +22,6 @@ the settings changed in its preset.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import sys
@@ -35,7 +34,7 @@ import numpy as np
 import hipmdp
 from hipmdp.data import atomic_write
 from tasks.acrobot_identified import check_run
-from tasks.experiment import write_json
+from tasks.experiment import run_parser, write_json
 
 _FIELDS = {f.name: f for f in dataclasses.fields(hipmdp.FitConfig)}
 
@@ -114,12 +113,7 @@ def main(
 
 
 def cli(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="python -m tasks.acrobot_refit",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    parser.add_argument("run", help="a finished acrobot_swingup run folder")
+    parser = run_parser("python -m tasks.acrobot_refit", __doc__)
     parser.add_argument("out", help="the new run folder (absent or empty)")
     parser.add_argument(
         "--fit", nargs="+", default=[], metavar="NAME=VALUE",

@@ -8,6 +8,7 @@ artefact. All randomness of a run is spawned from one ``np.random.SeedSequence``
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import json
 import os
@@ -210,11 +211,19 @@ def check_counts(**values: Any) -> None:
             raise ValueError(f"{name}: expected >= 1, got {value}")
 
 
+def run_parser(prog: str, doc: str):
+    """The argument parser of a check on a finished run: ``prog``, the module
+    docstring ``doc`` as its description, and the positional ``run`` folder."""
+    parser = argparse.ArgumentParser(
+        prog=prog, description=doc, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("run", help="a finished acrobot_swingup run folder")
+    return parser
+
+
 def common_parser(prog: str, doc: str, presets: Sequence[str], out_default: str):
     """The options every experiment has: --preset, --seed, --out, --workers,
     --no-record, --no-progress."""
-    import argparse
-
     parser = argparse.ArgumentParser(
         prog=prog,
         description=doc.split("\n\n")[0],
