@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -61,3 +63,29 @@ def test_bad_options_fail_before_loading(tmp_path, run, capsys):
         acrobot_batch_errors.main(run, fast=0.0)
     assert acrobot_batch_errors.cli([str(run), "--out", str(tmp_path / "c.json")]) == 0
     assert "wrote" in capsys.readouterr().out
+
+
+def test_instances_are_matched_by_id_not_by_position(run, tmp_path):
+    # the same model with its weight columns in reverse order: every number must
+    # follow the instance ids (and the parameters come from the table by id)
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy)
+    hip = hipmdp.load(run / "hipmdp_model.npz")
+    assert len(hip.instance_ids) > 2
+    dataclasses.replace(
+        hip, instance_ids=hip.instance_ids[::-1], weights=hip.weights[:, ::-1]
+    ).save(copy / "hipmdp_model.npz")
+    a = acrobot_batch_errors.main(run, fast=3.0, out=tmp_path / "a.json").summary
+    b = acrobot_batch_errors.main(copy, fast=3.0, out=tmp_path / "b.json").summary
+    assert b["instance_ids"] == a["instance_ids"][::-1]
+    for key in ("fast_share", "instance_parameters"):
+        assert b[key] == a[key][::-1]
+    for m in acrobot_batch_errors.MODELS:
+        for band in ("fast", "slow"):
+            np.testing.assert_allclose(
+                b["rmse"][m][band], a["rmse"][m][band][::-1], rtol=1e-10
+            )
+    table = hipmdp.data.ParameterTable.load(run / "batch.npz")
+    for i, inst in enumerate(a["instance_ids"]):
+        row = list(table.instances).index(inst)
+        assert a["instance_parameters"][i] == table.values[row].tolist()

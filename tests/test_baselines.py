@@ -178,6 +178,8 @@ def test_periodic_baseline_fast_path_and_options():
     np.testing.assert_allclose(model.mean_predictor()(shifted, acts), want, rtol=1e-9)
     plain = batch_only(batch, rng=np.random.default_rng(1), n_max=50)
     assert plain.hyper.periodic == ()
+    # the hyperparameters were fitted with the periodic kernel, not only labelled
+    assert not np.allclose(model.hyper.lengthscales, plain.hyper.lengthscales)
     assert not np.allclose(plain.predict_mean(Xs, acts), want)
     # given hyperparameters bring their periodic dimensions; a different ask fails
     again = batch_only(batch, rng=np.random.default_rng(1), n_max=50, hyper=model.hyper)

@@ -113,4 +113,4 @@ def test_periodic_gp_interpolates_across_the_wrap():
         assert h.periodic == periodic
         err[periodic] = np.abs(condition(X, y, h).predict_mean(Xs) - f(Xs)).max()
     assert err[(0,)] < 0.05  # 5 noise standard deviations
-    assert err[()] > 10 * err[(0,)]
+    assert err[()] > 0.1  # 10 of them

@@ -177,6 +177,7 @@ def test_periodic_kernel_means_are_the_per_output_kernel_sums():
     [((3,), r"\[0, 3\)"), ((0, 0), "distinct"), ((-1,), r"\[0, 3\)"), (1, "sequence")],
 )
 def test_bad_periodic_dimensions_raise(periodic, match):
+    assert kernels.check_periodic((2, 0), 3) == (0, 2)  # sorted
     X = np.zeros((2, 3))
     with pytest.raises(ValueError, match=f"periodic: expected.*{match}"):
         se_kernel(X, X, np.ones(3), 1.0, periodic=periodic)

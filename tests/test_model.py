@@ -285,6 +285,10 @@ def test_periodic_model_is_periodic_and_its_fast_paths_agree(fitted, tmp_path):
     )
     assert not np.allclose(fitted.predict_mean(shifted, acts, belief), mean)
     assert not np.allclose(fitted.predict_mean(S, acts, belief), mean)
+    # so must the support points: the coefficients and the variance's factor too
+    moved = dataclasses.replace(periodic, support=periodic.support + [2 * np.pi, 0])
+    for x, y in zip(moved.predict(S, acts, belief), (mean, var), strict=True):
+        np.testing.assert_allclose(x, y, rtol=1e-7, atol=1e-10)
     path = tmp_path / "periodic.npz"
     periodic.save(path)
     loaded = load(path)
@@ -306,3 +310,29 @@ def test_periodic_fit_uses_the_data_angle_dims():
     )
     assert plain.hyper.periodic == ()
     assert not np.allclose(model.hyper.lengthscales, plain.hyper.lengthscales)
+    # every stage measures the angle periodically: half the rows moved by 2π in
+    # dimension 1 fit the same model, up to round-off
+    shift = np.where(np.arange(len(batch))[:, None] % 2 == 0, [0.0, 2 * np.pi], 0.0)
+    moved = dataclasses.replace(
+        batch, states=batch.states + shift, next_states=batch.next_states + shift
+    )
+    again = fit(moved, config, rng=np.random.default_rng(1))
+    np.testing.assert_array_equal(again.z, model.z)
+    S = np.random.default_rng(9).uniform(-2, 2, size=(30, D))
+    acts = np.arange(30) % A
+    np.testing.assert_allclose(
+        again.predict_mean(S, acts, again.prior()),
+        model.predict_mean(S, acts, model.prior()),
+        rtol=1e-6,
+        atol=1e-8,
+    )
+    unwrapped = fit(
+        dataclasses.replace(moved, angle_dims=()),
+        dataclasses.replace(config, periodic=False),
+        rng=np.random.default_rng(1),
+    )
+    assert not np.allclose(
+        unwrapped.predict_mean(S, acts, unwrapped.prior()),
+        model.predict_mean(S, acts, model.prior()),
+        atol=1e-3,
+    )
