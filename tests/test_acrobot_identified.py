@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 
@@ -176,3 +177,21 @@ def test_load_run_refits_the_average_model_with_the_runs_kernels(run, tmp_path):
         (copy / "config.json").write_text(json.dumps(config))
         average = acrobot_identified.load_run(copy).average
         assert average.hyper.periodic == want
+
+
+def test_load_run_average_is_the_model_the_run_used(run):
+    # the run's own average-model trials, replayed with the refitted average
+    # model on the run's trial seeds, give the returns in trials.npz
+    from tasks.acrobot_swingup import METHODS, run_transfer
+
+    finished = acrobot_identified.load_run(run[0])
+    ss_trials = np.random.SeedSequence(TINY.seed).spawn(5)[3]  # as the run did
+    config = dataclasses.replace(TINY, record=False, workers=1, progress=False)
+    results = run_transfer(config, finished.hip, finished.average, ss_trials)
+    with np.load(run[0] / "trials.npz") as f:
+        returns = f["returns"]
+    m = list(METHODS).index("average")
+    replayed = [r for r in results if r.method == "average"]
+    assert replayed
+    for r in replayed:
+        np.testing.assert_array_equal(r.returns, returns[m, r.setting, r.trial])
