@@ -139,7 +139,6 @@ def test_true_first_plans_on_the_simulator_until_the_first_update(run):
 
 
 def test_first_planning_changes_only_the_planning_after_the_first_episode(planned):
-    import dataclasses
 
     init, calls = planned
     base = TINY.transfer  # 1 initial, 2 real episodes, 1 planning episode each
@@ -180,18 +179,18 @@ def test_load_run_refits_the_average_model_with_the_runs_kernels(run, tmp_path):
 
 
 def test_load_run_average_is_the_model_the_run_used(run):
-    # the run's own average-model trials, replayed with the refitted average
-    # model on the run's trial seeds, give the returns in trials.npz
-    from tasks.acrobot_swingup import METHODS, run_transfer
+    # the run's one-step MSE table, recomputed with the refitted average model on
+    # the run's own prediction seeds, gives the numbers in metrics.json
+    from tasks.acrobot_swingup import prediction_table
 
     finished = acrobot_identified.load_run(run[0])
-    ss_trials = np.random.SeedSequence(TINY.seed).spawn(5)[3]  # as the run did
-    config = dataclasses.replace(TINY, record=False, workers=1, progress=False)
-    results = run_transfer(config, finished.hip, finished.average, ss_trials)
-    with np.load(run[0] / "trials.npz") as f:
-        returns = f["returns"]
-    m = list(METHODS).index("average")
-    replayed = [r for r in results if r.method == "average"]
-    assert replayed
-    for r in replayed:
-        np.testing.assert_array_equal(r.returns, returns[m, r.setting, r.trial])
+    ss_mse = np.random.SeedSequence(TINY.seed).spawn(5)[4]  # as the run did
+    table = prediction_table(
+        TINY, finished.hip, finished.average, finished.batch, ss_mse
+    )
+    metrics = json.loads((run[0] / "metrics.json").read_text())
+    want = metrics["mse"]["batch only"]
+    got = table["test"]["mse"]["batch only"]
+    assert got.keys() == want.keys()
+    for dim in want:
+        assert got[dim]["mean"] == pytest.approx(want[dim]["mean"], rel=1e-9)
