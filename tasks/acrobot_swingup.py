@@ -310,7 +310,7 @@ def transfer_metrics(config: SwingupConfig, trials: list) -> dict[str, Any]:
     Also the same on per-episode medians: the means are heavy-tailed (an episode
     that runs to the step limit moves a mean by tens of steps), the medians are not.
     """
-    curves, per_method, at_limit = {}, {}, {}
+    curves, per_method, at_limit, all_steps = {}, {}, {}, {}
     for method in METHODS:
         runs = sorted(
             (r for r in trials if r.method == method),
@@ -318,8 +318,10 @@ def transfer_metrics(config: SwingupConfig, trials: list) -> dict[str, Any]:
         )
         per_method[method] = np.array([r.returns for r in runs])
         curves[method] = mean_ci(per_method[method], axis=0)
-        steps = np.array([r.steps for r in runs])
-        at_limit[method] = np.mean(steps >= config.transfer.max_steps, axis=0)
+        all_steps[method] = np.array([r.steps for r in runs])
+        at_limit[method] = np.mean(
+            all_steps[method] >= config.transfer.max_steps, axis=0
+        )
     target = float(np.mean(curves["true"]["mean"][-config.final_window :]))
     episodes_to = {
         m: first_episode_within(curves[m]["mean"], target, margin=0.1) for m in METHODS
@@ -351,6 +353,11 @@ def transfer_metrics(config: SwingupConfig, trials: list) -> dict[str, Any]:
             for a, b in PAIRS
         },
         "step_limit_rate": at_limit,
+        "step_limit_split": step_limit_split(
+            [per_method[m] for m in METHODS],
+            [all_steps[m] for m in METHODS],
+            config.transfer.max_steps,
+        ),
         "paired_difference_per_setting": per_setting_differences(config, trials),
         "test_belief_means": {
             str(i): np.mean(
@@ -364,6 +371,60 @@ def transfer_metrics(config: SwingupConfig, trials: list) -> dict[str, Any]:
             for i in range(len(config.test_masses))
         },  # fmt: skip
     }
+
+
+def step_limit_split(
+    returns: np.ndarray, steps: np.ndarray, max_steps: int, methods=METHODS
+) -> dict[str, Any]:
+    """How much of each mean return, and of each pair's gap, is the episodes that
+    ran to the step limit.
+
+    returns, steps: shape (methods, ...) in the order of ``methods`` (as in
+    ``trials.npz``), every episode of every trial. With ``p`` a method's share of
+    episodes at the limit and ``μ_<`` its mean return over the others,
+
+        mean = (1 - p) μ_< + p · mean(returns at the limit),
+
+    and a pair's gap ``mean_a - mean_b`` splits into ``below_limit = μ_<,a - μ_<,b``
+    (the episodes that reached the goal) and the rest, ``limit = gap -
+    below_limit`` (the failures). Returns ``{"methods": {m: {"share_at_limit",
+    "mean_return", "mean_return_below_limit"}}, "pairs": {"a - b": {"gap",
+    "below_limit", "limit"}}}``.
+    """
+    returns, steps = np.asarray(returns, dtype=float), np.asarray(steps)
+    if returns.shape != steps.shape or len(returns) != len(methods):
+        raise ValueError(
+            f"returns, steps: expected equal shapes ({len(methods)}, ...), got "
+            f"{returns.shape} and {steps.shape}"
+        )
+    out: dict[str, Any] = {"methods": {}, "pairs": {}}
+    for i, m in enumerate(methods):
+        below = steps[i] < max_steps
+        out["methods"][m] = {
+            "share_at_limit": float(1.0 - below.mean()),
+            "mean_return": float(returns[i].mean()),
+            "mean_return_below_limit": float(returns[i][below].mean())
+            if below.any()
+            else None,
+        }
+    for a, b in PAIRS:
+        if a not in out["methods"] or b not in out["methods"]:
+            continue
+        ma, mb = out["methods"][a], out["methods"][b]
+        gap = ma["mean_return"] - mb["mean_return"]
+        if (
+            ma["mean_return_below_limit"] is None
+            or mb["mean_return_below_limit"] is None
+        ):
+            below = None
+        else:
+            below = ma["mean_return_below_limit"] - mb["mean_return_below_limit"]
+        out["pairs"][f"{a} - {b}"] = {
+            "gap": gap,
+            "below_limit": below,
+            "limit": None if below is None else gap - below,
+        }
+    return out
 
 
 def per_setting_differences(config: SwingupConfig, trials: list) -> dict[str, Any]:

@@ -187,6 +187,18 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
             for m in METHODS
         ],
     )
+    split = metrics["step_limit_split"]
+    split_table = markdown_table(
+        ["pair", "gap in mean return", "episodes before the limit", "episodes at it"],
+        [
+            [k]
+            + [
+                "n/a" if v[f] is None else f"{v[f]:+.1f}"
+                for f in ("gap", "below_limit", "limit")
+            ]
+            for k, v in split["pairs"].items()
+        ],
+    )
     limit = metrics["step_limit_rate"]
     limit_table = markdown_table(
         ["method"] + [f"episode {e + 1}" for e in range(n_ep)],
@@ -232,6 +244,12 @@ Share of real episodes that ran to the {config.transfer.max_steps}-step limit
 (each such episode has a return of −{config.transfer.max_steps}):
 
 {limit_table}
+
+How much of each gap in mean return (over all episodes) is those episodes: the
+difference of the means over the episodes that ended before the limit, and the
+rest (`step_limit_split` in `metrics.json`):
+
+{split_table}
 
 The same on per-episode medians, which those episodes do not decide; near-optimal
 is then within 10% of the true model's final median

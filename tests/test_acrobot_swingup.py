@@ -15,6 +15,7 @@ from tasks.acrobot_swingup import (
     SwingupConfig,
     main,
     parse_args,
+    step_limit_split,
     transfer_metrics,
 )
 from tasks.recording import rrd_contents
@@ -76,6 +77,13 @@ def test_artefacts_exist(run):
 
 def test_metrics_schema(run):
     m = json.loads((run.out / "metrics.json").read_text())
+    split = m["step_limit_split"]
+    for method in METHODS:  # every trial has all episodes: the mean of the curve
+        want = np.mean(m["returns"][method]["mean"])
+        assert split["methods"][method]["mean_return"] == pytest.approx(want)
+        rate = np.mean(m["step_limit_rate"][method])
+        assert split["methods"][method]["share_at_limit"] == pytest.approx(rate)
+    assert "step_limit_split" in (run.out / "report.md").read_text()
     assert set(m["episodes_to_near_optimal"]) == set(METHODS)
     for method in METHODS:
         curve = m["returns"][method]
@@ -229,3 +237,31 @@ def test_per_setting_differences_group_trials_by_setting():
     assert hip_avg[1]["mean"] == pytest.approx(-1.0)
     assert hip_avg[1]["low"] < -4.0 < 2.0 < hip_avg[1]["high"]
     assert all(r["mean"] == pytest.approx(0.0) for r in rows["average - true"])
+
+
+def test_step_limit_split_adds_up_and_counts_only_limit_episodes():
+    # 2 methods x 4 episodes: "true" fails once (−50), "average" twice
+    returns = np.array([[-10.0, -12.0, -50.0, -8.0], [-50.0, -11.0, -50.0, -9.0]])
+    steps = -returns.astype(int)
+    split = step_limit_split(returns, steps, 50, methods=("true", "average"))
+    t, a = split["methods"]["true"], split["methods"]["average"]
+    assert t["share_at_limit"] == 0.25 and a["share_at_limit"] == 0.5
+    assert t["mean_return_below_limit"] == pytest.approx(-10.0)
+    assert a["mean_return_below_limit"] == pytest.approx(-10.0)
+    pair = split["pairs"]["average - true"]
+    assert set(split["pairs"]) == {"average - true"}  # pairs of known methods only
+    assert pair["gap"] == pytest.approx(-30.0 - -20.0)
+    assert pair["below_limit"] == pytest.approx(0.0)
+    assert pair["limit"] == pytest.approx(-10.0)
+    # the identity mean = (1 - p) μ_< + p · (−cap) holds for each method
+    for m in ("true", "average"):
+        v = split["methods"][m]
+        p = v["share_at_limit"]
+        assert v["mean_return"] == pytest.approx(
+            (1 - p) * v["mean_return_below_limit"] + p * -50.0
+        )
+    everything = step_limit_split(returns, np.full((2, 4), 50), 50, ("true", "average"))
+    assert everything["methods"]["true"]["mean_return_below_limit"] is None
+    assert everything["pairs"]["average - true"]["limit"] is None
+    with pytest.raises(ValueError, match="equal shapes"):
+        step_limit_split(returns, steps[:, :2], 50, methods=("true", "average"))
