@@ -69,21 +69,28 @@ def check_periodic(periodic, dim: int) -> tuple[int, ...]:
     return dims
 
 
+def embedded_columns(dim: int, periodic: tuple[int, ...] = ()) -> Array:
+    """Per column of `embed`'s output, the input dimension it came from, (D + P,):
+    the non-periodic dimensions in order, then the periodic ones twice (cos, sin).
+    Index the length scales with it."""
+    plain = [j for j in range(dim) if j not in periodic]
+    return np.array(plain + list(periodic) * 2, dtype=int)
+
+
 def embed(X: Array, periodic: tuple[int, ...] = ()) -> tuple[Array, Array]:
     """Inputs in the space where the kernel's distance is Euclidean.
 
     X: (n, D); periodic: dimensions replaced by (cos x_j, sin x_j). Returns the
-    embedded inputs (n, D + P) and, per embedded column, the input dimension it came
-    from, (D + P,) (index the length scales with it). Non-periodic columns keep their
-    values and come first, in order; with no periodic dimensions X is returned as is.
+    embedded inputs (n, D + P) and `embedded_columns` (D + P,): the plain SE kernel
+    of the embedded inputs with length scales ``ℓ[columns]`` is the periodic kernel.
+    With no periodic dimensions X is returned as is.
     """
-    D = X.shape[1]
+    col = embedded_columns(X.shape[1], periodic)
     if not periodic:
-        return X, np.arange(D)
-    plain = [j for j in range(D) if j not in periodic]
+        return X, col
     p = list(periodic)
-    cols = np.concatenate([X[:, plain], np.cos(X[:, p]), np.sin(X[:, p])], axis=1)
-    return cols, np.array(plain + p + p)
+    plain = col[: len(col) - 2 * len(p)]
+    return np.concatenate([X[:, plain], np.cos(X[:, p]), np.sin(X[:, p])], 1), col
 
 
 def scaled_sqdist(
@@ -194,7 +201,7 @@ class KernelMeans:
             )
         self.n_actions, self.n_outputs, self.state_dim = A, E, D
         self.periodic = check_periodic(periodic, D)
-        col = embed(np.zeros((0, D)), self.periodic)[1]
+        col = embedded_columns(D, self.periodic)
         self._scaled, self._sqnorm, self._coef = [], [], []
         for a in range(A):
             x = np.asarray(inputs[a], dtype=float).reshape(-1, D)

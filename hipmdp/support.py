@@ -33,7 +33,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from hipmdp.gp import HyperSet, subsample
-from hipmdp.kernels import se_kernel
+from hipmdp.kernels import check_periodic, embed, se_kernel
 
 Array = np.ndarray
 
@@ -79,6 +79,8 @@ def greedy_support(
     """
     X = np.asarray(X, dtype=float)
     n = X.shape[0]
+    # embedded once: the plain kernel of E with ℓ[dims] is the periodic kernel of X
+    E, dims = embed(X, check_periodic(periodic, X.shape[1]))
     if not 1 <= m <= n:
         raise ValueError(f"m: expected 1 <= m <= {n} (number of candidates), got {m}")
     R = len(kernels)
@@ -97,7 +99,7 @@ def greedy_support(
         for r, (ell, sf2, sn2) in enumerate(kernels):
             cp = C[r, :j, p]
             diag = np.sqrt(max(sf2 + sn2 - cp @ cp, 1e-300))
-            kp = se_kernel(X, X[p : p + 1], ell, sf2, periodic)[:, 0]
+            kp = se_kernel(E, E[p : p + 1], ell[dims], sf2)[:, 0]
             col = (kp - cp @ C[r, :j]) / diag
             C[r, j] = col
             var[r] -= col * col

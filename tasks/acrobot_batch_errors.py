@@ -61,32 +61,31 @@ def main(run: str | Path, *, fast: float = 10.0, out: str | Path | None = None):
     _, hip, average, batch = load_run(run)
     K = hip.n_features - 1
     rmse: dict[str, dict[str, list]] = {m: {"fast": [], "slow": []} for m in MODELS}
-    shares, masses = [], []
+    shares, parameters = [], []
     table = hipmdp.data.ParameterTable.load(run / "batch.npz")
+    # the same for every instance: built once
+    shared = {
+        "prior": hip.mean_predictor(hipmdp.Belief(hip.mu_w[1:], np.eye(K))),
+        "average": average.mean_predictor(),
+    }
     for col, b in enumerate(hip.instance_ids):
         data = batch.select(instances=[int(b)])
-        beliefs = {
-            "own": hipmdp.Belief(hip.weights[1:, col], np.eye(K)),
-            "prior": hipmdp.Belief(hip.mu_w[1:], np.eye(K)),
-        }
-        preds = {
-            m: hip.mean_predictor(beliefs[m])(data.states, data.actions)
-            for m in ("own", "prior")
-        }
-        preds["average"] = average.mean_predictor()(data.states, data.actions)
+        own = hip.mean_predictor(hipmdp.Belief(hip.weights[1:, col], np.eye(K)))
+        predictors = {"own": own, **shared}
+        preds = {m: predictors[m](data.states, data.actions) for m in MODELS}
         is_fast = np.abs(data.states[:, 3]) >= fast
         for m in MODELS:
             err = preds[m] - data.deltas
             rmse[m]["fast"].append(_rmse(err, is_fast))
             rmse[m]["slow"].append(_rmse(err, ~is_fast))
         shares.append(float(is_fast.mean()))
-        masses.append(table.values[list(table.instances).index(int(b))].tolist())
+        parameters.append(table.values[list(table.instances).index(int(b))].tolist())
     summary = {
         "run": str(run),
         "fast": float(fast),
         "instance_ids": [int(b) for b in hip.instance_ids],
         "parameters": list(table.names),
-        "instance_parameters": masses,
+        "instance_parameters": parameters,
         "fast_share": shares,
         "dimensions": ["dtheta1_dot", "dtheta2_dot"],
         "rmse": rmse,
