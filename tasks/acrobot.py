@@ -194,6 +194,62 @@ def energy(states: Array, params: AcrobotParams | None = None) -> Array:
     return kinetic + potential
 
 
+def conserve_energy(
+    states: Array,
+    torques: Array,
+    next_states: Array,
+    params: AcrobotParams | None = None,
+    dt: float = CONTROL_TIMESTEP,
+) -> Array:
+    """Rescale predicted velocities so that each step's energy change is the elbow
+    torque's work.
+
+    Without damping, holding torque `τ` for one step changes the energy by exactly
+    `τ Δθ₂` (`E' = E(s) + τ Δθ₂`). A one-step model's velocity errors break this;
+    errors of either sign add `½ εᵀ M ε` on average. Here the predicted velocities
+    `q̇'` are scaled by `c ≥ 0` so that `½ c² q̇'ᵀ M(θ₂') q̇' + V(θ') = E'`: in the
+    metric of `M` the closest point to `q̇'` with that energy. The angles are kept.
+    Where `E' < V(θ')` the velocities become 0; where `q̇' = 0` they stay 0.
+
+    `Δθ₂` is the predicted elbow change, wrapped, plus the multiple of 2π that
+    brings it nearest to `dt (θ̇₂ + θ̇₂') / 2` (a step may turn the elbow by more
+    than π).
+
+    Args:
+        states: `s`, shape `(N, 4)`; torques: `τ` in N·m, shape `(N,)`;
+        next_states: predicted `s'`, shape `(N, 4)`; params: the instance whose
+        energy is conserved (nominal if None); dt: seconds per step.
+
+    Returns:
+        `s'` with rescaled velocities, shape `(N, 4)`.
+    """
+    params = _check_params(params)
+    s = _check_states(states)
+    s2 = _check_states(next_states)
+    tau = np.asarray(torques, dtype=float)
+    if s.ndim != 2 or s2.shape != s.shape or tau.shape != s.shape[:1]:
+        raise ValueError(
+            "states, next_states, torques: expected shapes (N, 4), (N, 4), (N,), got "
+            f"{s.shape}, {s2.shape}, {tau.shape}"
+        )
+    turn = np.remainder(s2[:, 1] - s[:, 1] + np.pi, 2 * np.pi) - np.pi
+    mean_turn = dt * (s[:, 3] + s2[:, 3]) / 2
+    turn += 2 * np.pi * np.round((mean_turn - turn) / (2 * np.pi))
+    target = energy(s, params) + tau * turn
+    at_rest = s2.copy()
+    at_rest[:, 2:] = 0.0
+    potential = energy(at_rest, params)
+    kinetic = energy(s2, params) - potential
+    moving = kinetic > 0
+    scale = np.ones(len(s))
+    scale[moving] = np.sqrt(
+        np.maximum(target[moving] - potential[moving], 0.0) / kinetic[moving]
+    )
+    out = s2.copy()
+    out[:, 2:] *= scale[:, None]
+    return out
+
+
 def goal_reached(states: Array, params: AcrobotParams | None = None) -> Array:
     """Whether the tip is higher than `l₁` above the shoulder, `y > l₁`.
 

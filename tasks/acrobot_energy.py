@@ -23,6 +23,12 @@ run's test settings, for ``--trials`` trials (seeds spawned from ``--seed``):
    exact predictions in part of the state space: ``exact_fast`` where
    ``|θ̇₂| ≥ --fast`` rad/s (default 8: about a tenth of the true planner's
    states, where the learned models err most), ``exact_slow`` everywhere else.
+   Three more ask whether the energy the models' errors add is the harm: the
+   average model (``average_energy``) and the prior-mean HiP-MDP
+   (``prior_energy``) with their predicted velocities rescaled so that each
+   step's energy changes by the elbow torque's work (:class:`EnergyConserving`,
+   the instance's masses and lengths: an upper bound, since no learned model
+   knows them), and ``prior_energy_nominal`` with the nominal acrobot's.
    ``--models`` runs a subset (``true`` always). Recorded: the mean steps of the
    last ``--last`` simulated episodes (what the model promised) and the mean steps
    of the real episodes (what the agent got).
@@ -76,7 +82,18 @@ from tasks.experiment import (
 from tasks.prediction import gather_split
 from tasks.transfer import TransferConfig
 
-MODELS = ("true", "average", "prior", "identified", "noisy", "exact_fast", "exact_slow")
+MODELS = (
+    "true",
+    "average",
+    "prior",
+    "identified",
+    "noisy",
+    "exact_fast",
+    "exact_slow",
+    "average_energy",
+    "prior_energy",
+    "prior_energy_nominal",
+)
 LEARNED = MODELS[1:]
 DEFAULT_MODELS = ("true", "average", "prior", "identified")
 TERMS = ("total", "linear", "quadratic", "positional", "true_gain")
@@ -112,6 +129,20 @@ class Split:
             if rows.any():
                 out[rows] = model.predict(states[rows], np.asarray(actions)[rows])
         return out
+
+
+class EnergyConserving:
+    """A dynamics model whose predicted velocities are rescaled so that every step
+    changes the energy of the acrobot ``params`` by the elbow torque's work
+    (:func:`tasks.acrobot.conserve_energy`)."""
+
+    def __init__(self, model, params: acrobot.AcrobotParams) -> None:
+        self._model, self._params = model, params
+
+    def predict(self, states: np.ndarray, actions: np.ndarray) -> np.ndarray:
+        torques = acrobot.ACTIONS[np.asarray(actions)]
+        predicted = self._model.predict(states, actions)
+        return acrobot.conserve_energy(states, torques, predicted, self._params)
 
 
 class BatchDistance:
@@ -296,6 +327,13 @@ def _job(args) -> tuple[int, int, dict[str, Any]]:
         ),
         "exact_fast": lambda: Split(prior, simulator, fast),
         "exact_slow": lambda: Split(simulator, prior, fast),
+        "average_energy": lambda: EnergyConserving(
+            LearnedModel(_STATE["average"], None, dims), params
+        ),
+        "prior_energy": lambda: EnergyConserving(prior, params),
+        "prior_energy_nominal": lambda: EnergyConserving(
+            prior, acrobot.AcrobotParams()
+        ),
     }
     models = {name: build[name]() for name in names}
     out: dict[str, Any] = {"promised": {}, "delivered": {}}

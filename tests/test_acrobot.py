@@ -241,3 +241,62 @@ def test_energy_changes_by_the_elbow_torques_work(params):
         assert change == pytest.approx(y[4], abs=1e-8)
         if tau != 0.0:
             assert abs(y[4]) > 1e-3  # the torque did work: the test can see it
+
+
+@pytest.mark.parametrize("params", REWRITTEN[:3], ids=str)
+def test_conserve_energy_leaves_the_simulators_steps_alone(params):
+    """MuJoCo's steps already change the energy by the torque's work, also at
+    elbow speeds that turn it by more than π in one step."""
+    from tasks.agents import ACROBOT, SimulatorModel
+
+    rng = np.random.default_rng(9)
+    states = rng.uniform(-1, 1, (40, 4)) * [np.pi, np.pi, 4, 8]
+    states[:10, 3] = rng.choice([-1, 1], 10) * rng.uniform(18, 22, 10)
+    actions = rng.integers(0, 3, 40)
+    true_next = SimulatorModel(ACROBOT, params).predict(states, actions)
+    assert np.any(np.abs(true_next[:10, 3] + states[:10, 3]) * 0.1 > np.pi)
+    out = acrobot.conserve_energy(states, acrobot.ACTIONS[actions], true_next, params)
+    np.testing.assert_allclose(out, true_next, rtol=1e-4, atol=1e-6)
+
+
+def test_conserve_energy_rescales_velocities_to_the_works_energy():
+    """Against a root-find of E(θ', c q̇') = E(s) + τ Δθ₂ for the scale c."""
+    from scipy.optimize import brentq
+
+    params = REWRITTEN[1]
+    rng = np.random.default_rng(10)
+    states = rng.uniform(-1, 1, (30, 4)) * [np.pi, np.pi, 4, 8]
+    torques = rng.choice(acrobot.ACTIONS, 30)
+    predicted = states + rng.normal(0, [0.1, 0.1, 0.5, 0.5], (30, 4))
+    out = acrobot.conserve_energy(states, torques, predicted, params)
+    np.testing.assert_array_equal(out[:, :2], predicted[:, :2])  # angles kept
+    for s, tau, p, o in zip(states, torques, predicted, out, strict=True):
+        turn = p[1] - s[1]  # small steps: no wrap
+        target = acrobot.energy(s, params) + tau * turn
+
+        def gap(c, p=p, target=target):
+            return acrobot.energy(np.r_[p[:2], c * p[2:]], params) - target
+
+        if gap(0.0) >= 0:  # not reachable by scaling: at rest
+            np.testing.assert_array_equal(o[2:], 0.0)
+        else:
+            c = brentq(gap, 0.0, 100.0, xtol=1e-14)
+            np.testing.assert_allclose(o[2:], c * p[2:], rtol=1e-9, atol=1e-12)
+    assert np.any(np.abs(out[:, 2:] - predicted[:, 2:]) > 1e-3)  # it did change
+
+
+def test_conserve_energy_rejects_mismatched_shapes():
+    s = np.zeros((3, 4))
+    with pytest.raises(ValueError, match="torques"):
+        acrobot.conserve_energy(s, np.zeros(2), s)
+    with pytest.raises(ValueError, match="next_states"):
+        acrobot.conserve_energy(s, np.zeros(3), np.zeros((2, 4)))
+
+
+def test_conserve_energy_stops_a_prediction_above_the_steps_energy():
+    """From hanging at rest, a prediction of the upright pose cannot be met by any
+    speed: the velocities become 0 (and a prediction at rest stays at rest)."""
+    s = np.zeros((2, 4))
+    predicted = np.array([[np.pi, 0.0, 0.5, -0.5], [0.0, 0.0, 0.0, 0.0]])
+    out = acrobot.conserve_energy(s, np.zeros(2), predicted)
+    np.testing.assert_array_equal(out, [[np.pi, 0.0, 0.0, 0.0], [0.0] * 4])

@@ -131,6 +131,31 @@ def test_noisy_simulator_adds_unbiased_noise_to_velocities_only():
     assert abs(np.corrcoef(err[:, 2], err[:, 3])[0, 1]) < 3 / np.sqrt(2000)
 
 
+def test_energy_conserving_model_adds_exactly_the_torques_work():
+    """The noisy simulator's steps, rescaled: each changes the energy of the
+    instance by τ Δθ₂, with the actions' torques."""
+    simulator = SimulatorModel(ACROBOT, PARAMS)
+    noisy = acrobot_energy.NoisySimulator(simulator, 0.5, np.random.default_rng(4))
+    model = acrobot_energy.EnergyConserving(noisy, PARAMS)
+    rng = np.random.default_rng(5)
+    states = _states(rng, 50)
+    actions = rng.integers(0, 3, 50)
+    out = model.predict(states, actions)
+    turn = (out[:, 1] - states[:, 1] + np.pi) % (2 * np.pi) - np.pi  # slow: no wrap
+    work = acrobot.ACTIONS[actions] * turn
+    change = acrobot.energy(out, PARAMS) - acrobot.energy(states, PARAMS)
+    reachable = np.any(out[:, 2:] != 0, axis=1)
+    assert reachable.mean() > 0.9
+    np.testing.assert_allclose(change[reachable], work[reachable], atol=1e-9)
+    noisy_change = acrobot.energy(
+        acrobot_energy.NoisySimulator(simulator, 0.5, np.random.default_rng(4)).predict(
+            states, actions
+        ),
+        PARAMS,
+    ) - acrobot.energy(states, PARAMS)
+    assert np.mean(noisy_change - work) > 0.05  # the noise alone adds energy
+
+
 def test_batch_distance_is_normalised_and_wraps_the_angles():
     batch = np.array([[0.0, 0.0, 0.0, 0.0], [np.pi - 0.01, 0.0, 0.0, 0.0]])
     distance = acrobot_energy.BatchDistance(batch)
