@@ -26,9 +26,10 @@ run's test settings, for ``--trials`` trials (seeds spawned from ``--seed``):
    Three more ask whether the energy the models' errors add is the harm: the
    average model (``average_energy``) and the prior-mean HiP-MDP
    (``prior_energy``) with their predicted velocities rescaled so that each
-   step's energy changes by the elbow torque's work (:class:`EnergyConserving`,
-   the instance's masses and lengths: an upper bound, since no learned model
-   knows them), and ``prior_energy_nominal`` with the nominal acrobot's.
+   step's energy changes by the elbow torque's work
+   (:class:`tasks.agents.EnergyConserving`, with the instance's masses and
+   lengths: an upper bound, since no learned model knows them), and
+   ``prior_energy_nominal`` with the nominal acrobot's.
    ``--models`` runs a subset (``true`` always). Recorded: the mean steps of the
    last ``--last`` simulated episodes (what the model promised) and the mean steps
    of the real episodes (what the agent got).
@@ -66,7 +67,7 @@ import numpy as np
 
 from hipmdp.planning import LearnedModel, plan
 from hipmdp.sarsa import init_state
-from tasks import acrobot
+from tasks import acrobot, agents
 from tasks.acrobot_identified import check_run, load_run
 from tasks.acrobot_swingup import _params
 from tasks.agents import ACROBOT, SimulatorModel, run_episode
@@ -129,20 +130,6 @@ class Split:
             if rows.any():
                 out[rows] = model.predict(states[rows], np.asarray(actions)[rows])
         return out
-
-
-class EnergyConserving:
-    """A dynamics model whose predicted velocities are rescaled so that every step
-    changes the energy of the acrobot ``params`` by the elbow torque's work
-    (:func:`tasks.acrobot.conserve_energy`)."""
-
-    def __init__(self, model, params: acrobot.AcrobotParams) -> None:
-        self._model, self._params = model, params
-
-    def predict(self, states: np.ndarray, actions: np.ndarray) -> np.ndarray:
-        torques = acrobot.ACTIONS[np.asarray(actions)]
-        predicted = self._model.predict(states, actions)
-        return acrobot.conserve_energy(states, torques, predicted, self._params)
 
 
 class BatchDistance:
@@ -327,11 +314,11 @@ def _job(args) -> tuple[int, int, dict[str, Any]]:
         ),
         "exact_fast": lambda: Split(prior, simulator, fast),
         "exact_slow": lambda: Split(simulator, prior, fast),
-        "average_energy": lambda: EnergyConserving(
+        "average_energy": lambda: agents.EnergyConserving(
             LearnedModel(_STATE["average"], None, dims), params
         ),
-        "prior_energy": lambda: EnergyConserving(prior, params),
-        "prior_energy_nominal": lambda: EnergyConserving(
+        "prior_energy": lambda: agents.EnergyConserving(prior, params),
+        "prior_energy_nominal": lambda: agents.EnergyConserving(
             prior, acrobot.AcrobotParams()
         ),
     }

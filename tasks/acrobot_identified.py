@@ -23,7 +23,13 @@ transfer protocol (tasks/transfer.py) on the run's test settings for these varia
   the true simulator instead of its prior mean; after each real episode it filters
   and plans on the posterior-mean HiP-MDP as usual. Its gap to ``true`` is what
   the planning between episodes costs; ``hipmdp``'s gap to it is what the
-  initial planning on the prior-mean model costs.
+  initial planning on the prior-mean model costs;
+- ``average_energy``, ``hipmdp_energy``: the average model and the HiP-MDP, each
+  planning on its predictions with the velocities rescaled so that every step
+  changes the energy by the elbow torque's work
+  (:class:`tasks.agents.EnergyConserving`) of the test instance (its masses and
+  lengths, which no learned model knows: what energy-consistent predictions
+  could buy at best); ``*_energy_nominal`` with the nominal acrobot's instead.
 
 ``--first-planning N`` gives every variant ``N`` simulated episodes after the first
 real one instead of the run's ``planning_episodes`` (not the paper's protocol).
@@ -51,8 +57,9 @@ import hipmdp
 from hipmdp import baselines
 from hipmdp.data import wrap_angle
 from tasks import transfer
+from tasks.acrobot import AcrobotParams
 from tasks.acrobot_swingup import _params
-from tasks.agents import ACROBOT, SimulatorModel
+from tasks.agents import ACROBOT, EnergyConserving, SimulatorModel
 from tasks.experiment import (
     check_counts,
     mean_ci,
@@ -73,6 +80,10 @@ VARIANTS = (
     "identified_paper_filter",
     "model_free",
     "true_first",
+    "average_energy",
+    "hipmdp_energy",
+    "average_energy_nominal",
+    "hipmdp_energy_nominal",
 )
 
 
@@ -135,16 +146,23 @@ def _job(args) -> tuple[str, int, int, np.ndarray]:
         )
     elif variant == "true_first":
         model = _TrueFirst(model, _params(*masses))
-    elif variant not in ("true", "average"):
+    elif variant != "true" and not variant.startswith("average"):
         paper = variant.endswith("_paper_filter")
         belief = None
         if variant.startswith("identified"):
             belief = _STATE["beliefs"]["paper" if paper else "model"][setting]
         model = _Identified(model, belief, model_error=not paper)
+    wrapper = None
+    if "_energy" in variant:  # the constraint of the instance, or of the nominal one
+        nominal = AcrobotParams() if variant.endswith("_nominal") else None
+
+        def wrapper(model, params):
+            return EnergyConserving(model, nominal or params)
+
     # the trial reads its models from what set_models installed in this process
-    transfer.set_models(ACROBOT, config, model, _STATE["average"])
-    method = {"average": "average", "true": "true", "model_free": "true"}.get(
-        variant, "hipmdp"
+    transfer.set_models(ACROBOT, config, model, _STATE["average"], wrapper)
+    method = {"true": "true", "model_free": "true"}.get(
+        variant, "average" if variant.startswith("average") else "hipmdp"
     )
     job = transfer.TrialJob(method, setting, trial, _params(*masses), seed, False)
     return variant, setting, trial, transfer.run_trial(job).returns

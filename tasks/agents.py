@@ -147,6 +147,20 @@ CARTPOLE = Domain(
 DOMAINS: dict[str, Domain] = {"cartpole": CARTPOLE, "acrobot": ACROBOT}
 
 
+class EnergyConserving:
+    """A dynamics model whose predicted velocities are rescaled so that every step
+    changes the energy of the acrobot ``params`` by the elbow torque's work
+    (:func:`tasks.acrobot.conserve_energy`)."""
+
+    def __init__(self, model, params: acrobot.AcrobotParams) -> None:
+        self._model, self._params = model, params
+
+    def predict(self, states: Array, actions: Array) -> Array:
+        torques = acrobot.ACTIONS[np.asarray(actions)]
+        predicted = self._model.predict(states, actions)
+        return acrobot.conserve_energy(states, torques, predicted, self._params)
+
+
 class SimulatorModel:
     """The true dynamics of one instance as a batched :class:`DynamicsModel`.
 

@@ -24,6 +24,7 @@ agent's exploration stream depend only on (setting, trial), never on the method.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -126,10 +127,33 @@ class TrialResult(NamedTuple):
 _MODELS: dict[str, Any] = {}
 
 
-def set_models(domain: Domain, config: TransferConfig, hipmdp_model, average_model):
-    """Install what every trial needs in this process (a pool initializer)."""
+def set_models(
+    domain: Domain,
+    config: TransferConfig,
+    hipmdp_model,
+    average_model,
+    planning_wrapper: Callable[[Any, Any], Any] | None = None,
+):
+    """Install what every trial needs in this process (a pool initializer).
+
+    ``planning_wrapper(model, params)``, if given, turns the learned models (the
+    HiP-MDP's and the average model's, not the true simulator) into the dynamics
+    model the agent plans on, for the instance ``params``: e.g. a physical
+    constraint applied to their predictions. Filtering and recording still see the
+    learned model's own predictions."""
     _MODELS.update(
-        domain=domain, config=config, hipmdp=hipmdp_model, average=average_model
+        domain=domain,
+        config=config,
+        hipmdp=hipmdp_model,
+        average=average_model,
+        planning_wrapper=planning_wrapper,
+    )
+
+
+def _planning_model(model, job: TrialJob):
+    wrapper = _MODELS.get("planning_wrapper")
+    return (
+        model if wrapper is None or job.method == "true" else wrapper(model, job.params)
     )
 
 
@@ -171,7 +195,7 @@ def run_trial(job: TrialJob) -> TrialResult:
     model = model_now()
     state = init_state(domain.n_actions, basis.n_features, domain.initial_value)
     state = plan(
-        state, basis, sarsa, model, task, np.array(starts),
+        state, basis, sarsa, _planning_model(model, job), task, np.array(starts),
         config.initial_planning_episodes, rng=rng,
     ).state  # fmt: skip
 
@@ -194,8 +218,8 @@ def run_trial(job: TrialJob) -> TrialResult:
             weight_means.append(_belief_moments(belief)[0])
         model = model_now()
         state = plan(
-            state, basis, sarsa, model, task, np.array(starts),
-            _planning_episodes(config, episode_index), rng=rng,
+            state, basis, sarsa, _planning_model(model, job), task,
+            np.array(starts), _planning_episodes(config, episode_index), rng=rng,
         ).state  # fmt: skip
     return TrialResult(
         job.method,

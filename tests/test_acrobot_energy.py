@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from tasks import acrobot, acrobot_energy
+from tasks import acrobot, acrobot_energy, agents
 from tasks.acrobot import AcrobotParams
 from tasks.acrobot_swingup import main as swingup_main
 from tasks.agents import ACROBOT, SimulatorModel
@@ -136,7 +136,7 @@ def test_energy_conserving_model_adds_exactly_the_torques_work():
     instance by τ Δθ₂, with the actions' torques."""
     simulator = SimulatorModel(ACROBOT, PARAMS)
     noisy = acrobot_energy.NoisySimulator(simulator, 0.5, np.random.default_rng(4))
-    model = acrobot_energy.EnergyConserving(noisy, PARAMS)
+    model = agents.EnergyConserving(noisy, PARAMS)
     rng = np.random.default_rng(5)
     states = _states(rng, 50)
     actions = rng.integers(0, 3, 50)

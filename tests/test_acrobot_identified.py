@@ -194,3 +194,45 @@ def test_load_run_average_is_the_model_the_run_used(run):
     assert got.keys() == want.keys()
     for dim in want:
         assert got[dim]["mean"] == pytest.approx(want[dim]["mean"], rel=1e-9)
+
+
+def test_energy_variants_plan_on_the_conserving_model_of_their_method(planned):
+    from hipmdp.planning import LearnedModel
+    from tasks import transfer
+    from tasks.acrobot import AcrobotParams
+    from tasks.acrobot_swingup import _params
+    from tasks.agents import EnergyConserving, SimulatorModel
+
+    init, _ = planned
+    seen = []
+    counting_plan = transfer.plan  # the fixture's: counts, then plans
+
+    def model_plan(*args, **kwargs):
+        seen.append(args[3])
+        return counting_plan(*args, **kwargs)
+
+    transfer.plan = model_plan
+    try:
+        masses = TINY.test_masses[0]
+        for variant, inner, params in (
+            ("hipmdp_energy", "hipmdp", _params(*masses)),
+            ("average_energy_nominal", "average", AcrobotParams()),
+            ("true", None, None),
+        ):
+            init(TINY.transfer)
+            seen.clear()
+            acrobot_identified._job((variant, 0, 0, masses, (7, ())))
+            assert len(seen) == 1 + TINY.transfer.n_episodes
+            for model in seen:
+                if inner is None:  # the simulator is never wrapped
+                    assert isinstance(model, SimulatorModel)
+                    continue
+                assert isinstance(model, EnergyConserving)
+                assert model._params == params
+                assert isinstance(model._model, LearnedModel)
+                hip_like = model._model.belief is not None
+                assert hip_like == (inner == "hipmdp")
+            if inner == "hipmdp":  # the belief was filtered between episodes
+                assert seen[0]._model.belief is not seen[-1]._model.belief
+    finally:
+        transfer.plan = counting_plan
