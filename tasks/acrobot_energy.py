@@ -29,7 +29,10 @@ run's test settings, for ``--trials`` trials (seeds spawned from ``--seed``):
    step's energy changes by the elbow torque's work
    (:class:`tasks.agents.EnergyConserving`, with the instance's masses and
    lengths: an upper bound, since no learned model knows them), and
-   ``prior_energy_nominal`` with the nominal acrobot's.
+   ``prior_energy_nominal`` with the nominal acrobot's. ``exact_fast_angles``
+   and ``exact_fast_velocities`` take only the angles, or only the velocities,
+   of the simulator's prediction where ``|θ̇₂| ≥ --fast``, and the prior-mean
+   HiP-MDP's for the rest.
    ``--models`` runs a subset (``true`` always). Recorded: the mean steps of the
    last ``--last`` simulated episodes (what the model promised) and the mean steps
    of the real episodes (what the agent got).
@@ -94,6 +97,8 @@ MODELS = (
     "average_energy",
     "prior_energy",
     "prior_energy_nominal",
+    "exact_fast_angles",
+    "exact_fast_velocities",
 )
 LEARNED = MODELS[1:]
 DEFAULT_MODELS = ("true", "average", "prior", "identified")
@@ -129,6 +134,24 @@ class Split:
         for model, rows in ((self._fast, fast), (self._slow, ~fast)):
             if rows.any():
                 out[rows] = model.predict(states[rows], np.asarray(actions)[rows])
+        return out
+
+
+class Columns:
+    """``model``'s predictions with the ``columns`` of ``exact``'s on the rows whose
+    state has ``|θ̇₂| ≥ threshold`` rad/s (``exact`` is asked for those rows only)."""
+
+    def __init__(self, model, exact, threshold: float, columns: slice) -> None:
+        self._model, self._exact = model, exact
+        self._threshold, self._columns = threshold, columns
+
+    def predict(self, states: np.ndarray, actions: np.ndarray) -> np.ndarray:
+        states = np.asarray(states, dtype=np.float64)
+        out = np.array(self._model.predict(states, actions), dtype=np.float64)
+        fast = np.abs(states[:, 3]) >= self._threshold
+        if fast.any():
+            exact = self._exact.predict(states[fast], np.asarray(actions)[fast])
+            out[np.flatnonzero(fast), self._columns] = exact[:, self._columns]
         return out
 
 
@@ -321,6 +344,8 @@ def _job(args) -> tuple[int, int, dict[str, Any]]:
         "prior_energy_nominal": lambda: agents.EnergyConserving(
             prior, acrobot.AcrobotParams()
         ),
+        "exact_fast_angles": lambda: Columns(prior, simulator, fast, slice(0, 2)),
+        "exact_fast_velocities": lambda: Columns(prior, simulator, fast, slice(2, 4)),
     }
     models = {name: build[name]() for name in names}
     out: dict[str, Any] = {"promised": {}, "delivered": {}}

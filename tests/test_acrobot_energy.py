@@ -156,6 +156,25 @@ def test_energy_conserving_model_adds_exactly_the_torques_work():
     assert np.mean(noisy_change - work) > 0.05  # the noise alone adds energy
 
 
+def test_columns_take_the_exact_models_columns_on_fast_rows_only():
+    class Constant:
+        def __init__(self, value):
+            self.value, self.asked = value, []
+
+        def predict(self, states, actions):
+            self.asked.append(len(states))
+            return np.full(states.shape, self.value)
+
+    model, exact = Constant(1.0), Constant(2.0)
+    states = np.zeros((3, 4))
+    states[:, 3] = [0.0, 6.0, -5.0]
+    out = acrobot_energy.Columns(model, exact, 5.0, slice(2, 4)).predict(
+        states, np.zeros(3, dtype=int)
+    )
+    np.testing.assert_array_equal(out, [[1, 1, 1, 1], [1, 1, 2, 2], [1, 1, 2, 2]])
+    assert exact.asked == [2]
+
+
 def test_batch_distance_is_normalised_and_wraps_the_angles():
     batch = np.array([[0.0, 0.0, 0.0, 0.0], [np.pi - 0.01, 0.0, 0.0, 0.0]])
     distance = acrobot_energy.BatchDistance(batch)
