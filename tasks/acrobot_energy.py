@@ -32,7 +32,9 @@ run's test settings, for ``--trials`` trials (seeds spawned from ``--seed``):
    ``prior_energy_nominal`` with the nominal acrobot's. ``exact_fast_angles``
    and ``exact_fast_velocities`` take only the angles, or only the velocities,
    of the simulator's prediction where ``|θ̇₂| ≥ --fast``, and the prior-mean
-   HiP-MDP's for the rest.
+   HiP-MDP's for the rest. ``train_sampled`` plans each simulated episode on
+   the HiP-MDP at one training instance's fitted weights, drawn for it
+   (:class:`SampledWeights`): planning over instances instead of on their mean.
    ``--models`` runs a subset (``true`` always). Recorded: the mean steps of the
    last ``--last`` simulated episodes (what the model promised) and the mean steps
    of the real episodes (what the agent got).
@@ -68,7 +70,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from hipmdp.planning import LearnedModel, plan
+from hipmdp.filter import Belief
+from hipmdp.planning import LearnedModel, PlanResult, plan
 from hipmdp.sarsa import init_state
 from tasks import acrobot, agents
 from tasks.acrobot_identified import check_run, load_run
@@ -99,6 +102,7 @@ MODELS = (
     "prior_energy_nominal",
     "exact_fast_angles",
     "exact_fast_velocities",
+    "train_sampled",
 )
 LEARNED = MODELS[1:]
 DEFAULT_MODELS = ("true", "average", "prior", "identified")
@@ -153,6 +157,44 @@ class Columns:
             exact = self._exact.predict(states[fast], np.asarray(actions)[fast])
             out[np.flatnonzero(fast), self._columns] = exact[:, self._columns]
         return out
+
+
+class SampledWeights:
+    """The HiP-MDP at one training instance's fitted weights, drawn afresh for
+    every simulated episode (``draw``): planning over the instances the model was
+    fitted on instead of on their mean. ``predict`` draws for every call (the
+    one-step errors of a drawn model)."""
+
+    def __init__(self, hip, rng: np.random.Generator) -> None:
+        self._hip, self._rng = hip, rng
+        self._precision = hip.prior().P
+
+    def draw(self) -> LearnedModel:
+        weights = self._hip.weights  # (K, instances), row 0 the constant 1
+        w = weights[1:, self._rng.integers(weights.shape[1])]
+        belief = Belief(h=self._precision @ w, P=self._precision)  # mean w
+        return LearnedModel(self._hip, belief, ACROBOT.angle_dims)
+
+    def predict(self, states: np.ndarray, actions: np.ndarray) -> np.ndarray:
+        return self.draw().predict(states, actions)
+
+
+def _plan(state, basis, model, task, starts, n_episodes: int, rng) -> PlanResult:
+    """:func:`hipmdp.planning.plan`; on a :class:`SampledWeights` model, one
+    episode at a time on a model drawn for it (the same start-state and
+    exploration draws as ``plan`` makes for ``n_episodes`` in one call)."""
+    if not isinstance(model, SampledWeights):
+        return plan(
+            state, basis, ACROBOT.sarsa, model, task, starts, n_episodes, rng=rng
+        )
+    steps = []
+    for _ in range(n_episodes):
+        result = plan(
+            state, basis, ACROBOT.sarsa, model.draw(), task, starts, 1, rng=rng
+        )
+        state = result.state
+        steps.append(result.steps)
+    return PlanResult(state, np.concatenate(steps), np.zeros(0), np.zeros(0, bool))
 
 
 class BatchDistance:
@@ -313,9 +355,10 @@ def _init(settings, hip, average, beliefs, options) -> None:
 def _job(args) -> tuple[int, int, dict[str, Any]]:
     setting, trial, seed = args
     params = _params(*_STATE["settings"][setting])
-    ss_env, ss_starts, ss_plan, ss_noise, ss_sample = np.random.SeedSequence(
-        seed[0], spawn_key=seed[1]
-    ).spawn(5)
+    # the i-th child does not depend on how many are spawned: ss_weights is new
+    ss_env, ss_starts, ss_plan, ss_noise, ss_sample, ss_weights = (
+        np.random.SeedSequence(seed[0], spawn_key=seed[1]).spawn(6)
+    )
     transfer = _STATE["transfer"]
     start_env = ACROBOT.make_env(params, seed=np.random.default_rng(ss_starts))
     starts = np.array(
@@ -346,6 +389,7 @@ def _job(args) -> tuple[int, int, dict[str, Any]]:
         ),
         "exact_fast_angles": lambda: Columns(prior, simulator, fast, slice(0, 2)),
         "exact_fast_velocities": lambda: Columns(prior, simulator, fast, slice(2, 4)),
+        "train_sampled": lambda: SampledWeights(hip, np.random.default_rng(ss_weights)),
     }
     models = {name: build[name]() for name in names}
     out: dict[str, Any] = {"promised": {}, "delivered": {}}
@@ -353,9 +397,9 @@ def _job(args) -> tuple[int, int, dict[str, Any]]:
         # every model: the same start states, exploration stream and real instance
         rng = np.random.default_rng(ss_plan)
         state = init_state(ACROBOT.n_actions, basis.n_features, ACROBOT.initial_value)
-        result = plan(
-            state, basis, ACROBOT.sarsa, models[name], task, starts,
-            transfer.initial_planning_episodes, rng=rng,
+        result = _plan(
+            state, basis, models[name], task, starts,
+            transfer.initial_planning_episodes, rng,
         )  # fmt: skip
         env = ACROBOT.make_env(
             params,

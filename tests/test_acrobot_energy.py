@@ -175,6 +175,43 @@ def test_columns_take_the_exact_models_columns_on_fast_rows_only():
     assert exact.asked == [2]
 
 
+def test_sampled_weights_draw_the_training_instances_weights(run):
+    import hipmdp
+
+    hip = hipmdp.load(run[0] / "hipmdp_model.npz")
+    sampled = acrobot_energy.SampledWeights(hip, np.random.default_rng(1))
+    rows = {tuple(np.round(sampled.draw().belief.mean, 9)) for _ in range(200)}
+    assert rows == {tuple(np.round(w[1:], 9)) for w in hip.weights.T}
+
+
+def test_sampled_planning_draws_a_model_per_episode_and_plans_as_plan_does(run):
+    """With every draw the prior-mean model, one-episode-at-a-time planning is
+    ``plan`` in one call: the same start states and exploration."""
+    import hipmdp
+    from hipmdp.planning import LearnedModel, plan
+    from hipmdp.sarsa import init_state
+
+    hip = hipmdp.load(run[0] / "hipmdp_model.npz")
+    mean = LearnedModel(hip, hip.prior(), ACROBOT.angle_dims)
+    sampled = acrobot_energy.SampledWeights(hip, np.random.default_rng(0))
+    drawn = []
+    sampled.draw = lambda: drawn.append(1) or mean
+    basis = ACROBOT.basis()
+    task = ACROBOT.planning_task(PARAMS, 30)
+    starts = _states(np.random.default_rng(2), 5) * 0.05
+    state = init_state(ACROBOT.n_actions, basis.n_features, ACROBOT.initial_value)
+    args = (state, basis)
+    got = acrobot_energy._plan(
+        *args, sampled, task, starts, 3, np.random.default_rng(4)
+    )
+    want = plan(
+        *args, ACROBOT.sarsa, mean, task, starts, 3, rng=np.random.default_rng(4)
+    )
+    assert len(drawn) == 3
+    np.testing.assert_array_equal(got.steps, want.steps)
+    np.testing.assert_array_equal(got.state.weights, want.state.weights)
+
+
 def test_batch_distance_is_normalised_and_wraps_the_angles():
     batch = np.array([[0.0, 0.0, 0.0, 0.0], [np.pi - 0.01, 0.0, 0.0, 0.0]])
     distance = acrobot_energy.BatchDistance(batch)
