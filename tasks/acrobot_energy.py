@@ -27,9 +27,9 @@ run's test settings, for ``--trials`` trials (seeds spawned from ``--seed``):
    average model (``average_energy``) and the prior-mean HiP-MDP
    (``prior_energy``) with their predicted velocities rescaled so that each
    step's energy changes by the elbow torque's work
-   (:class:`tasks.agents.EnergyConserving`, with the instance's masses and
-   lengths: an upper bound, since no learned model knows them), and
-   ``prior_energy_nominal`` with the nominal acrobot's. ``exact_fast_angles``
+   (:class:`tasks.agents.EnergyConserving`, with the instance's true masses and
+   lengths: information no learned model has), and ``prior_energy_nominal``
+   with the nominal acrobot's. ``exact_fast_angles``
    and ``exact_fast_velocities`` take only the angles, or only the velocities,
    of the simulator's prediction where ``|θ̇₂| ≥ --fast``, and the prior-mean
    HiP-MDP's for the rest. ``train_sampled`` plans each simulated episode on
@@ -179,6 +179,12 @@ class SampledWeights:
         return self.draw().predict(states, actions)
 
 
+PLAN_FIELDS = ("steps", "returns", "reached")
+
+
+PLAN_FIELDS = ("steps", "returns", "reached")
+
+
 def _plan(state, basis, model, task, starts, n_episodes: int, rng) -> PlanResult:
     """:func:`hipmdp.planning.plan`; on a :class:`SampledWeights` model, one
     episode at a time on a model drawn for it (the same start-state and
@@ -187,14 +193,16 @@ def _plan(state, basis, model, task, starts, n_episodes: int, rng) -> PlanResult
         return plan(
             state, basis, ACROBOT.sarsa, model, task, starts, n_episodes, rng=rng
         )
-    steps = []
+    results = []
     for _ in range(n_episodes):
-        result = plan(
-            state, basis, ACROBOT.sarsa, model.draw(), task, starts, 1, rng=rng
+        results.append(
+            plan(state, basis, ACROBOT.sarsa, model.draw(), task, starts, 1, rng=rng)
         )
-        state = result.state
-        steps.append(result.steps)
-    return PlanResult(state, np.concatenate(steps), np.zeros(0), np.zeros(0, bool))
+        state = results[-1].state
+    return PlanResult(
+        state,
+        *(np.concatenate([getattr(r, k) for r in results]) for k in PLAN_FIELDS),
+    )
 
 
 class BatchDistance:
@@ -352,22 +360,13 @@ def _init(settings, hip, average, beliefs, options) -> None:
     )
 
 
-def _job(args) -> tuple[int, int, dict[str, Any]]:
-    setting, trial, seed = args
-    params = _params(*_STATE["settings"][setting])
-    # the i-th child does not depend on how many are spawned: ss_weights is new
-    ss_env, ss_starts, ss_plan, ss_noise, ss_sample, ss_weights = (
-        np.random.SeedSequence(seed[0], spawn_key=seed[1]).spawn(6)
-    )
-    transfer = _STATE["transfer"]
-    start_env = ACROBOT.make_env(params, seed=np.random.default_rng(ss_starts))
-    starts = np.array(
-        [start_env.reset().observation["state"] for _ in range(transfer.n_start_states)]
-    )
-    task = ACROBOT.planning_task(params, transfer.planning_max_steps)
-    basis = ACROBOT.basis()
-    simulator = SimulatorModel(ACROBOT, params)
-    hip, names, fast = _STATE["hip"], _STATE["models"], _STATE["fast"]
+def _build_models(
+    names, setting: int, params, simulator, ss_noise, ss_weights
+) -> dict[str, Any]:
+    """The dynamics models ``names`` for test setting ``setting`` (instance
+    ``params``, its ``simulator``), from what :func:`_init` installed; ``noisy``
+    and ``train_sampled`` draw from ``ss_noise`` and ``ss_weights``."""
+    hip, fast = _STATE["hip"], _STATE["fast"]
     dims = ACROBOT.angle_dims
     prior = LearnedModel(hip, hip.prior(), dims)
     build = {  # only the asked models are built; exact_* share the prior-mean one
@@ -391,7 +390,26 @@ def _job(args) -> tuple[int, int, dict[str, Any]]:
         "exact_fast_velocities": lambda: Columns(prior, simulator, fast, slice(2, 4)),
         "train_sampled": lambda: SampledWeights(hip, np.random.default_rng(ss_weights)),
     }
-    models = {name: build[name]() for name in names}
+    return {name: build[name]() for name in names}
+
+
+def _job(args) -> tuple[int, int, dict[str, Any]]:
+    setting, trial, seed = args
+    params = _params(*_STATE["settings"][setting])
+    # the i-th child does not depend on how many are spawned: ss_weights is new
+    ss_env, ss_starts, ss_plan, ss_noise, ss_sample, ss_weights = (
+        np.random.SeedSequence(seed[0], spawn_key=seed[1]).spawn(6)
+    )
+    transfer = _STATE["transfer"]
+    start_env = ACROBOT.make_env(params, seed=np.random.default_rng(ss_starts))
+    starts = np.array(
+        [start_env.reset().observation["state"] for _ in range(transfer.n_start_states)]
+    )
+    task = ACROBOT.planning_task(params, transfer.planning_max_steps)
+    basis = ACROBOT.basis()
+    simulator = SimulatorModel(ACROBOT, params)
+    names = _STATE["models"]
+    models = _build_models(names, setting, params, simulator, ss_noise, ss_weights)
     out: dict[str, Any] = {"promised": {}, "delivered": {}}
     for name in names:
         # every model: the same start states, exploration stream and real instance

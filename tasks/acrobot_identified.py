@@ -27,9 +27,9 @@ transfer protocol (tasks/transfer.py) on the run's test settings for these varia
 - ``average_energy``, ``hipmdp_energy``: the average model and the HiP-MDP, each
   planning on its predictions with the velocities rescaled so that every step
   changes the energy by the elbow torque's work
-  (:class:`tasks.agents.EnergyConserving`) of the test instance (its masses and
-  lengths, which no learned model knows: what energy-consistent predictions
-  could buy at best); ``*_energy_nominal`` with the nominal acrobot's instead.
+  (:class:`tasks.agents.EnergyConserving`) of the test instance (its true masses
+  and lengths: information no learned model has); ``*_energy_nominal`` with the
+  nominal acrobot's instead.
 
 ``--first-planning N`` gives every variant ``N`` simulated episodes after the first
 real one instead of the run's ``planning_episodes`` (not the paper's protocol).
@@ -157,7 +157,7 @@ def _job(args) -> tuple[str, int, int, np.ndarray]:
         nominal = AcrobotParams() if variant.endswith("_nominal") else None
 
         def wrapper(model, params):
-            return EnergyConserving(model, nominal or params)
+            return EnergyConserving(model, params if nominal is None else nominal)
 
     # the trial reads its models from what set_models installed in this process
     transfer.set_models(ACROBOT, config, model, _STATE["average"], wrapper)

@@ -148,9 +148,11 @@ DOMAINS: dict[str, Domain] = {"cartpole": CARTPOLE, "acrobot": ACROBOT}
 
 
 class EnergyConserving:
-    """A dynamics model whose predicted velocities are rescaled so that every step
+    """A dynamics model whose predicted velocities are rescaled so that each step
     changes the energy of the acrobot ``params`` by the elbow torque's work
-    (:func:`tasks.acrobot.conserve_energy`)."""
+    (:func:`tasks.acrobot.conserve_energy`; where no speed reaches that energy,
+    below the predicted pose's potential or from a prediction at rest, the
+    velocities are 0)."""
 
     def __init__(self, model, params: acrobot.AcrobotParams) -> None:
         self._model, self._params = model, params

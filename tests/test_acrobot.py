@@ -300,3 +300,17 @@ def test_conserve_energy_stops_a_prediction_above_the_steps_energy():
     predicted = np.array([[np.pi, 0.0, 0.5, -0.5], [0.0, 0.0, 0.0, 0.0]])
     out = acrobot.conserve_energy(s, np.zeros(2), predicted)
     np.testing.assert_array_equal(out, [[np.pi, 0.0, 0.0, 0.0], [0.0] * 4])
+
+
+def test_conserve_energy_keeps_its_precision_at_low_speeds():
+    """The kinetic energy of a slow prediction is not lost to cancellation
+    against the potential (~20 J)."""
+    s = np.zeros((3, 4))
+    predicted = np.zeros((3, 4))
+    predicted[:, 2:] = np.array([1e-4, 1e-6, 1e-8])[:, None]
+    tau = np.array([1.0, 1.0, 1.0])
+    predicted[:, 1] = 0.01  # the elbow turned: the torque did 0.01 J of work
+    out = acrobot.conserve_energy(s, tau, predicted)
+    change = acrobot.energy(out) - acrobot.energy(s)
+    np.testing.assert_allclose(change, 0.01, atol=1e-9)
+    assert np.all(out[:, 2:] / predicted[:, 2:] > 1)  # sped up, not stopped

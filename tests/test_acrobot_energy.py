@@ -365,3 +365,38 @@ def test_out_writes_the_named_file_and_leaves_the_default_alone(run, tmp_path):
     assert result.out == path
     assert json.loads(path.read_text())["models"] == ["true", "exact_fast"]
     assert (out / "energy.json").read_text() == before
+
+
+def test_the_models_are_built_with_their_masses_columns_and_streams(run):
+    import hipmdp
+    from hipmdp import baselines
+    from hipmdp.planning import LearnedModel
+
+    out = run[0]
+    hip = hipmdp.load(out / "hipmdp_model.npz")
+    batch = hipmdp.Transitions.load(out / "batch.npz")
+    average = baselines.batch_only(batch, rng=np.random.default_rng(0), n_max=50)
+    acrobot_energy._init([(0.9, 1.1)], hip, average, [], {"fast": 5.0, "noise": 0.1})
+    simulator = SimulatorModel(ACROBOT, PARAMS)
+    ss_noise, ss_weights = np.random.SeedSequence(3).spawn(2)
+    names = [m for m in acrobot_energy.MODELS if m not in ("true", "identified")]
+    models = acrobot_energy._build_models(
+        names, 0, PARAMS, simulator, ss_noise, ss_weights
+    )
+    assert models["prior_energy"]._params == PARAMS
+    assert models["average_energy"]._params == PARAMS
+    assert models["prior_energy_nominal"]._params == AcrobotParams()
+    assert models["average_energy"]._model.model is average
+    assert models["prior_energy"]._model.belief is not None
+    for name, columns in (
+        ("exact_fast_angles", (0, 2)),
+        ("exact_fast_velocities", (2, 4)),
+    ):
+        model = models[name]
+        assert (model._columns.start, model._columns.stop) == columns
+        assert model._threshold == 5.0 and model._exact is simulator
+        assert isinstance(model._model, LearnedModel)
+    want = acrobot_energy.SampledWeights(hip, np.random.default_rng(ss_weights))
+    got = models["train_sampled"]
+    for _ in range(20):  # a different stream matches 20 draws by chance rarely
+        np.testing.assert_array_equal(got.draw().belief.mean, want.draw().belief.mean)

@@ -236,3 +236,47 @@ def test_energy_variants_plan_on_the_conserving_model_of_their_method(planned):
                 assert seen[0]._model.belief is not seen[-1]._model.belief
     finally:
         transfer.plan = counting_plan
+
+
+def test_the_planning_wrapper_skips_the_simulator_and_spares_the_recording(run):
+    """``_planning_model`` wraps the learned models only; a recorded trial with a
+    wrapper installed traces the learned model's own one-step predictions."""
+    from hipmdp import baselines
+    from hipmdp.planning import LearnedModel
+    from tasks import transfer
+    from tasks.acrobot_swingup import _params
+    from tasks.agents import ACROBOT, EnergyConserving
+
+    out, _ = run
+    hip = hipmdp.load(out / "hipmdp_model.npz")
+    batch = hipmdp.Transitions.load(out / "batch.npz")
+    average = baselines.batch_only(batch, rng=np.random.default_rng(0), n_max=100)
+    wrapped = []
+
+    def wrapper(model, params):
+        wrapped.append(model)
+        return EnergyConserving(model, params)
+
+    transfer.set_models(ACROBOT, TINY.transfer, hip, average, wrapper)
+    params = _params(*TINY.test_masses[0])
+    for method in transfer.METHODS:
+        job = transfer.TrialJob(method, 0, 0, params, (7, ()), False)
+        model = object()
+        got = transfer._planning_model(model, job)
+        assert (got is model) == (method == "true")
+    wrapped.clear()
+    result = transfer.run_trial(
+        transfer.TrialJob("hipmdp", 0, 0, params, (7, ()), True)
+    )
+    assert len(wrapped) == 1 + TINY.transfer.n_episodes
+    # the trace holds no actions: the first prediction must be the prior-mean
+    # model's for one of them, and the energy-conserving one's for none
+    trace = result.traces[0]
+    first = LearnedModel(hip, hip.prior(), ACROBOT.angle_dims)
+    s0 = np.repeat(trace.states[:1], 3, axis=0)
+    actions = np.arange(3)
+    raw = first.predict(s0, actions)
+    conserving = EnergyConserving(first, params).predict(s0, actions)
+    assert np.any(np.all(np.isclose(raw, trace.predicted[0], atol=1e-12), axis=1))
+    assert not np.any(np.all(np.isclose(conserving, trace.predicted[0]), axis=1))
+    transfer.set_models(ACROBOT, TINY.transfer, hip, average)  # as it was
