@@ -79,10 +79,10 @@ def greedy_support(
     """
     X = np.asarray(X, dtype=float)
     n = X.shape[0]
-    # embedded once: the plain kernel of E with ℓ[dims] is the periodic kernel of X
-    E, dims = embed(X, check_periodic(periodic, X.shape[1]))
     if not 1 <= m <= n:
         raise ValueError(f"m: expected 1 <= m <= {n} (number of candidates), got {m}")
+    # embedded once: the plain kernel of E with ℓ[dims] is the periodic kernel of X
+    E, dims = embed(X, check_periodic(periodic, X.shape[1]))
     R = len(kernels)
     C = np.zeros(
         (R, m, n)

@@ -32,7 +32,7 @@ import numpy as np
 
 import hipmdp
 from tasks.acrobot_identified import check_run, load_run
-from tasks.experiment import run_parser, write_json
+from tasks.experiment import run_or_exit, run_parser, write_json
 
 MODELS = ("own", "prior", "average")
 
@@ -65,7 +65,7 @@ def main(run: str | Path, *, fast: float = 10.0, out: str | Path | None = None):
     table = hipmdp.data.ParameterTable.load(run / "batch.npz")
     # the same for every instance: built once
     shared = {
-        "prior": hip.mean_predictor(hipmdp.Belief(hip.mu_w[1:], np.eye(K))),
+        "prior": hip.mean_predictor(hip.prior()),
         "average": average.mean_predictor(),
     }
     for col, b in enumerate(hip.instance_ids):
@@ -100,10 +100,7 @@ def cli(argv: list[str] | None = None) -> int:
         "--out", default=None, help="the JSON file (default: RUN/batch_errors.json)"
     )
     args = parser.parse_args(argv)
-    try:
-        results = main(args.run, fast=args.fast, out=args.out)
-    except (ValueError, FileNotFoundError) as err:
-        parser.error(str(err))
+    results = run_or_exit(parser, lambda: main(args.run, fast=args.fast, out=args.out))
     s = results.summary
     print(
         f"RMS error of (Δθ̇₁, Δθ̇₂) in rad/s on each training instance's batch "

@@ -82,6 +82,7 @@ from tasks.experiment import (
     fmt_ci,
     mean_ci,
     pool_map,
+    run_or_exit,
     run_parser,
     seed_value,
     write_json,
@@ -167,19 +168,15 @@ class SampledWeights:
 
     def __init__(self, hip, rng: np.random.Generator) -> None:
         self._hip, self._rng = hip, rng
-        self._precision = hip.prior().P
 
     def draw(self) -> LearnedModel:
         weights = self._hip.weights  # (K, instances), row 0 the constant 1
         w = weights[1:, self._rng.integers(weights.shape[1])]
-        belief = Belief(h=self._precision @ w, P=self._precision)  # mean w
+        belief = Belief(w, np.eye(len(w)))  # mean w: planning reads the mean only
         return LearnedModel(self._hip, belief, ACROBOT.angle_dims)
 
     def predict(self, states: np.ndarray, actions: np.ndarray) -> np.ndarray:
         return self.draw().predict(states, actions)
-
-
-PLAN_FIELDS = ("steps", "returns", "reached")
 
 
 PLAN_FIELDS = ("steps", "returns", "reached")
@@ -641,17 +638,14 @@ def cli(argv: list[str] | None = None) -> int:
         "--out", default=None, help="the JSON file to write (default: RUN/energy.json)"
     )
     args = parser.parse_args(argv)
-    try:
-        results = main(
-            args.run, trials=args.trials, models=args.models,
-            identify=args.identify, noise=args.noise,
-            fast=args.fast,
-            n_states=args.states, last=args.last, real=args.real,
-            seed=args.seed,
-            workers=args.workers, out=args.out,
-        )  # fmt: skip
-    except (ValueError, FileNotFoundError) as err:
-        parser.error(str(err))
+    results = run_or_exit(parser, lambda: main(
+        args.run, trials=args.trials, models=args.models,
+        identify=args.identify, noise=args.noise,
+        fast=args.fast,
+        n_states=args.states, last=args.last, real=args.real,
+        seed=args.seed,
+        workers=args.workers, out=args.out,
+    ))  # fmt: skip
     s = results.summary
     n = s["promised_steps_mean"]["true"]["n"]
     print(f"steps to the goal, mean [95% interval] over {n} trials")

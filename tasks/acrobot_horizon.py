@@ -41,7 +41,7 @@ from hipmdp.planning import LearnedModel, open_loop_errors
 from tasks.acrobot_identified import check_run, load_run
 from tasks.acrobot_swingup import _params
 from tasks.agents import ACROBOT
-from tasks.experiment import check_counts, run_parser, write_json
+from tasks.experiment import check_counts, run_or_exit, run_parser, write_json
 from tasks.prediction import gather_split
 
 MODELS = ("average", "prior", "identified")
@@ -137,13 +137,10 @@ def cli(argv: list[str] | None = None) -> int:
         "--out", default=None, help="the JSON file to write (default: RUN/horizon.json)"
     )
     args = parser.parse_args(argv)
-    try:
-        results = main(
-            args.run, horizons=tuple(args.horizons), identify=args.identify,
-            evaluate=args.evaluate, seed=args.seed, out=args.out,
-        )  # fmt: skip
-    except (ValueError, FileNotFoundError) as err:
-        parser.error(str(err))
+    results = run_or_exit(parser, lambda: main(
+        args.run, horizons=tuple(args.horizons), identify=args.identify,
+        evaluate=args.evaluate, seed=args.seed, out=args.out,
+    ))  # fmt: skip
     s = results.summary
     n = len(s["test_masses"])
     head = f"{'model':>11} {'k':>3} " + " ".join(f"{d:>12}" for d in s["dimensions"])

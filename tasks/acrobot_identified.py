@@ -58,13 +58,14 @@ from hipmdp import baselines
 from hipmdp.data import wrap_angle
 from tasks import transfer
 from tasks.acrobot import AcrobotParams
-from tasks.acrobot_swingup import _params
+from tasks.acrobot_swingup import _params, run_streams
 from tasks.agents import ACROBOT, EnergyConserving, SimulatorModel
 from tasks.experiment import (
     check_counts,
     mean_ci,
     paired_difference,
     pool_map,
+    run_or_exit,
     run_parser,
     seed_value,
     write_json,
@@ -140,29 +141,35 @@ def _init(config: transfer.TransferConfig, hip, average, beliefs) -> None:
 def _job(args) -> tuple[str, int, int, np.ndarray]:
     variant, setting, trial, masses, seed = args
     model, config = _STATE["hip"], _STATE["config"]
+    base, energy = variant, None  # e.g. hipmdp_energy_nominal: hipmdp, "nominal"
+    for suffix, kind in (("_energy_nominal", "nominal"), ("_energy", "instance")):
+        if variant.endswith(suffix):
+            base, energy = variant.removesuffix(suffix), kind
+            break
     if variant == "model_free":  # the true model's trial, with nothing planned
         config = dataclasses.replace(
             config, planning_episodes=0, initial_planning_episodes=0
         )
     elif variant == "true_first":
         model = _TrueFirst(model, _params(*masses))
-    elif variant != "true" and not variant.startswith("average"):
+    elif base not in ("true", "average"):
         paper = variant.endswith("_paper_filter")
         belief = None
         if variant.startswith("identified"):
             belief = _STATE["beliefs"]["paper" if paper else "model"][setting]
         model = _Identified(model, belief, model_error=not paper)
     wrapper = None
-    if "_energy" in variant:  # the constraint of the instance, or of the nominal one
-        nominal = AcrobotParams() if variant.endswith("_nominal") else None
+    if energy is not None:  # the constraint of the instance, or of the nominal one
 
         def wrapper(model, params):
-            return EnergyConserving(model, params if nominal is None else nominal)
+            return EnergyConserving(
+                model, AcrobotParams() if energy == "nominal" else params
+            )
 
     # the trial reads its models from what set_models installed in this process
     transfer.set_models(ACROBOT, config, model, _STATE["average"], wrapper)
-    method = {"true": "true", "model_free": "true"}.get(
-        variant, "average" if variant.startswith("average") else "hipmdp"
+    method = {"average": "average", "true": "true", "model_free": "true"}.get(
+        base, "hipmdp"
     )
     job = transfer.TrialJob(method, setting, trial, _params(*masses), seed, False)
     return variant, setting, trial, transfer.run_trial(job).returns
@@ -197,7 +204,7 @@ def load_run(run: Path) -> FinishedRun:
     config = json.loads((run / "config.json").read_text())
     hip = hipmdp.load(run / "hipmdp_model.npz")
     batch = hipmdp.Transitions.load(run / "batch.npz")
-    ss_avg = np.random.SeedSequence(config["seed"]).spawn(5)[2]  # as the run did
+    ss_avg = run_streams(config["seed"]).average  # as the run did
     fit = hipmdp.FitConfig(**config["fit"])  # runs before `periodic` lack it
     average = baselines.batch_only(
         batch,
@@ -316,15 +323,12 @@ def cli(argv: list[str] | None = None) -> int:
         help="the JSON file to write (default: RUN/identified.json)",
     )
     args = parser.parse_args(argv)
-    try:
-        results = main(
-            args.run, variants=tuple(args.variants), trials=args.trials,
-            episodes=args.episodes, identify=args.identify,
-            first_planning=args.first_planning, seed=args.seed,
-            workers=args.workers, out=args.out,
-        )  # fmt: skip
-    except (ValueError, FileNotFoundError) as err:
-        parser.error(str(err))
+    results = run_or_exit(parser, lambda: main(
+        args.run, variants=tuple(args.variants), trials=args.trials,
+        episodes=args.episodes, identify=args.identify,
+        first_planning=args.first_planning, seed=args.seed,
+        workers=args.workers, out=args.out,
+    ))  # fmt: skip
     for v, r in results.returns.items():
         se = r.std(axis=0, ddof=1) / np.sqrt(len(r)) if len(r) > 1 else 0 * r[0]
         cells = ", ".join(

@@ -34,7 +34,8 @@ import numpy as np
 import hipmdp
 from hipmdp.data import atomic_write
 from tasks.acrobot_identified import check_run
-from tasks.experiment import run_parser, write_json
+from tasks.acrobot_swingup import run_streams
+from tasks.experiment import run_or_exit, run_parser, write_json
 
 _FIELDS = {f.name: f for f in dataclasses.fields(hipmdp.FitConfig)}
 
@@ -103,7 +104,7 @@ def main(
         lambda fh: fh.write((run / "batch.npz").read_bytes()),
     )
     batch = hipmdp.Transitions.load(out / "batch.npz")
-    ss_fit = np.random.SeedSequence(config["seed"]).spawn(5)[1]  # as the run did
+    ss_fit = run_streams(config["seed"]).fit  # as the run did
     t0 = time.perf_counter()
     model = hipmdp.fit(batch, fit_config, rng=np.random.default_rng(ss_fit))
     seconds = time.perf_counter() - t0
@@ -121,11 +122,10 @@ def cli(argv: list[str] | None = None) -> int:
     )  # fmt: skip
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = parser.parse_args(argv)
-    try:
-        changes = parse_fit(args.fit)
-        results = main(args.run, args.out, changes, progress=not args.no_progress)
-    except (ValueError, FileNotFoundError) as err:
-        parser.error(str(err))
+    progress = not args.no_progress
+    results = run_or_exit(
+        parser, lambda: main(args.run, args.out, parse_fit(args.fit), progress=progress)
+    )
     m = results.model
     print(
         f"fitted in {results.seconds:.0f} s: {m.n_features} features, "

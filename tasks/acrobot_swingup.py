@@ -169,6 +169,25 @@ PRESETS: dict[str, SwingupConfig] = {
 }
 
 
+class RunStreams(NamedTuple):
+    """The run's random streams, spawned in this order from its one seed: batch
+    data, HiP-MDP fit, average model, transfer trials, prediction table. The
+    checks on a finished run (``tasks.acrobot_refit``, ``load_run``) take theirs
+    from here to redo exactly what the run did."""
+
+    batch: np.random.SeedSequence
+    fit: np.random.SeedSequence
+    average: np.random.SeedSequence
+    trials: np.random.SeedSequence
+    mse: np.random.SeedSequence
+
+
+def run_streams(seed: int) -> RunStreams:
+    """:class:`RunStreams` of the run with seed ``seed`` (fresh objects: spawning
+    from them gives the run's own children)."""
+    return RunStreams(*np.random.SeedSequence(seed).spawn(len(RunStreams._fields)))
+
+
 class Results(NamedTuple):
     """What ``main`` returns: the run folder and the metrics written there."""
 
@@ -224,9 +243,7 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
     started = time.perf_counter()
     path = run_dir(out, config.name)
     write_json(path / "config.json", config)
-    ss_batch, ss_fit, ss_avg, ss_trials, ss_mse = np.random.SeedSequence(
-        config.seed
-    ).spawn(5)
+    ss_batch, ss_fit, ss_avg, ss_trials, ss_mse = run_streams(config.seed)
     timings: dict[str, float] = {}
 
     t0 = time.perf_counter()
@@ -412,13 +429,8 @@ def step_limit_split(
             continue
         ma, mb = out["methods"][a], out["methods"][b]
         gap = ma["mean_return"] - mb["mean_return"]
-        if (
-            ma["mean_return_below_limit"] is None
-            or mb["mean_return_below_limit"] is None
-        ):
-            below = None
-        else:
-            below = ma["mean_return_below_limit"] - mb["mean_return_below_limit"]
+        below_a, below_b = (x["mean_return_below_limit"] for x in (ma, mb))
+        below = None if None in (below_a, below_b) else below_a - below_b
         out["pairs"][f"{a} - {b}"] = {
             "gap": gap,
             "below_limit": below,

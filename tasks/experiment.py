@@ -12,7 +12,7 @@ import argparse
 import dataclasses
 import json
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -219,6 +219,15 @@ def run_parser(prog: str, doc: str):
     )
     parser.add_argument("run", help="a finished acrobot_swingup run folder")
     return parser
+
+
+def run_or_exit(parser, fn: Callable[[], Any]) -> Any:
+    """``fn()``, with a ValueError or FileNotFoundError (bad input, a folder that
+    is not a run) reported as ``parser``'s usage error (exit status 2)."""
+    try:
+        return fn()
+    except (ValueError, FileNotFoundError) as err:
+        parser.error(str(err))
 
 
 def common_parser(prog: str, doc: str, presets: Sequence[str], out_default: str):

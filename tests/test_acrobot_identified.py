@@ -181,10 +181,10 @@ def test_load_run_refits_the_average_model_with_the_runs_kernels(run, tmp_path):
 def test_load_run_average_is_the_model_the_run_used(run):
     # the run's one-step MSE table, recomputed with the refitted average model on
     # the run's own prediction seeds, gives the numbers in metrics.json
-    from tasks.acrobot_swingup import prediction_table
+    from tasks.acrobot_swingup import prediction_table, run_streams
 
     finished = acrobot_identified.load_run(run[0])
-    ss_mse = np.random.SeedSequence(TINY.seed).spawn(5)[4]  # as the run did
+    ss_mse = run_streams(TINY.seed).mse  # as the run did
     table = prediction_table(
         TINY, finished.hip, finished.average, finished.batch, ss_mse
     )
@@ -196,7 +196,9 @@ def test_load_run_average_is_the_model_the_run_used(run):
         assert got[dim]["mean"] == pytest.approx(want[dim]["mean"], rel=1e-9)
 
 
-def test_energy_variants_plan_on_the_conserving_model_of_their_method(planned):
+def test_energy_variants_plan_on_the_conserving_model_of_their_method(
+    planned, monkeypatch
+):
     from hipmdp.planning import LearnedModel
     from tasks import transfer
     from tasks.acrobot import AcrobotParams
@@ -211,34 +213,33 @@ def test_energy_variants_plan_on_the_conserving_model_of_their_method(planned):
         seen.append(args[3])
         return counting_plan(*args, **kwargs)
 
-    transfer.plan = model_plan
-    try:
-        masses = TINY.test_masses[0]
-        for variant, inner, params in (
-            ("hipmdp_energy", "hipmdp", _params(*masses)),
-            ("average_energy_nominal", "average", AcrobotParams()),
-            ("true", None, None),
-        ):
-            init(TINY.transfer)
-            seen.clear()
-            acrobot_identified._job((variant, 0, 0, masses, (7, ())))
-            assert len(seen) == 1 + TINY.transfer.n_episodes
-            for model in seen:
-                if inner is None:  # the simulator is never wrapped
-                    assert isinstance(model, SimulatorModel)
-                    continue
-                assert isinstance(model, EnergyConserving)
-                assert model._params == params
-                assert isinstance(model._model, LearnedModel)
-                hip_like = model._model.belief is not None
-                assert hip_like == (inner == "hipmdp")
-            if inner == "hipmdp":  # the belief was filtered between episodes
-                assert seen[0]._model.belief is not seen[-1]._model.belief
-    finally:
-        transfer.plan = counting_plan
+    monkeypatch.setattr(transfer, "plan", model_plan)
+    masses = TINY.test_masses[0]
+    for variant, inner, params in (
+        ("hipmdp_energy", "hipmdp", _params(*masses)),
+        ("average_energy_nominal", "average", AcrobotParams()),
+        ("true", None, None),
+    ):
+        init(TINY.transfer)
+        seen.clear()
+        acrobot_identified._job((variant, 0, 0, masses, (7, ())))
+        assert len(seen) == 1 + TINY.transfer.n_episodes
+        for model in seen:
+            if inner is None:  # the simulator is never wrapped
+                assert isinstance(model, SimulatorModel)
+                continue
+            assert isinstance(model, EnergyConserving)
+            assert model._params == params
+            assert isinstance(model._model, LearnedModel)
+            hip_like = model._model.belief is not None
+            assert hip_like == (inner == "hipmdp")
+        if inner == "hipmdp":  # the belief was filtered between episodes
+            assert seen[0]._model.belief is not seen[-1]._model.belief
 
 
-def test_the_planning_wrapper_skips_the_simulator_and_spares_the_recording(run):
+def test_the_planning_wrapper_skips_the_simulator_and_spares_the_recording(
+    run, monkeypatch
+):
     """``_planning_model`` wraps the learned models only; a recorded trial with a
     wrapper installed traces the learned model's own one-step predictions."""
     from hipmdp import baselines
@@ -257,6 +258,7 @@ def test_the_planning_wrapper_skips_the_simulator_and_spares_the_recording(run):
         wrapped.append(model)
         return EnergyConserving(model, params)
 
+    monkeypatch.setattr(transfer, "_MODELS", {})  # this process's models: restored
     transfer.set_models(ACROBOT, TINY.transfer, hip, average, wrapper)
     params = _params(*TINY.test_masses[0])
     for method in transfer.METHODS:
@@ -279,4 +281,3 @@ def test_the_planning_wrapper_skips_the_simulator_and_spares_the_recording(run):
     conserving = EnergyConserving(first, params).predict(s0, actions)
     assert np.any(np.all(np.isclose(raw, trace.predicted[0], atol=1e-12), axis=1))
     assert not np.any(np.all(np.isclose(conserving, trace.predicted[0]), axis=1))
-    transfer.set_models(ACROBOT, TINY.transfer, hip, average)  # as it was
