@@ -75,7 +75,7 @@ from hipmdp.planning import LearnedModel, PlanResult, plan
 from hipmdp.sarsa import init_state
 from tasks import acrobot, agents
 from tasks.acrobot_identified import check_run, load_run
-from tasks.acrobot_swingup import _params
+from tasks.acrobot_swingup import setting_params
 from tasks.agents import ACROBOT, SimulatorModel, run_episode
 from tasks.experiment import (
     check_counts,
@@ -392,7 +392,7 @@ def _build_models(
 
 def _job(args) -> tuple[int, int, dict[str, Any]]:
     setting, trial, seed = args
-    params = _params(*_STATE["settings"][setting])
+    params = setting_params(*_STATE["settings"][setting])
     # the i-th child does not depend on how many are spawned: ss_weights is new
     ss_env, ss_starts, ss_plan, ss_noise, ss_sample, ss_weights = (
         np.random.SeedSequence(seed[0], spawn_key=seed[1]).spawn(6)
@@ -508,7 +508,7 @@ def main(
         if "identified" not in names:
             break
         train = gather_split(
-            ACROBOT, _params(*masses), identify, 0, rng=np.random.default_rng(ss)
+            ACROBOT, setting_params(*masses), identify, 0, rng=np.random.default_rng(ss)
         ).train
         beliefs.append(hip.update(hip.prior(), train))
     seeds = [seed_value(s) for s in ss_trials.spawn(len(settings) * trials)]

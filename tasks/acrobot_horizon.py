@@ -39,7 +39,7 @@ from tqdm.auto import tqdm
 
 from hipmdp.planning import LearnedModel, open_loop_errors
 from tasks.acrobot_identified import check_run, load_run
-from tasks.acrobot_swingup import _params
+from tasks.acrobot_swingup import setting_params
 from tasks.agents import ACROBOT
 from tasks.experiment import check_counts, run_or_exit, run_parser, write_json
 from tasks.prediction import gather_split
@@ -83,7 +83,7 @@ def main(
     for mm, ss in tqdm(
         list(zip(masses, seeds, strict=True)), desc="settings", disable=not progress
     ):
-        params = _params(*mm)
+        params = setting_params(*mm)
         ss_identify, ss_evaluate = ss.spawn(2)
         train = gather_split(
             ACROBOT, params, identify, 0, rng=np.random.default_rng(ss_identify)

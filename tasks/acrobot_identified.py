@@ -58,7 +58,7 @@ from hipmdp import baselines
 from hipmdp.data import wrap_angle
 from tasks import transfer
 from tasks.acrobot import AcrobotParams
-from tasks.acrobot_swingup import _params, run_streams
+from tasks.acrobot_swingup import run_streams, setting_params
 from tasks.agents import ACROBOT, EnergyConserving, SimulatorModel
 from tasks.experiment import (
     check_counts,
@@ -151,7 +151,7 @@ def _job(args) -> tuple[str, int, int, np.ndarray]:
             config, planning_episodes=0, initial_planning_episodes=0
         )
     elif variant == "true_first":
-        model = _TrueFirst(model, _params(*masses))
+        model = _TrueFirst(model, setting_params(*masses))
     elif base not in ("true", "average"):
         paper = variant.endswith("_paper_filter")
         belief = None
@@ -171,7 +171,8 @@ def _job(args) -> tuple[str, int, int, np.ndarray]:
     method = {"average": "average", "true": "true", "model_free": "true"}.get(
         base, "hipmdp"
     )
-    job = transfer.TrialJob(method, setting, trial, _params(*masses), seed, False)
+    params = setting_params(*masses)
+    job = transfer.TrialJob(method, setting, trial, params, seed, False)
     return variant, setting, trial, transfer.run_trial(job).returns
 
 
@@ -252,7 +253,7 @@ def main(
         for params_seed, mm in zip(ss_identify.spawn(len(masses)), masses, strict=True):
             split = gather_split(
                 ACROBOT,
-                _params(*mm),
+                setting_params(*mm),
                 identify,
                 0,
                 rng=np.random.default_rng(params_seed),

@@ -71,7 +71,9 @@ PAIRS = (("hipmdp", "average"), ("hipmdp", "true"), ("average", "true"))
 DIM_NAMES = ("dtheta1", "dtheta2", "dtheta1_dot", "dtheta2_dot")
 
 
-def _params(m1: float, m2: float) -> AcrobotParams:
+def setting_params(m1: float, m2: float) -> AcrobotParams:
+    """The swing-up's instance at link masses ``(m1, m2)`` kg, both links 1 m long
+    (the paper's test and training settings vary the masses only)."""
     return AcrobotParams(
         link_mass_1=m1, link_mass_2=m2, link_length_1=1.0, link_length_2=1.0
     )
@@ -134,7 +136,7 @@ class SwingupConfig:
     progress: bool = True
 
     def __post_init__(self) -> None:
-        check_settings(self, "train_masses", "test_masses", _params, "(m1, m2)")
+        check_settings(self, "train_masses", "test_masses", setting_params, "(m1, m2)")
         check_positive(self, (
             "batch_repetitions", "batch_episodes", "batch_max_steps", "average_n_max",
             "n_trials", "mse_train", "mse_test", "workers", "final_window",
@@ -204,7 +206,7 @@ def run_transfer(config, hip, average, ss: np.random.SeedSequence) -> list:
             method=method,
             setting=i,
             trial=t,
-            params=_params(*masses),
+            params=setting_params(*masses),
             seed=seed_value(seeds[i * config.n_trials + t]),
             record=config.record and i == 0 and t == 0,
         )
@@ -228,7 +230,7 @@ def prediction_table(config, hip, average, batch, ss) -> dict[str, Any]:
     out = {}
     for (label, masses), seed in zip(groups.items(), ss.spawn(2), strict=True):
         scores = score_settings(
-            ACROBOT, [hip], average, batch, [_params(*mm) for mm in masses],
+            ACROBOT, [hip], average, batch, [setting_params(*mm) for mm in masses],
             n_train=config.mse_train, n_test=config.mse_test, seed=seed,
             desc=f"prediction ({label})", progress=config.progress,
         )  # fmt: skip
@@ -247,8 +249,9 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
     timings: dict[str, float] = {}
 
     t0 = time.perf_counter()
+    train = [setting_params(*mm) for mm in config.train_masses]
     batch = gather_and_save(
-        "acrobot", [_params(*mm) for mm in config.train_masses], path / "batch.npz",
+        "acrobot", train, path / "batch.npz",
         config=config, seed=ss_batch, progress=config.progress,
     )  # fmt: skip
     timings["batch_data"] = time.perf_counter() - t0

@@ -118,13 +118,13 @@ def test_model_free_variant_plans_nothing(planned):
 
 def test_true_first_plans_on_the_simulator_until_the_first_update(run):
     from hipmdp.planning import LearnedModel
-    from tasks.acrobot_swingup import _params
+    from tasks.acrobot_swingup import setting_params
     from tasks.agents import ACROBOT, SimulatorModel
 
     out, _ = run
     hip = hipmdp.load(out / "hipmdp_model.npz")
     batch = hipmdp.Transitions.load(out / "batch.npz")
-    params = _params(*TINY.test_masses[0])
+    params = setting_params(*TINY.test_masses[0])
     model = acrobot_identified._TrueFirst(hip, params)
     S, A = batch.states[:20], batch.actions[:20]
     first = LearnedModel(model, model.prior(), ACROBOT.angle_dims).predict(S, A)
@@ -202,7 +202,7 @@ def test_energy_variants_plan_on_the_conserving_model_of_their_method(
     from hipmdp.planning import LearnedModel
     from tasks import transfer
     from tasks.acrobot import AcrobotParams
-    from tasks.acrobot_swingup import _params
+    from tasks.acrobot_swingup import setting_params
     from tasks.agents import EnergyConserving, SimulatorModel
 
     init, _ = planned
@@ -216,7 +216,7 @@ def test_energy_variants_plan_on_the_conserving_model_of_their_method(
     monkeypatch.setattr(transfer, "plan", model_plan)
     masses = TINY.test_masses[0]
     for variant, inner, params in (
-        ("hipmdp_energy", "hipmdp", _params(*masses)),
+        ("hipmdp_energy", "hipmdp", setting_params(*masses)),
         ("average_energy_nominal", "average", AcrobotParams()),
         ("true", None, None),
     ):
@@ -245,7 +245,7 @@ def test_the_planning_wrapper_skips_the_simulator_and_spares_the_recording(
     from hipmdp import baselines
     from hipmdp.planning import LearnedModel
     from tasks import transfer
-    from tasks.acrobot_swingup import _params
+    from tasks.acrobot_swingup import setting_params
     from tasks.agents import ACROBOT, EnergyConserving
 
     out, _ = run
@@ -260,7 +260,7 @@ def test_the_planning_wrapper_skips_the_simulator_and_spares_the_recording(
 
     monkeypatch.setattr(transfer, "_MODELS", {})  # this process's models: restored
     transfer.set_models(ACROBOT, TINY.transfer, hip, average, wrapper)
-    params = _params(*TINY.test_masses[0])
+    params = setting_params(*TINY.test_masses[0])
     for method in transfer.METHODS:
         job = transfer.TrialJob(method, 0, 0, params, (7, ()), False)
         model = object()
