@@ -24,6 +24,13 @@ transfer protocol (tasks/transfer.py) on the run's test settings for these varia
   and plans on the posterior-mean HiP-MDP as usual. Its gap to ``true`` is what
   the planning between episodes costs; ``hipmdp``'s gap to it is what the
   initial planning on the prior-mean model costs;
+- ``hipmdp_replan``: the HiP-MDP, whose value function is discarded after the
+  first real episode and planned again from scratch on the posterior-mean model,
+  with as many simulated episodes as the initial planning (or ``--first-planning
+  N``): the protocol with the first planning done after one episode has
+  identified the instance (``TransferConfig.replan_after_first``). Its gap to
+  ``hipmdp`` from the second episode on is what the first planning on the prior
+  mean costs once the instance is identified online;
 - ``average_energy``, ``hipmdp_energy``: the average model and the HiP-MDP, each
   planning on its predictions with the velocities rescaled so that every step
   changes the energy by the elbow torque's work
@@ -81,6 +88,7 @@ VARIANTS = (
     "identified_paper_filter",
     "model_free",
     "true_first",
+    "hipmdp_replan",
     "average_energy",
     "hipmdp_energy",
     "average_energy_nominal",
@@ -152,6 +160,15 @@ def _job(args) -> tuple[str, int, int, np.ndarray]:
         )
     elif variant == "true_first":
         model = _TrueFirst(model, setting_params(*masses))
+    elif variant == "hipmdp_replan":
+        first = config.first_planning_episodes
+        config = dataclasses.replace(
+            config,
+            replan_after_first=True,
+            first_planning_episodes=(
+                config.initial_planning_episodes if first is None else first
+            ),
+        )
     elif base not in ("true", "average"):
         paper = variant.endswith("_paper_filter")
         belief = None

@@ -12,7 +12,9 @@ For one test instance, one trial and one method:
    weights (the average and true models stay as they are). After the first real
    episode, ``first_planning_episodes`` simulated episodes instead, if set (not
    the paper's protocol: a check of whether the agent can use an instance
-   identified in one episode, given more planning).
+   identified in one episode, given more planning). With ``replan_after_first``
+   (not the paper's protocol either), that planning starts from a fresh value
+   function.
 
 Simulated episodes start from initial states of real episodes (the instance's own
 start distribution): the planning start states are the first states of every real
@@ -52,6 +54,12 @@ class TransferConfig:
             instead of ``planning_episodes``; None (the paper's protocol) for the
             same number as after every other.
         initial_planning_episodes: simulated episodes before the first real one.
+        replan_after_first: if True (not the paper's protocol), the value function
+            is reset to its initial value after the first real episode, so the
+            planning after it (``first_planning_episodes`` episodes, or
+            ``planning_episodes``) starts from scratch on the model as updated by
+            that episode: what the first planning on the prior model and the first
+            real episode taught the agent is discarded.
         n_start_states: reset states added to the planning start states.
         max_steps: step limit of a real episode.
         planning_max_steps: step limit of a simulated episode.
@@ -64,6 +72,7 @@ class TransferConfig:
     max_steps: int = 500
     planning_max_steps: int = 500
     first_planning_episodes: int | None = None
+    replan_after_first: bool = False
 
     def __post_init__(self) -> None:
         check_positive(
@@ -77,6 +86,11 @@ class TransferConfig:
             value = getattr(self, name)  # first_planning_episodes may be None
             if value is not None and int(value) < 0:
                 raise ValueError(f"{name}: expected >= 0, got {value}")
+        if not isinstance(self.replan_after_first, bool):
+            raise ValueError(
+                f"replan_after_first: expected True or False, "
+                f"got {self.replan_after_first!r}"
+            )
 
 
 class TrialJob(NamedTuple):
@@ -217,6 +231,8 @@ def run_trial(job: TrialJob) -> TrialResult:
         if belief is not None:
             weight_means.append(_belief_moments(belief)[0])
         model = model_now()
+        if episode_index == 0 and config.replan_after_first:
+            state = init_state(domain.n_actions, basis.n_features, domain.initial_value)
         state = plan(
             state, basis, sarsa, _planning_model(model, job), task,
             np.array(starts), _planning_episodes(config, episode_index), rng=rng,

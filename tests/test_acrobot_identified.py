@@ -150,6 +150,42 @@ def test_first_planning_changes_only_the_planning_after_the_first_episode(planne
         dataclasses.replace(base, first_planning_episodes=-1)
 
 
+def test_replan_variant_plans_again_from_a_fresh_value_function(planned, monkeypatch):
+    from hipmdp.sarsa import init_state
+    from tasks import transfer
+    from tasks.agents import ACROBOT
+
+    init, calls = planned
+    counting_plan, weights = transfer.plan, []
+
+    def recording_plan(*args, **kwargs):
+        weights.append(args[0].weights.copy())  # the value function planning starts at
+        return counting_plan(*args, **kwargs)
+
+    monkeypatch.setattr(transfer, "plan", recording_plan)
+    fresh = init_state(
+        ACROBOT.n_actions, ACROBOT.basis().n_features, ACROBOT.initial_value
+    ).weights
+    # 2 initial episodes, 2 real ones with 1 planning episode after each
+    base = dataclasses.replace(TINY.transfer, initial_planning_episodes=2)
+    for variant, first in (
+        ("hipmdp", None),
+        ("hipmdp_replan", None),
+        ("hipmdp_replan", 3),
+    ):
+        init(dataclasses.replace(base, first_planning_episodes=first))
+        weights.clear()
+        acrobot_identified._job((variant, 0, 0, TINY.test_masses[0], (7, ())))
+        replan = variant == "hipmdp_replan"
+        # the replanning takes the initial planning's size unless --first-planning
+        assert calls == [2, (first or 2) if replan else 1, 1]
+        np.testing.assert_array_equal(weights[0], fresh)
+        assert np.array_equal(weights[1], fresh) == replan
+        assert not np.array_equal(weights[2], fresh)
+    with pytest.raises(ValueError, match="replan_after_first: expected True or False"):
+        dataclasses.replace(base, replan_after_first=1)
+
+
 def test_out_writes_the_named_file_and_leaves_the_default_alone(run, tmp_path):
     out, results = run
     before = (out / "identified.json").read_text()
