@@ -41,7 +41,10 @@ transfer protocol (tasks/transfer.py) on the run's test settings for these varia
 ``--first-planning N`` gives every variant ``N`` simulated episodes after the first
 real one instead of the run's ``planning_episodes`` (not the paper's protocol).
 Every variant runs on the same (setting, trial) seeds, spawned from ``--seed``;
-they differ from the run's own trial seeds. Prints the mean return per episode
+they differ from the run's own trial seeds, unless ``--run-seeds`` gives the
+trials the run's own: then ``true``, ``average`` and ``hipmdp`` replay the run's
+first ``--trials`` trials of each setting (a check that the code still does what
+the run did). Prints the mean return per episode
 with its standard error, the median and the share of episodes that ran to the step
 limit (these heavy-tailed failures move the means most), and writes
 ``identified.json`` in the run folder: per variant the returns (trials × episodes),
@@ -242,12 +245,16 @@ def main(
     identify: int = 1000,
     first_planning: int | None = None,
     seed: int = 123,
+    run_seeds: bool = False,
     workers: int = 2,
     progress: bool = True,
     out: str | Path | None = None,
 ) -> Results:
     """Run the check on the run folder ``run``; see the module docstring.
-    ``out`` is the JSON file to write (default ``run / "identified.json"``)."""
+    ``out`` is the JSON file to write (default ``run / "identified.json"``).
+    ``run_seeds``: the trials take the run's own (setting, trial) seeds instead of
+    seeds spawned from ``seed`` (which then seeds only the identification data),
+    so ``true``, ``average`` and ``hipmdp`` replay the run's first trials."""
     run = Path(run)
     out_path = run / "identified.json" if out is None else Path(out)
     check_run(run)
@@ -258,6 +265,11 @@ def main(
 
     config, hip, average, _ = load_run(run)
     masses = [tuple(m) for m in config["test_masses"]]
+    if run_seeds and trials > config["n_trials"]:
+        raise ValueError(
+            f"trials: expected at most the run's {config['n_trials']} trials per "
+            f"setting with run_seeds, got {trials}"
+        )
     protocol = dataclasses.replace(
         transfer.TransferConfig(**config["transfer"]), n_episodes=episodes
     )
@@ -279,9 +291,14 @@ def main(
                 beliefs[key].append(
                     hip.update(hip.prior(), split.train, model_error=model_error)
                 )
-    seeds = [seed_value(s) for s in ss_trials.spawn(len(masses) * trials)]
+    if run_seeds:  # as tasks.acrobot_swingup.run_transfer spawns them
+        per_setting = config["n_trials"]
+        ss_trials = run_streams(config["seed"]).trials
+    else:
+        per_setting = trials
+    seeds = [seed_value(s) for s in ss_trials.spawn(len(masses) * per_setting)]
     jobs = [
-        (v, i, t, mm, seeds[i * trials + t])
+        (v, i, t, mm, seeds[i * per_setting + t])
         for v in variants
         for i, mm in enumerate(masses)
         for t in range(trials)
@@ -294,6 +311,7 @@ def main(
     out: dict[str, Any] = {
         "run": str(run),
         "seed": seed,
+        "trial_seeds": "the run's" if run_seeds else "spawned from seed",
         "trials_per_setting": trials,
         "identify_transitions": identify,
         "first_planning_episodes": protocol.first_planning_episodes,
@@ -334,6 +352,12 @@ def cli(argv: list[str] | None = None) -> int:
         "(default: the run's planning episodes, as after every other)",
     )
     parser.add_argument("--seed", type=int, default=123)
+    parser.add_argument(
+        "--run-seeds",
+        action="store_true",
+        help="the trials take the run's own seeds (true, average and hipmdp then "
+        "replay the run's first trials); --seed seeds only the identification",
+    )
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument(
         "--out",
@@ -345,7 +369,7 @@ def cli(argv: list[str] | None = None) -> int:
         args.run, variants=tuple(args.variants), trials=args.trials,
         episodes=args.episodes, identify=args.identify,
         first_planning=args.first_planning, seed=args.seed,
-        workers=args.workers, out=args.out,
+        run_seeds=args.run_seeds, workers=args.workers, out=args.out,
     ))  # fmt: skip
     for v, r in results.returns.items():
         se = r.std(axis=0, ddof=1) / np.sqrt(len(r)) if len(r) > 1 else 0 * r[0]

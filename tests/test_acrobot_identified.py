@@ -12,6 +12,7 @@ import pytest
 import hipmdp
 from tasks import acrobot_identified
 from tasks.acrobot_swingup import main as swingup_main
+from tasks.acrobot_swingup import run_streams
 from tests.test_acrobot_swingup import TINY
 
 
@@ -184,6 +185,69 @@ def test_replan_variant_plans_again_from_a_fresh_value_function(planned, monkeyp
         assert not np.array_equal(weights[2], fresh)
     with pytest.raises(ValueError, match="replan_after_first: expected True or False"):
         dataclasses.replace(base, replan_after_first=1)
+
+
+def test_run_seeds_replay_the_runs_own_trials(run, tmp_path, monkeypatch):
+    from types import SimpleNamespace
+
+    from tasks import acrobot_swingup
+
+    out, _ = run
+    variants = ("true", "average", "hipmdp")
+    replay = acrobot_identified.main(
+        out, variants=variants, trials=TINY.n_trials,
+        episodes=TINY.transfer.n_episodes, identify=30, run_seeds=True, workers=1,
+        progress=False, out=tmp_path / "replay.json",
+    )  # fmt: skip
+    with np.load(out / "trials.npz") as z:
+        methods, returns = list(z["methods"]), z["returns"]
+    for v in variants:  # (setting, trial) rows in the run's order
+        ran = returns[methods.index(v)].reshape(-1, TINY.transfer.n_episodes)
+        np.testing.assert_array_equal(replay.returns[v], ran)
+    assert replay.summary["trial_seeds"] == "the run's"
+
+    # the seeds themselves, on a copy of the run with 2 settings x 3 trials: the
+    # first 2 trials of each are the run's, whose transfer would spawn them so
+    big = tmp_path / "big"
+    shutil.copytree(out, big)
+    config = json.loads((big / "config.json").read_text())
+    config.update(test_masses=[[0.9, 1.1], [1.3, 0.7]], n_trials=3, seed=5)
+    (big / "config.json").write_text(json.dumps(config))
+    seen: dict[str, list] = {}
+
+    class Captured(Exception):
+        pass
+
+    def capture(name, key):
+        def pool_map(fn, jobs, **kwargs):  # record the jobs, run none
+            seen[name] = [key(j) for j in jobs]
+            raise Captured
+
+        return pool_map
+
+    monkeypatch.setattr(acrobot_swingup, "pool_map", capture("run", lambda j: j))
+    swingup = SimpleNamespace(
+        test_masses=config["test_masses"], n_trials=3, record=False, workers=1,
+        progress=False, transfer=None,
+    )  # fmt: skip
+    with pytest.raises(Captured):
+        acrobot_swingup.run_transfer(swingup, None, None, run_streams(5).trials)
+    ran = {(j.setting, j.trial): j.seed for j in seen["run"]}
+    for run_seeds in (True, False):
+        monkeypatch.setattr(
+            acrobot_identified, "pool_map", capture("check", lambda j: j[1:])
+        )
+        with pytest.raises(Captured):
+            acrobot_identified.main(
+                big, variants=("true",), trials=2, run_seeds=run_seeds,
+                out=tmp_path / "x.json",
+            )  # fmt: skip
+        checked = {(i, t): seed for (i, t, _, seed) in seen["check"]}
+        assert sorted(checked) == [(i, t) for i in range(2) for t in range(2)]
+        same = [checked[k] == ran[k] for k in checked]
+        assert all(same) if run_seeds else not any(same)
+    with pytest.raises(ValueError, match="trials: expected at most the run's 3"):
+        acrobot_identified.main(big, variants=("true",), trials=4, run_seeds=True)
 
 
 def test_out_writes_the_named_file_and_leaves_the_default_alone(run, tmp_path):
