@@ -84,7 +84,7 @@ from tasks.experiment import (
     pool_map,
     run_or_exit,
     run_parser,
-    seed_value,
+    trial_seeds,
     write_json,
 )
 from tasks.prediction import gather_split
@@ -511,12 +511,8 @@ def main(
             ACROBOT, setting_params(*masses), identify, 0, rng=np.random.default_rng(ss)
         ).train
         beliefs.append(hip.update(hip.prior(), train))
-    seeds = [seed_value(s) for s in ss_trials.spawn(len(settings) * trials)]
-    jobs = [
-        (i, t, seeds[i * trials + t])
-        for i in range(len(settings))
-        for t in range(trials)
-    ]
+    seeds = trial_seeds(ss_trials, len(settings), trials)
+    jobs = [(i, t, seeds[i][t]) for i in range(len(settings)) for t in range(trials)]
     options = dict(
         transfer=transfer,
         models=names,

@@ -77,7 +77,7 @@ from tasks.experiment import (
     pool_map,
     run_or_exit,
     run_parser,
-    seed_value,
+    trial_seeds,
     write_json,
 )
 from tasks.prediction import gather_split
@@ -262,14 +262,16 @@ def main(
     if unknown or not variants:
         raise ValueError(f"variants: expected some of {VARIANTS}, got {variants}")
     check_counts(trials=trials, episodes=episodes, identify=identify)
+    if run_seeds:  # before load_run refits the average model
+        n_run = json.loads((run / "config.json").read_text())["n_trials"]
+        if trials > n_run:
+            raise ValueError(
+                f"trials: expected at most the run's {n_run} trials per setting "
+                f"with run_seeds, got {trials}"
+            )
 
     config, hip, average, _ = load_run(run)
     masses = [tuple(m) for m in config["test_masses"]]
-    if run_seeds and trials > config["n_trials"]:
-        raise ValueError(
-            f"trials: expected at most the run's {config['n_trials']} trials per "
-            f"setting with run_seeds, got {trials}"
-        )
     protocol = dataclasses.replace(
         transfer.TransferConfig(**config["transfer"]), n_episodes=episodes
     )
@@ -291,14 +293,14 @@ def main(
                 beliefs[key].append(
                     hip.update(hip.prior(), split.train, model_error=model_error)
                 )
-    if run_seeds:  # as tasks.acrobot_swingup.run_transfer spawns them
-        per_setting = config["n_trials"]
-        ss_trials = run_streams(config["seed"]).trials
+    if run_seeds:  # the run's: tasks.acrobot_swingup.run_transfer's layout
+        seeds = trial_seeds(
+            run_streams(config["seed"]).trials, len(masses), config["n_trials"]
+        )
     else:
-        per_setting = trials
-    seeds = [seed_value(s) for s in ss_trials.spawn(len(masses) * per_setting)]
+        seeds = trial_seeds(ss_trials, len(masses), trials)
     jobs = [
-        (v, i, t, mm, seeds[i * per_setting + t])
+        (v, i, t, mm, seeds[i][t])
         for v in variants
         for i, mm in enumerate(masses)
         for t in range(trials)

@@ -49,8 +49,8 @@ from tasks.experiment import (
     paired_difference,
     pool_map,
     run_dir,
-    seed_value,
     to_jsonable,
+    trial_seeds,
     write_json,
 )
 from tasks.prediction import score_settings, summarise
@@ -200,14 +200,14 @@ class Results(NamedTuple):
 def run_transfer(config, hip, average, ss: np.random.SeedSequence) -> list:
     """Every (method, test setting, trial) trial; the seeds depend on (setting,
     trial) only. Setting 0, trial 0 is traced for the recording."""
-    seeds = ss.spawn(len(config.test_masses) * config.n_trials)
+    seeds = trial_seeds(ss, len(config.test_masses), config.n_trials)
     jobs = [
         TrialJob(
             method=method,
             setting=i,
             trial=t,
             params=setting_params(*masses),
-            seed=seed_value(seeds[i * config.n_trials + t]),
+            seed=seeds[i][t],
             record=config.record and i == 0 and t == 0,
         )
         for i, masses in enumerate(config.test_masses)

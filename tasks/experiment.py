@@ -152,6 +152,19 @@ def seed_value(ss: np.random.SeedSequence) -> tuple[int, tuple[int, ...]]:
     return (int(ss.entropy), tuple(int(k) for k in ss.spawn_key))
 
 
+def trial_seeds(
+    ss: np.random.SeedSequence, n_settings: int, n_trials: int
+) -> list[list[tuple[int, tuple[int, ...]]]]:
+    """``seeds[i][t]``, the :func:`seed_value` of setting ``i``'s trial ``t``: child
+    ``i * n_trials + t`` of ``ss`` (spawned here, so ``ss`` gives the same seeds
+    only the first time)."""
+    children = ss.spawn(n_settings * n_trials)
+    return [
+        [seed_value(children[i * n_trials + t]) for t in range(n_trials)]
+        for i in range(n_settings)
+    ]
+
+
 def pool_map(
     fn,
     jobs: Sequence[Any],

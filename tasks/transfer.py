@@ -206,11 +206,13 @@ def run_trial(job: TrialJob) -> TrialResult:
             return LearnedModel(_MODELS["average"], None, domain.angle_dims)
         return LearnedModel(hip, belief, domain.angle_dims)
 
+    def fresh_state():
+        return init_state(domain.n_actions, basis.n_features, domain.initial_value)
+
     model = model_now()
-    state = init_state(domain.n_actions, basis.n_features, domain.initial_value)
     state = plan(
-        state, basis, sarsa, _planning_model(model, job), task, np.array(starts),
-        config.initial_planning_episodes, rng=rng,
+        fresh_state(), basis, sarsa, _planning_model(model, job), task,
+        np.array(starts), config.initial_planning_episodes, rng=rng,
     ).state  # fmt: skip
 
     returns, steps, weight_means, traces = [], [], [], []
@@ -232,7 +234,7 @@ def run_trial(job: TrialJob) -> TrialResult:
             weight_means.append(_belief_moments(belief)[0])
         model = model_now()
         if episode_index == 0 and config.replan_after_first:
-            state = init_state(domain.n_actions, basis.n_features, domain.initial_value)
+            state = fresh_state()
         state = plan(
             state, basis, sarsa, _planning_model(model, job), task,
             np.array(starts), _planning_episodes(config, episode_index), rng=rng,

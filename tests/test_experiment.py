@@ -15,6 +15,7 @@ from tasks.experiment import (
     mean_ci,
     paired_difference,
     to_jsonable,
+    trial_seeds,
     write_json,
 )
 
@@ -94,3 +95,11 @@ def test_check_counts_names_the_first_value_below_one():
     check_counts(trials=1, states=3000)
     with pytest.raises(ValueError, match=r"^states: expected >= 1, got 0$"):
         check_counts(trials=2, states=0, real=-1)
+
+
+def test_trial_seeds_are_setting_major_children_of_the_stream():
+    seeds = trial_seeds(np.random.SeedSequence(7), 3, 4)
+    assert [len(row) for row in seeds] == [4, 4, 4]
+    for i, row in enumerate(seeds):
+        for t, (entropy, spawn_key) in enumerate(row):
+            assert entropy == 7 and spawn_key == (i * 4 + t,)
