@@ -40,6 +40,9 @@ transfer protocol (tasks/transfer.py) on the run's test settings for these varia
 
 ``--first-planning N`` gives every variant ``N`` simulated episodes after the first
 real one instead of the run's ``planning_episodes`` (not the paper's protocol).
+``--initial-planning N`` gives every variant ``N`` simulated episodes before the
+first real one instead of the run's ``initial_planning_episodes`` (the paper does
+not state this number; a check of how the comparison depends on it).
 Every variant runs on the same (setting, trial) seeds, spawned from ``--seed``;
 they differ from the run's own trial seeds, unless ``--run-seeds`` gives the
 trials the run's own: then ``true``, ``average`` and ``hipmdp`` replay the run's
@@ -244,6 +247,7 @@ def main(
     episodes: int = 3,
     identify: int = 1000,
     first_planning: int | None = None,
+    initial_planning: int | None = None,
     seed: int = 123,
     run_seeds: bool = False,
     workers: int = 2,
@@ -254,7 +258,9 @@ def main(
     ``out`` is the JSON file to write (default ``run / "identified.json"``).
     ``run_seeds``: the trials take the run's own (setting, trial) seeds instead of
     seeds spawned from ``seed`` (which then seeds only the identification data),
-    so ``true``, ``average`` and ``hipmdp`` replay the run's first trials."""
+    so ``true``, ``average`` and ``hipmdp`` replay the run's first trials.
+    ``first_planning``, ``initial_planning``: every variant's simulated episodes
+    after the first real one and before it (None: the run's)."""
     run = Path(run)
     out_path = run / "identified.json" if out is None else Path(out)
     check_run(run)
@@ -262,6 +268,12 @@ def main(
     if unknown or not variants:
         raise ValueError(f"variants: expected some of {VARIANTS}, got {variants}")
     check_counts(trials=trials, episodes=episodes, identify=identify)
+    for name, value in (
+        ("first_planning", first_planning),
+        ("initial_planning", initial_planning),
+    ):
+        if value is not None and value < 0:
+            raise ValueError(f"{name}: expected >= 0 or None, got {value}")
     if run_seeds:  # before load_run refits the average model
         n_run = json.loads((run / "config.json").read_text())["n_trials"]
         if trials > n_run:
@@ -277,6 +289,10 @@ def main(
     )
     if first_planning is not None:  # every variant: the comparison stays paired
         protocol = dataclasses.replace(protocol, first_planning_episodes=first_planning)
+    if initial_planning is not None:
+        protocol = dataclasses.replace(
+            protocol, initial_planning_episodes=initial_planning
+        )
 
     ss_trials, ss_identify = np.random.SeedSequence(seed).spawn(2)
     beliefs: dict[str, list] = {"model": [], "paper": []}
@@ -317,6 +333,7 @@ def main(
         "trials_per_setting": trials,
         "identify_transitions": identify,
         "first_planning_episodes": protocol.first_planning_episodes,
+        "initial_planning_episodes": protocol.initial_planning_episodes,
         "returns": returns,
         "curves": {v: mean_ci(r, axis=0) for v, r in returns.items()},
         "median": {v: np.median(r, axis=0) for v, r in returns.items()},
@@ -353,6 +370,13 @@ def cli(argv: list[str] | None = None) -> int:
         help="simulated episodes after the first real one, for every variant "
         "(default: the run's planning episodes, as after every other)",
     )
+    parser.add_argument(
+        "--initial-planning",
+        type=int,
+        default=None,
+        help="simulated episodes before the first real one, for every variant "
+        "(default: the run's initial planning episodes)",
+    )
     parser.add_argument("--seed", type=int, default=123)
     parser.add_argument(
         "--run-seeds",
@@ -370,7 +394,8 @@ def cli(argv: list[str] | None = None) -> int:
     results = run_or_exit(parser, lambda: main(
         args.run, variants=tuple(args.variants), trials=args.trials,
         episodes=args.episodes, identify=args.identify,
-        first_planning=args.first_planning, seed=args.seed,
+        first_planning=args.first_planning,
+        initial_planning=args.initial_planning, seed=args.seed,
         run_seeds=args.run_seeds, workers=args.workers, out=args.out,
     ))  # fmt: skip
     for v, r in results.returns.items():

@@ -151,6 +151,40 @@ def test_first_planning_changes_only_the_planning_after_the_first_episode(planne
         dataclasses.replace(base, first_planning_episodes=-1)
 
 
+def test_planning_sizes_reach_every_variant_and_bad_ones_fail_early(
+    run, tmp_path, monkeypatch
+):
+    out, _ = run
+    seen, real_pool_map = {}, acrobot_identified.pool_map
+
+    def pool_map(fn, jobs, *, initargs, **kwargs):  # the protocol the trials get
+        seen["protocol"] = initargs[0]
+        return real_pool_map(fn, jobs, initargs=initargs, **kwargs)
+
+    monkeypatch.setattr(acrobot_identified, "pool_map", pool_map)
+    for initial, first in ((None, None), (4, None), (0, 7)):
+        acrobot_identified.main(
+            out, variants=("true", "hipmdp"), trials=1, episodes=1, identify=30,
+            workers=1, initial_planning=initial, first_planning=first, progress=False,
+            out=tmp_path / "sizes.json",
+        )  # fmt: skip
+        protocol = seen["protocol"]
+        run_initial = TINY.transfer.initial_planning_episodes
+        assert protocol.initial_planning_episodes == (
+            run_initial if initial is None else initial
+        )
+        assert protocol.first_planning_episodes == first
+        written = json.loads((tmp_path / "sizes.json").read_text())
+        assert written["initial_planning_episodes"] == (
+            protocol.initial_planning_episodes
+        )
+    seen.clear()
+    for name in ("initial_planning", "first_planning"):
+        with pytest.raises(ValueError, match=f"{name}: expected >= 0"):
+            acrobot_identified.main(out, variants=("true",), **{name: -1})
+    assert not seen  # rejected before any trial
+
+
 def test_replan_variant_plans_again_from_a_fresh_value_function(planned, monkeypatch):
     from hipmdp.sarsa import init_state
     from tasks import transfer
