@@ -226,24 +226,36 @@ def test_run_seeds_replay_the_runs_own_trials(run, tmp_path, monkeypatch):
 
     from tasks import acrobot_swingup
 
-    out, _ = run
-    variants = ("true", "average", "hipmdp")
-    replay = acrobot_identified.main(
-        out, variants=variants, trials=TINY.n_trials,
-        episodes=TINY.transfer.n_episodes, identify=30, run_seeds=True, workers=1,
-        progress=False, out=tmp_path / "replay.json",
+    # TINY's 60-step episodes all end at the limit, so their returns cannot tell
+    # one trial from another: a run of 2 trials of 500-step episodes can
+    long = dataclasses.replace(
+        TINY, n_trials=2, record=False,
+        transfer=dataclasses.replace(TINY.transfer, max_steps=500),
     )  # fmt: skip
+    out = swingup_main(long, out=tmp_path / "long").out
     with np.load(out / "trials.npz") as z:
         methods, returns = list(z["methods"]), z["returns"]
-    for v in variants:  # (setting, trial) rows in the run's order
-        ran = returns[methods.index(v)].reshape(-1, TINY.transfer.n_episodes)
-        np.testing.assert_array_equal(replay.returns[v], ran)
-    assert replay.summary["trial_seeds"] == "the run's"
+    variants = ("true", "average", "hipmdp")
+    for run_seeds in (True, False):
+        replay = acrobot_identified.main(
+            out, variants=variants, trials=long.n_trials,
+            episodes=long.transfer.n_episodes, identify=30, run_seeds=run_seeds,
+            workers=1, progress=False, out=tmp_path / "replay.json",
+        )  # fmt: skip
+        same = []
+        for v in variants:  # (setting, trial) rows in the run's order
+            ran = returns[methods.index(v)].reshape(-1, long.transfer.n_episodes)
+            same.append(np.array_equal(replay.returns[v], ran))
+        # the returns differ between trials, so other seeds give other returns
+        assert all(same) if run_seeds else not any(same)
+        expected = "the run's" if run_seeds else "spawned from seed"
+        assert replay.summary["trial_seeds"] == expected
+    assert len(np.unique(returns)) > 3
 
     # the seeds themselves, on a copy of the run with 2 settings x 3 trials: the
     # first 2 trials of each are the run's, whose transfer would spawn them so
     big = tmp_path / "big"
-    shutil.copytree(out, big)
+    shutil.copytree(run[0], big)
     config = json.loads((big / "config.json").read_text())
     config.update(test_masses=[[0.9, 1.1], [1.3, 0.7]], n_trials=3, seed=5)
     (big / "config.json").write_text(json.dumps(config))
