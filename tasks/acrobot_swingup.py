@@ -154,7 +154,7 @@ class SwingupConfig:
 
 
 PRESETS: dict[str, SwingupConfig] = {
-    "quick": SwingupConfig(),  # 4 settings x 12 trials: ~6 minutes on two cores
+    "quick": SwingupConfig(),  # 4 settings x 12 trials: ~2 minutes on two cores
     "paper": SwingupConfig(
         preset="paper",
         test_masses=TEST_MASSES,
