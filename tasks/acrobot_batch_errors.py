@@ -32,7 +32,7 @@ import numpy as np
 
 import hipmdp
 from tasks.acrobot_identified import check_run, load_run
-from tasks.experiment import run_or_exit, run_parser, write_json
+from tasks.experiment import one_blas_thread, run_or_exit, run_parser, write_json
 
 MODELS = ("own", "prior", "average")
 
@@ -51,6 +51,7 @@ def _rmse(err: np.ndarray, rows: np.ndarray) -> list[float]:
     return np.sqrt(np.mean(err[rows, 2:] ** 2, axis=0)).tolist()
 
 
+@one_blas_thread
 def main(run: str | Path, *, fast: float = 10.0, out: str | Path | None = None):
     """Run the check on the run folder ``run``; see the module docstring."""
     run = Path(run)

@@ -81,6 +81,7 @@ from tasks.experiment import (
     check_counts,
     fmt_ci,
     mean_ci,
+    one_blas_thread,
     pool_map,
     run_or_exit,
     run_parser,
@@ -451,6 +452,7 @@ class Results(NamedTuple):
     summary: dict[str, Any]
 
 
+@one_blas_thread
 def main(
     run: str | Path,
     *,

@@ -41,7 +41,13 @@ from hipmdp.planning import LearnedModel, open_loop_errors
 from tasks.acrobot_identified import check_run, load_run
 from tasks.acrobot_swingup import setting_params
 from tasks.agents import ACROBOT
-from tasks.experiment import check_counts, run_or_exit, run_parser, write_json
+from tasks.experiment import (
+    check_counts,
+    one_blas_thread,
+    run_or_exit,
+    run_parser,
+    write_json,
+)
 from tasks.prediction import gather_split
 
 MODELS = ("average", "prior", "identified")
@@ -56,6 +62,7 @@ class Results(NamedTuple):
     summary: dict[str, Any]
 
 
+@one_blas_thread
 def main(
     run: str | Path,
     *,

@@ -76,6 +76,7 @@ from tasks.agents import ACROBOT, EnergyConserving, SimulatorModel
 from tasks.experiment import (
     check_counts,
     mean_ci,
+    one_blas_thread,
     paired_difference,
     pool_map,
     run_or_exit,
@@ -239,6 +240,7 @@ def load_run(run: Path) -> FinishedRun:
     return FinishedRun(config, hip, average, batch)
 
 
+@one_blas_thread
 def main(
     run: str | Path,
     *,

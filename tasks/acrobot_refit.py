@@ -35,7 +35,7 @@ import hipmdp
 from hipmdp.data import atomic_write
 from tasks.acrobot_identified import check_run
 from tasks.acrobot_swingup import run_streams
-from tasks.experiment import run_or_exit, run_parser, write_json
+from tasks.experiment import one_blas_thread, run_or_exit, run_parser, write_json
 
 _FIELDS = {f.name: f for f in dataclasses.fields(hipmdp.FitConfig)}
 
@@ -77,6 +77,7 @@ def parse_fit(items: list[str]) -> dict[str, Any]:
     return changes
 
 
+@one_blas_thread
 def main(
     run: str | Path,
     out: str | Path,

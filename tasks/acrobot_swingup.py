@@ -44,8 +44,10 @@ from tasks.experiment import (
     check_positive,
     check_settings,
     common_parser,
+    environment,
     first_episode_within,
     mean_ci,
+    one_blas_thread,
     paired_difference,
     pool_map,
     run_dir,
@@ -238,6 +240,7 @@ def prediction_table(config, hip, average, batch, ss) -> dict[str, Any]:
     return out
 
 
+@one_blas_thread
 def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results:
     """Run the whole experiment and write its artefacts; see the module docstring."""
     from tasks import swingup_report
@@ -296,6 +299,7 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
     timings["artefacts"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - started
     metrics["seconds"] = timings
+    metrics["environment"] = environment()
     write_json(path / "metrics.json", metrics)
     swingup_report.write_report(path, config, metrics)
     return Results(path, to_jsonable(metrics))

@@ -42,6 +42,8 @@ from tasks.experiment import (
     check_positive,
     check_settings,
     common_parser,
+    environment,
+    one_blas_thread,
     run_dir,
     to_jsonable,
     write_json,
@@ -138,6 +140,7 @@ class Results(NamedTuple):
     metrics: dict[str, Any]
 
 
+@one_blas_thread
 def main(config: PredictionConfig, out: str | os.PathLike | None = None) -> Results:
     """Run the experiment and write its artefacts; see the module docstring."""
     from tasks import prediction_report
@@ -222,6 +225,7 @@ def main(config: PredictionConfig, out: str | os.PathLike | None = None) -> Resu
     seconds["artefacts"] = time.perf_counter() - t0
     seconds["total"] = time.perf_counter() - started
     metrics["seconds"] = seconds
+    metrics["environment"] = environment()
     write_json(path / "metrics.json", metrics)
     prediction_report.write_report(path, config, metrics)
     return Results(path, to_jsonable(metrics))

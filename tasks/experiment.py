@@ -10,18 +10,134 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import os
+import platform
+import subprocess
 from collections.abc import Callable, Sequence
+from importlib import metadata
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import scipy.linalg  # noqa: F401  (loads scipy's BLAS, so one_blas_thread limits it)
 from scipy import stats
+from threadpoolctl import threadpool_info, threadpool_limits
 
 from hipmdp.data import atomic_write
 
 Array = np.ndarray
+
+
+def one_blas_thread(fn: Callable) -> Callable:
+    """Run ``fn`` with every BLAS and OpenMP pool of this process at one thread.
+
+    Results must depend on the seed alone. Multithreaded BLAS splits sums in
+    another order, and the Gibbs sampler and the chaotic swing-up amplify that
+    round-off: the quick swing-up preset, called in-process after ``import
+    numpy`` (two OpenBLAS threads), gave HiP-MDP − average +7.2 instead of the
+    command's −0.0, with f differing by 7e-10. ``tasks/__init__.py`` sets
+    ``OPENBLAS_NUM_THREADS=1`` only if it is imported before numpy, so every
+    experiment's ``main`` also limits the loaded libraries (numpy's and scipy's
+    OpenBLAS) for its duration; worker processes inherit the limit (fork) or set
+    it themselves (:func:`pool_map`). The previous limits are restored after.
+    """
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        with threadpool_limits(limits=1):
+            return fn(*args, **kwargs)
+
+    return wrapper
+
+
+def environment() -> dict[str, Any]:
+    """What a run's floating-point results depend on besides its seed and config.
+
+    The same seed and code give bit-identical runs on one machine; on another
+    CPU, BLAS and numpy pick other SIMD kernels, whose round-off moves the
+    learned models' control returns (the true simulator's do not move). Written
+    to ``metrics.json`` so that two runs can be told apart: package versions,
+    the git commit of the code (None outside a checkout; ``dirty`` if it has
+    uncommitted changes), the CPU, numpy's SIMD extensions and, per loaded BLAS,
+    its version, kernel architecture and thread count.
+    """
+    packages = {}
+    for name in ("hipmdp", "numpy", "scipy", "mujoco", "dm-control", "rerun-sdk"):
+        try:
+            packages[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            packages[name] = None
+    try:
+        from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
+
+        simd = [f for f in __cpu_dispatch__ if __cpu_features__.get(f)]
+    except ImportError:  # a private module; numpy may move it
+        simd = None
+    return {
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "cpu": _cpu_model(),
+        "packages": packages,
+        "git_commit": _git_commit(),
+        "numpy_simd": simd,
+        "blas": [
+            {k: info.get(k) for k in ("internal_api", "version", "architecture")}
+            | {"num_threads": info.get("num_threads")}
+            for info in threadpool_info()
+            if info.get("user_api") == "blas"
+        ],
+    }
+
+
+def describe_environment(env: dict[str, Any] | None) -> str:
+    """One line of :func:`environment` for a report (empty if ``env`` is None)."""
+    if not env:
+        return ""
+    pk = env["packages"]
+    blas = ", ".join(
+        f"{b['internal_api']} {b['version']} ({b['architecture']}, "
+        f"{b['num_threads']} thread{'s' * (b['num_threads'] != 1)})"
+        for b in env["blas"]
+    )
+    commit = env["git_commit"]
+    return (
+        f"Machine: {env['cpu']}; numpy {pk['numpy']}, scipy {pk['scipy']}, "
+        f"mujoco {pk['mujoco']}; BLAS {blas or 'not found'}; code "
+        f"{commit[:12] + commit[40:] if commit else 'not a git checkout'}. The "
+        "learned models' returns depend on these through round-off "
+        "(`environment` in metrics.json)."
+    )
+
+
+def _cpu_model() -> str:
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _git_commit() -> str | None:
+    """HEAD of the checkout this package runs from, ``+dirty`` if it has
+    uncommitted changes to tracked files; None if it is not a git checkout."""
+    here = Path(__file__).resolve().parent
+    try:
+        head = subprocess.run(
+            ["git", "-C", str(here), "rev-parse", "HEAD"],
+            capture_output=True, text=True, timeout=10, check=True,
+        ).stdout.strip()  # fmt: skip
+        dirty = subprocess.run(
+            ["git", "-C", str(here), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True, text=True, timeout=10, check=True,
+        ).stdout.strip()  # fmt: skip
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return head + ("+dirty" if dirty else "")
 
 
 def to_jsonable(x: Any) -> Any:
@@ -178,8 +294,9 @@ def pool_map(
     """``[fn(job) for job in jobs]`` in order, with a progress bar.
 
     ``workers == 1`` runs in this process (``initializer`` called here); otherwise a
-    process pool of ``workers`` runs the jobs. Results never depend on ``workers``:
-    every job carries its own seed.
+    process pool of ``workers`` runs the jobs, each worker at one BLAS thread (see
+    :func:`one_blas_thread`). Results never depend on ``workers``: every job
+    carries its own seed.
     """
     from concurrent.futures import ProcessPoolExecutor
 
@@ -191,10 +308,18 @@ def pool_map(
         it = map(fn, jobs)
         return list(tqdm(it, total=len(jobs), desc=desc, disable=not progress))
     with ProcessPoolExecutor(
-        workers, initializer=initializer, initargs=initargs
+        workers, initializer=_init_worker, initargs=(initializer, initargs)
     ) as pool:
         it = pool.map(fn, jobs)
         return list(tqdm(it, total=len(jobs), desc=desc, disable=not progress))
+
+
+def _init_worker(initializer, initargs: tuple) -> None:
+    """A pool worker's start: one BLAS thread for its lifetime, then
+    ``initializer(*initargs)``."""
+    threadpool_limits(limits=1)
+    if initializer is not None:
+        initializer(*initargs)
 
 
 def check_settings(config: Any, train: str, test: str, make, what: str) -> None:

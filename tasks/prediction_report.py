@@ -10,7 +10,13 @@ import numpy as np
 from hipmdp.data import Transitions
 from hipmdp.planning import LearnedModel
 from tasks import cartpole
-from tasks.experiment import fmt_ci, markdown_table, weights_figure, write_text
+from tasks.experiment import (
+    describe_environment,
+    fmt_ci,
+    markdown_table,
+    weights_figure,
+    write_text,
+)
 from tasks.prediction import PREDICTION_METHODS
 from tasks.recording import Recording
 
@@ -155,5 +161,7 @@ action × dimension, feature 0 the mean dynamics): `{metrics["z"][0]}`
 Run time: {s["total"]:.0f} s (batch data {s["batch_data"]:.0f} s, fits {s["fit"]:.0f} s,
 prediction {s["prediction"]:.0f} s). Figures: `weights.png`. Recording:
 `rerun cartpole.rrd`.
+
+{describe_environment(metrics.get("environment"))}
 """
     write_text(path / "report.md", text)

@@ -8,6 +8,7 @@ import json
 
 import numpy as np
 import pytest
+from threadpoolctl import threadpool_limits
 
 import hipmdp
 from tasks.acrobot_swingup import (
@@ -58,7 +59,9 @@ TINY = SwingupConfig(
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
-    return main(TINY, out=tmp_path_factory.mktemp("swingup"))
+    # as a user calling main after `import numpy`: OpenBLAS at two threads
+    with threadpool_limits(limits=2):
+        return main(TINY, out=tmp_path_factory.mktemp("swingup"))
 
 
 def test_artefacts_exist(run):
@@ -98,6 +101,9 @@ def test_metrics_schema(run):
         assert all(v["mean"] >= 0 for v in m["mse"][method].values())
     assert m["n_latent_features"] == len(m["z"]) - 1
     assert json.loads((run.out / "config.json").read_text())["seed"] == 0
+    # the run pinned BLAS to one thread, whatever the caller had (one_blas_thread)
+    assert {b["num_threads"] for b in m["environment"]["blas"]} == {1}
+    assert "Machine: " in (run.out / "report.md").read_text()
 
 
 def test_paired_differences_and_step_limit_rates_agree_with_the_curves(run):

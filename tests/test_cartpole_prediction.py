@@ -60,6 +60,8 @@ def test_artefacts_and_schema(run):
         )
     assert len(m["n_latent_features"]) == 2 and len(m["z"]) == 2
     assert set(m["mse_ratio_to_best_baseline"]) == set(DIM_NAMES)
+    assert m["environment"]["packages"]["numpy"] == np.__version__
+    assert "Machine: " in (run.out / "report.md").read_text()
 
 
 def test_same_seed_same_metrics(run, tmp_path):

@@ -3,17 +3,23 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
 from scipy import stats
+from threadpoolctl import threadpool_info, threadpool_limits
 
 from tasks.experiment import (
     check_counts,
+    describe_environment,
+    environment,
     first_episode_within,
     fmt_ci,
     mean_ci,
+    one_blas_thread,
     paired_difference,
+    pool_map,
     to_jsonable,
     trial_seeds,
     write_json,
@@ -103,3 +109,42 @@ def test_trial_seeds_are_setting_major_children_of_the_stream():
     for i, row in enumerate(seeds):
         for t, (entropy, spawn_key) in enumerate(row):
             assert entropy == 7 and spawn_key == (i * 4 + t,)
+
+
+def _blas_threads(_=None) -> list[int]:
+    return sorted(
+        {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}
+    )
+
+
+@pytest.fixture
+def two_blas_threads():
+    """The caller's process as a user's may be: numpy imported before ``tasks``,
+    so OpenBLAS runs several threads."""
+    with threadpool_limits(limits=2):
+        if _blas_threads() != [2]:
+            pytest.skip("this BLAS cannot be set to two threads")
+        yield
+
+
+def test_one_blas_thread_limits_the_call_and_restores_the_callers(two_blas_threads):
+    assert one_blas_thread(_blas_threads)() == [1]
+    assert _blas_threads() == [2]
+
+
+def test_pool_workers_run_one_blas_thread_whatever_the_parent_runs(two_blas_threads):
+    jobs = [0, 1, 2]
+    assert (
+        pool_map(_blas_threads, jobs, workers=2, desc="", progress=False) == [[1]] * 3
+    )
+
+
+def test_environment_is_plain_json_naming_versions_blas_and_commit():
+    env = json.loads(json.dumps(environment()))
+    assert env["packages"]["numpy"] == np.__version__
+    assert env["blas"] and all(b["num_threads"] >= 1 for b in env["blas"])
+    commit = env["git_commit"]
+    assert commit is None or re.fullmatch(r"[0-9a-f]{40}(\+dirty)?", commit)
+    line = describe_environment(env)
+    assert f"numpy {np.__version__}" in line and env["blas"][0]["version"] in line
+    assert describe_environment(None) == ""
