@@ -1,0 +1,252 @@
+"""Did a rerun reproduce a run, and if not, where do the two part?
+
+    python -m tasks.compare_runs runs/acrobot_swingup runs/my_rerun [--show 10]
+
+Reads two finished experiment folders (any experiment: they need ``config.json``
+and ``metrics.json``) and reports, from the first place results can part to the
+last:
+
+1. ``config``: the settings whose values differ (a different config is a
+   different experiment, not a failed reproduction);
+2. ``environment``: what ran (``metrics.json``'s ``environment``: versions, git
+   commit, CPU, SIMD and BLAS kernels) where it differs, or ``unrecorded`` for
+   a run from before it was recorded;
+3. ``arrays``: every array of every ``.npz`` file that both folders hold (the
+   batch data, the fitted models, ``trials.npz``): identical, or the largest
+   absolute difference, or the shapes;
+4. ``metrics``: the values in ``metrics.json`` (timings and environment aside)
+   that differ, summarised per top-level key by count and largest relative
+   difference (every value, with both sides, in ``--out``).
+
+Settings that only change how a run is shown or scheduled (``progress``,
+``workers``, ``record``) are not counted as differences.
+
+Identical configs and environments should give identical arrays and metrics
+(README, Experiments). Where only the environment differs, round-off is the
+likely cause: the fitted model parts by ~1e-10 and the learned models' control
+returns by as much as the swing-up's chaos allows, while data and the true
+simulator's returns stay identical. The comparison is also written as JSON with
+``--out FILE``.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from tasks.experiment import write_json
+
+IGNORED_METRICS = ("seconds", "environment")
+#: Settings that change how a run is shown or scheduled, never its results.
+PRESENTATION = ("progress", "workers", "record")
+
+
+class Comparison(NamedTuple):
+    """What :func:`main` returns; each field as in the module docstring.
+
+    ``config``, ``environment`` and ``metrics`` map a dotted key to ``[a, b]``;
+    ``arrays`` maps ``file:array`` to ``"identical"``, ``{"max_abs_diff": x,
+    "n_differ": k, "size": n}`` (numbers), ``{"json": differences}`` (a JSON
+    string) or ``{"shapes": [a, b]}``; ``only_in`` lists the ``.npz`` files that one
+    folder has and the other lacks.
+    """
+
+    config: dict[str, list]
+    environment: dict[str, list] | str
+    arrays: dict[str, Any]
+    metrics: dict[str, list]
+    only_in: dict[str, list[str]]
+
+    @property
+    def identical(self) -> bool:
+        """Every array and every metric equal (config and environment aside)."""
+        return not self.metrics and all(v == "identical" for v in self.arrays.values())
+
+
+def flatten(x: Any, prefix: str = "") -> dict[str, Any]:
+    """Nested dicts and lists as ``{"a.b.0": leaf}``."""
+    if isinstance(x, dict):
+        items = x.items()
+    elif isinstance(x, list):
+        items = enumerate(x)
+    else:
+        return {prefix: x}
+    out: dict[str, Any] = {}
+    for k, v in items:
+        out.update(flatten(v, f"{prefix}.{k}" if prefix else str(k)))
+    return out
+
+
+def _differences(a: dict, b: dict, skip: tuple[str, ...] = ()) -> dict[str, list]:
+    """Dotted keys whose leaves differ, ``[a's, b's]`` (None where absent);
+    keys whose last part is in ``skip`` are left out."""
+    fa, fb = flatten(a), flatten(b)
+    return {
+        k: [fa.get(k), fb.get(k)]
+        for k in sorted(fa.keys() | fb.keys())
+        if fa.get(k) != fb.get(k) and k.rsplit(".", 1)[-1] not in skip
+    }
+
+
+def _read_json(run: Path, name: str) -> dict:
+    path = run / name
+    if not path.is_file():
+        raise FileNotFoundError(f"{run}: no {name}; expected a finished run folder")
+    return json.loads(path.read_text())
+
+
+def compare_arrays(a: np.ndarray, b: np.ndarray) -> Any:
+    """``"identical"`` (NaN equal to NaN), the largest absolute difference, or
+    the two shapes."""
+    if a.shape != b.shape:
+        return {"shapes": [list(a.shape), list(b.shape)]}
+    if a.dtype.kind == "U" and b.dtype.kind == "U" and a.ndim == 0:
+        try:  # a JSON string, e.g. a model's metadata: compare its settings
+            ja, jb = json.loads(str(a)), json.loads(str(b))
+        except json.JSONDecodeError:
+            ja, jb = str(a), str(b)
+        if isinstance(ja, dict) and isinstance(jb, dict):
+            diff = _differences(ja, jb, PRESENTATION)
+            return "identical" if not diff else {"json": diff}
+    if a.dtype.kind in "fc" and b.dtype.kind in "fc":
+        if np.array_equal(a, b, equal_nan=True):
+            return "identical"
+        with np.errstate(invalid="ignore"):
+            diff = np.abs(a.astype(complex) - b.astype(complex))
+        return {"max_abs_diff": float(np.nanmax(diff)), **_count(a, b)}
+    if np.array_equal(a, b):
+        return "identical"
+    if a.dtype.kind in "iub" and b.dtype.kind in "iub":
+        return {
+            "max_abs_diff": float(np.max(np.abs(a.astype(float) - b))),
+            **_count(a, b),
+        }
+    return _count(a, b)
+
+
+def _count(a: np.ndarray, b: np.ndarray) -> dict[str, int]:
+    """How many entries differ, of how many (NaN equal to NaN)."""
+    same = a == b
+    if a.dtype.kind in "fc":
+        same |= np.isnan(a) & np.isnan(b)
+    return {"n_differ": int(np.count_nonzero(~same)), "size": int(a.size)}
+
+
+def main(run_a: str | Path, run_b: str | Path, out: str | Path | None = None):
+    """Compare two run folders; see the module docstring."""
+    a, b = Path(run_a), Path(run_b)
+    config = _differences(
+        _read_json(a, "config.json"), _read_json(b, "config.json"), PRESENTATION
+    )
+    ma, mb = _read_json(a, "metrics.json"), _read_json(b, "metrics.json")
+    ea, eb = ma.get("environment"), mb.get("environment")
+    environment = _differences(ea, eb) if ea and eb else "unrecorded"
+    for m in (ma, mb):
+        for key in IGNORED_METRICS:
+            m.pop(key, None)
+    metrics = _differences(ma, mb)
+    names_a = {p.name for p in a.glob("*.npz")}
+    names_b = {p.name for p in b.glob("*.npz")}
+    arrays: dict[str, Any] = {}
+    for name in sorted(names_a & names_b):
+        with (
+            np.load(a / name, allow_pickle=False) as za,
+            np.load(b / name, allow_pickle=False) as zb,
+        ):
+            for key in sorted(set(za.files) | set(zb.files)):
+                if key not in za.files or key not in zb.files:
+                    arrays[f"{name}:{key}"] = {"only_in": str(a if key in za else b)}
+                else:
+                    arrays[f"{name}:{key}"] = compare_arrays(za[key], zb[key])
+    only_in = {str(a): sorted(names_a - names_b), str(b): sorted(names_b - names_a)}
+    result = Comparison(config, environment, arrays, metrics, only_in)
+    if out is not None:
+        write_json(out, result._asdict() | {"identical": result.identical})
+    return result
+
+
+def _show(items: dict, limit: int) -> list[str]:
+    lines = [f"  {k}: {v}" for k, v in list(items.items())[:limit]]
+    if len(items) > limit:
+        lines.append(f"  … and {len(items) - limit} more (--show N, or --out FILE)")
+    return lines
+
+
+def metric_groups(metrics: dict[str, list]) -> dict[str, str]:
+    """Differing metrics by top-level key: how many values, and the largest
+    relative difference |a − b| / max(|a|, |b|) among the numbers."""
+    groups: dict[str, list] = {}
+    for key, pair in metrics.items():
+        groups.setdefault(key.split(".", 1)[0], []).append(pair)
+    out = {}
+    for name, pairs in groups.items():
+        rel = [
+            abs(x - y) / max(abs(x), abs(y))
+            for x, y in pairs
+            if isinstance(x, int | float) and isinstance(y, int | float) and x != y
+        ]
+        text = f"{len(pairs)} value{'s' * (len(pairs) != 1)}"
+        out[name] = text + (
+            f", largest relative difference {max(rel):.2g}" if rel else ""
+        )
+    return out
+
+
+def report(result: Comparison, limit: int = 10) -> str:
+    """The comparison as plain text."""
+    lines = ["config: " + ("the same" if not result.config else "differs in")]
+    lines += _show(result.config, limit)
+    env = result.environment
+    if isinstance(env, str):
+        lines.append(f"environment: {env} in at least one run")
+    else:
+        lines.append("environment: " + ("the same" if not env else "differs in"))
+        lines += _show(env, limit)
+    same = [k for k, v in result.arrays.items() if v == "identical"]
+    parted = {k: v for k, v in result.arrays.items() if v != "identical"}
+    lines.append(f"arrays: {len(same)} identical, {len(parted)} differ")
+    lines += _show(parted, limit)
+    lines += [
+        f"  only in {run}: {', '.join(n)}" for run, n in result.only_in.items() if n
+    ]
+    lines.append(
+        "metrics: "
+        + ("the same" if not result.metrics else f"{len(result.metrics)} values differ")
+    )
+    lines += _show(metric_groups(result.metrics), limit)
+    lines.append(
+        "verdict: "
+        + ("identical results" if result.identical else "the results differ")
+    )
+    return "\n".join(lines)
+
+
+def cli(argv: list[str] | None = None) -> int:
+    import argparse
+
+    parser = argparse.ArgumentParser(
+        prog="python -m tasks.compare_runs",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("run_a", help="a finished run folder")
+    parser.add_argument("run_b", help="another one")
+    parser.add_argument("--show", type=int, default=10, help="rows per section")
+    parser.add_argument("--out", default=None, help="also write the comparison JSON")
+    args = parser.parse_args(argv)
+    if args.show < 1:
+        parser.error(f"--show: expected >= 1, got {args.show}")
+    try:
+        result = main(args.run_a, args.run_b, out=args.out)
+    except (ValueError, FileNotFoundError) as err:
+        parser.error(str(err))
+    print(report(result, args.show))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

@@ -1,0 +1,108 @@
+"""tasks.compare_runs: where two run folders part, on small hand-made folders."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from tasks.compare_runs import cli, compare_arrays, flatten, main, report
+from tasks.experiment import write_json
+
+ENV = {"packages": {"numpy": "2.4.6"}, "blas": [{"architecture": "SkylakeX"}]}
+
+
+def _run(path, *, returns=None, config=None, metrics=None, env=ENV):
+    path.mkdir()
+    write_json(path / "config.json", config or {"seed": 0, "progress": True})
+    m = metrics or {"paired_difference": {"hipmdp - average": -0.5}, "n": [1, 2]}
+    m = m | {"seconds": {"total": 1.0}} | ({"environment": env} if env else {})
+    write_json(path / "metrics.json", m)
+    r = np.arange(12.0).reshape(3, 4) if returns is None else returns
+    meta = np.array(json.dumps({"config": {"n_support": 5, "progress": True}}))
+    np.savez(path / "trials.npz", returns=r, methods=np.array(["a", "b", "c"]))
+    np.savez(path / "model.npz", f=np.ones(3), meta_json=meta)
+    return path
+
+
+def test_a_copy_is_identical_whatever_its_timings(tmp_path):
+    a = _run(tmp_path / "a")
+    b = _run(tmp_path / "b")
+    m = json.loads((b / "metrics.json").read_text())
+    m["seconds"]["total"] = 99.0  # timings never count
+    write_json(b / "metrics.json", m)
+    result = main(a, b)
+    assert result.identical and not result.config and result.environment == {}
+    assert set(result.arrays) == {
+        "model.npz:f", "model.npz:meta_json", "trials.npz:methods",
+        "trials.npz:returns",
+    }  # fmt: skip
+    assert "verdict: identical results" in report(result)
+
+
+def test_differences_are_located_and_counted(tmp_path):
+    a = _run(tmp_path / "a")
+    returns = np.arange(12.0).reshape(3, 4)
+    returns[1, 2] += 3.0
+    returns[2, 0] -= 1.0
+    b = _run(
+        tmp_path / "b",
+        returns=returns,
+        config={"seed": 1, "progress": False},  # seed counts, progress does not
+        metrics={"paired_difference": {"hipmdp - average": -1.0}, "n": [1, 2]},
+        env={"packages": {"numpy": "2.3.0"}, "blas": [{"architecture": "Haswell"}]},
+    )
+    result = main(a, b)
+    assert result.config == {"seed": [0, 1]}
+    assert result.environment == {
+        "blas.0.architecture": ["SkylakeX", "Haswell"],
+        "packages.numpy": ["2.4.6", "2.3.0"],
+    }
+    assert result.arrays["trials.npz:returns"] == {
+        "max_abs_diff": 3.0, "n_differ": 2, "size": 12
+    }  # fmt: skip
+    assert result.arrays["model.npz:meta_json"] == "identical"  # progress only
+    assert result.metrics == {"paired_difference.hipmdp - average": [-0.5, -1.0]}
+    text = report(result)
+    assert "paired_difference: 1 value, largest relative difference 0.5" in text
+    assert "verdict: the results differ" in text
+
+
+def test_runs_from_before_the_environment_was_recorded(tmp_path):
+    result = main(_run(tmp_path / "a"), _run(tmp_path / "b", env=None))
+    assert result.environment == "unrecorded" and result.identical
+
+
+def test_files_and_arrays_only_one_run_has(tmp_path):
+    a, b = _run(tmp_path / "a"), _run(tmp_path / "b")
+    (b / "model.npz").unlink()
+    np.savez(b / "trials.npz", returns=np.arange(12.0).reshape(3, 4))
+    result = main(a, b)
+    assert result.only_in == {str(a): ["model.npz"], str(b): []}
+    assert result.arrays["trials.npz:methods"] == {"only_in": str(a)}
+    assert not result.identical
+
+
+def test_compare_arrays_nan_shapes_and_strings():
+    nan = np.array([1.0, np.nan])
+    assert compare_arrays(nan, nan.copy()) == "identical"
+    assert compare_arrays(np.zeros(2), np.zeros(3)) == {"shapes": [[2], [3]]}
+    assert compare_arrays(np.array(["x", "y"]), np.array(["x", "z"])) == {
+        "n_differ": 1, "size": 2
+    }  # fmt: skip
+    assert flatten({"a": [1, {"b": 2}]}) == {"a.0": 1, "a.1.b": 2}
+
+
+def test_cli_reports_and_rejects_a_folder_that_is_not_a_run(tmp_path, capsys):
+    a = _run(tmp_path / "a")
+    shutil.copytree(a, tmp_path / "b")
+    out = tmp_path / "cmp.json"
+    assert cli([str(a), str(tmp_path / "b"), "--out", str(out)]) == 0
+    assert "identical results" in capsys.readouterr().out
+    assert json.loads(out.read_text())["identical"] is True
+    with pytest.raises(SystemExit) as exit_info:
+        cli([str(a), str(tmp_path)])
+    assert exit_info.value.code == 2
+    assert "no config.json" in capsys.readouterr().err
