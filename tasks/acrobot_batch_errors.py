@@ -32,7 +32,13 @@ import numpy as np
 
 import hipmdp
 from tasks.acrobot_identified import check_run, load_run
-from tasks.experiment import one_blas_thread, run_or_exit, run_parser, write_json
+from tasks.experiment import (
+    environment,
+    one_blas_thread,
+    run_or_exit,
+    run_parser,
+    write_json,
+)
 
 MODELS = ("own", "prior", "average")
 
@@ -90,6 +96,7 @@ def main(run: str | Path, *, fast: float = 10.0, out: str | Path | None = None):
         "fast_share": shares,
         "dimensions": ["dtheta1_dot", "dtheta2_dot"],
         "rmse": rmse,
+        "environment": environment(),
     }
     return Results(write_json(out_path, summary), summary)
 

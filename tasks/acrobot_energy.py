@@ -79,6 +79,7 @@ from tasks.acrobot_swingup import setting_params
 from tasks.agents import ACROBOT, SimulatorModel, run_episode
 from tasks.experiment import (
     check_counts,
+    environment,
     fmt_ci,
     mean_ci,
     one_blas_thread,
@@ -597,6 +598,7 @@ def main(
         "elbow_wrap_kinetic_share": {
             m: mean_ci(flat(v)) for m, v in wrap_kinetic.items()
         },
+        "environment": environment(),
     }
     path = run / "energy.json" if out is None else Path(out)
     return Results(write_json(path, summary), summary)

@@ -43,6 +43,7 @@ from tasks.acrobot_swingup import setting_params
 from tasks.agents import ACROBOT
 from tasks.experiment import (
     check_counts,
+    environment,
     one_blas_thread,
     run_or_exit,
     run_parser,
@@ -127,6 +128,7 @@ def main(
             }
             for stat, values in (("rmse", rmse), ("p99", p99))
         },
+        "environment": environment(),
     }
     path = run / "horizon.json" if out is None else Path(out)
     return Results(write_json(path, summary), summary)

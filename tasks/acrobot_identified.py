@@ -75,6 +75,7 @@ from tasks.acrobot_swingup import run_streams, setting_params
 from tasks.agents import ACROBOT, EnergyConserving, SimulatorModel
 from tasks.experiment import (
     check_counts,
+    environment,
     mean_ci,
     one_blas_thread,
     paired_difference,
@@ -355,6 +356,7 @@ def main(
         for v, paper in pairs
         if v in returns and paper in returns
     }
+    out["environment"] = environment()
     path = write_json(out_path, out)
     return Results(path, returns, out)
 

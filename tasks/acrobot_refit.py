@@ -35,7 +35,13 @@ import hipmdp
 from hipmdp.data import atomic_write
 from tasks.acrobot_identified import check_run
 from tasks.acrobot_swingup import run_streams
-from tasks.experiment import one_blas_thread, run_or_exit, run_parser, write_json
+from tasks.experiment import (
+    environment,
+    one_blas_thread,
+    run_or_exit,
+    run_parser,
+    write_json,
+)
 
 _FIELDS = {f.name: f for f in dataclasses.fields(hipmdp.FitConfig)}
 
@@ -97,7 +103,7 @@ def main(
     # every check happens here, before any work (FitConfig validates the values)
     fit_config = hipmdp.FitConfig(**{**config["fit"], **fit, "progress": progress})
     config["fit"] = {**dataclasses.asdict(fit_config), "progress": False}
-    config["refit"] = {"from": str(run), "changes": fit}
+    config["refit"] = {"from": str(run), "changes": fit, "environment": environment()}
 
     out.mkdir(parents=True, exist_ok=True)
     atomic_write(

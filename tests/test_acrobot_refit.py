@@ -34,7 +34,9 @@ def test_no_change_reproduces_the_runs_model(run, tmp_path):
     old = json.loads((run / "config.json").read_text())
     new = json.loads((out / "config.json").read_text())
     assert new["fit"] == {**old["fit"], "periodic": False}
+    environment = new["refit"].pop("environment")  # what ran the refit
     assert new["refit"] == {"from": str(run), "changes": {}}
+    assert environment["packages"]["numpy"] == np.__version__
 
 
 def test_changed_settings_reach_the_model_and_the_checks(run, tmp_path):
