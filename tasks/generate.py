@@ -53,6 +53,7 @@ from tqdm import tqdm
 from hipmdp import shards
 from tasks.collect import DOMAINS, collect, collect_sarsa, get_domain
 from tasks.distributions import KINDS, SPLITS, Distribution, draw
+from tasks.experiment import one_blas_thread
 from tasks.rollout import collect_open_loop
 
 #: Parameters varied when no `--vary` is given: name -> (low, high).
@@ -374,6 +375,7 @@ def executor_for(workers: int, scheduler: str | None) -> Iterator[cf.Executor]:
             yield pool
 
 
+@one_blas_thread
 def generate(config: Config, *, executor: cf.Executor | None = None) -> Generated:
     """Run (or continue) the run `config` describes; see the module docstring.
 
