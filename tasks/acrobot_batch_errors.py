@@ -60,6 +60,7 @@ def _rmse(err: np.ndarray, rows: np.ndarray) -> list[float]:
 @one_blas_thread
 def main(run: str | Path, *, fast: float = 10.0, out: str | Path | None = None):
     """Run the check on the run folder ``run``; see the module docstring."""
+    machine = environment()  # the code and machine as the check starts
     run = Path(run)
     check_run(run)
     if not (np.isfinite(fast) and fast > 0):
@@ -96,7 +97,7 @@ def main(run: str | Path, *, fast: float = 10.0, out: str | Path | None = None):
         "fast_share": shares,
         "dimensions": ["dtheta1_dot", "dtheta2_dot"],
         "rmse": rmse,
-        "environment": environment(),
+        "environment": machine,
     }
     return Results(write_json(out_path, summary), summary)
 

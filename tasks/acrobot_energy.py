@@ -472,6 +472,7 @@ def main(
 ) -> Results:
     """Run the check on the run folder ``run``; see the module docstring.
     ``out`` is the JSON file to write (default ``run / "energy.json"``)."""
+    machine = environment()  # the code and machine as the check starts
     run = Path(run)
     check_run(run)
     # the names are the command line's
@@ -598,7 +599,7 @@ def main(
         "elbow_wrap_kinetic_share": {
             m: mean_ci(flat(v)) for m, v in wrap_kinetic.items()
         },
-        "environment": environment(),
+        "environment": machine,
     }
     path = run / "energy.json" if out is None else Path(out)
     return Results(write_json(path, summary), summary)

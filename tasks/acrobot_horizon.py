@@ -76,6 +76,7 @@ def main(
 ) -> Results:
     """Run the check on the run folder ``run``; see the module docstring.
     ``out`` is the JSON file to write (default ``run / "horizon.json"``)."""
+    machine = environment()  # the code and machine as the check starts
     run = Path(run)
     check_run(run)
     horizons = tuple(int(k) for k in horizons)
@@ -128,7 +129,7 @@ def main(
             }
             for stat, values in (("rmse", rmse), ("p99", p99))
         },
-        "environment": environment(),
+        "environment": machine,
     }
     path = run / "horizon.json" if out is None else Path(out)
     return Results(write_json(path, summary), summary)

@@ -264,6 +264,7 @@ def main(
     so ``true``, ``average`` and ``hipmdp`` replay the run's first trials.
     ``first_planning``, ``initial_planning``: every variant's simulated episodes
     after the first real one and before it (None: the run's)."""
+    machine = environment()  # the code and machine as the check starts
     run = Path(run)
     out_path = run / "identified.json" if out is None else Path(out)
     check_run(run)
@@ -356,7 +357,7 @@ def main(
         for v, paper in pairs
         if v in returns and paper in returns
     }
-    out["environment"] = environment()
+    out["environment"] = machine
     path = write_json(out_path, out)
     return Results(path, returns, out)
 

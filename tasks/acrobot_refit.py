@@ -93,6 +93,7 @@ def main(
 ) -> Results:
     """Refit ``run``'s HiP-MDP with ``fit`` (FitConfig field changes) into ``out``;
     see the module docstring."""
+    machine = environment()  # the code and machine as the check starts
     run, out = Path(run), Path(out)
     check_run(run)
     if out.resolve() == run.resolve():
@@ -103,7 +104,7 @@ def main(
     # every check happens here, before any work (FitConfig validates the values)
     fit_config = hipmdp.FitConfig(**{**config["fit"], **fit, "progress": progress})
     config["fit"] = {**dataclasses.asdict(fit_config), "progress": False}
-    config["refit"] = {"from": str(run), "changes": fit, "environment": environment()}
+    config["refit"] = {"from": str(run), "changes": fit, "environment": machine}
 
     out.mkdir(parents=True, exist_ok=True)
     atomic_write(

@@ -246,6 +246,7 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
     from tasks import swingup_report
 
     started = time.perf_counter()
+    machine = environment()  # the code and machine as the run starts
     path = run_dir(out, config.name)
     write_json(path / "config.json", config)
     ss_batch, ss_fit, ss_avg, ss_trials, ss_mse = run_streams(config.seed)
@@ -299,7 +300,7 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
     timings["artefacts"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - started
     metrics["seconds"] = timings
-    metrics["environment"] = environment()
+    metrics["environment"] = machine
     write_json(path / "metrics.json", metrics)
     swingup_report.write_report(path, config, metrics)
     return Results(path, to_jsonable(metrics))

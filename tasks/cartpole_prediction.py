@@ -146,6 +146,7 @@ def main(config: PredictionConfig, out: str | os.PathLike | None = None) -> Resu
     from tasks import prediction_report
 
     started = time.perf_counter()
+    machine = environment()  # the code and machine as the run starts
     path = run_dir(out, config.name)
     write_json(path / "config.json", config)
     ss_batch, ss_fit, ss_avg, ss_test = np.random.SeedSequence(config.seed).spawn(4)
@@ -225,7 +226,7 @@ def main(config: PredictionConfig, out: str | os.PathLike | None = None) -> Resu
     seconds["artefacts"] = time.perf_counter() - t0
     seconds["total"] = time.perf_counter() - started
     metrics["seconds"] = seconds
-    metrics["environment"] = environment()
+    metrics["environment"] = machine
     write_json(path / "metrics.json", metrics)
     prediction_report.write_report(path, config, metrics)
     return Results(path, to_jsonable(metrics))

@@ -64,16 +64,20 @@ class Comparison(NamedTuple):
     @property
     def identical(self) -> bool:
         """Every array and every metric equal (config and environment aside)."""
-        return not self.metrics and all(v == "identical" for v in self.arrays.values())
+        return (
+            not self.metrics
+            and not any(self.only_in.values())
+            and all(v == "identical" for v in self.arrays.values())
+        )
 
 
 def flatten(x: Any, prefix: str = "") -> dict[str, Any]:
     """Nested dicts and lists as ``{"a.b.0": leaf}``."""
-    if isinstance(x, dict):
+    if isinstance(x, dict) and x:
         items = x.items()
-    elif isinstance(x, list):
+    elif isinstance(x, list) and x:
         items = enumerate(x)
-    else:
+    else:  # a leaf, or an empty container (kept: {"a": []} is not {})
         return {prefix: x}
     out: dict[str, Any] = {}
     for k, v in items:
@@ -92,16 +96,34 @@ def _differences(a: dict, b: dict, skip: tuple[str, ...] = ()) -> dict[str, list
     }
 
 
-def _read_json(run: Path, name: str) -> dict:
+def _read_json(run: Path, name: str, required: bool = True) -> dict:
     path = run / name
     if not path.is_file():
+        if not required:
+            return {}
         raise FileNotFoundError(f"{run}: no {name}; expected a finished run folder")
     return json.loads(path.read_text())
 
 
+def _read_run(run: Path) -> tuple[dict, dict, dict | None]:
+    """``(config, metrics, environment)`` of a run folder. A refit folder
+    (``tasks.acrobot_refit``) has no metrics.json and keeps its environment in
+    ``config["refit"]``; timings and the environment are taken out of both."""
+    config = _read_json(run, "config.json")
+    metrics = _read_json(run, "metrics.json", required="refit" not in config)
+    env = metrics.pop("environment", None)
+    if "refit" in config:
+        env = config["refit"].pop("environment", env)
+    for key in IGNORED_METRICS:
+        metrics.pop(key, None)
+    return config, metrics, env
+
+
 def compare_arrays(a: np.ndarray, b: np.ndarray) -> Any:
-    """``"identical"`` (NaN equal to NaN), the largest absolute difference, or
-    the two shapes."""
+    """``"identical"`` (NaN equal to NaN), or how the two differ: the shapes; the
+    dtypes, where they cannot be compared; the JSON settings, for a JSON string;
+    else the largest absolute difference (float64; over the entries that are
+    numbers in both) and how many entries differ, NaN placement included."""
     if a.shape != b.shape:
         return {"shapes": [list(a.shape), list(b.shape)]}
     if a.dtype.kind == "U" and b.dtype.kind == "U" and a.ndim == 0:
@@ -112,56 +134,60 @@ def compare_arrays(a: np.ndarray, b: np.ndarray) -> Any:
         if isinstance(ja, dict) and isinstance(jb, dict):
             diff = _differences(ja, jb, PRESENTATION)
             return "identical" if not diff else {"json": diff}
-    if a.dtype.kind in "fc" and b.dtype.kind in "fc":
-        if np.array_equal(a, b, equal_nan=True):
-            return "identical"
-        with np.errstate(invalid="ignore"):
-            diff = np.abs(a.astype(complex) - b.astype(complex))
-        return {"max_abs_diff": float(np.nanmax(diff)), **_count(a, b)}
-    if np.array_equal(a, b):
+    numeric = a.dtype.kind in "iufcb" and b.dtype.kind in "iufcb"
+    if not numeric and (
+        a.dtype.kind != b.dtype.kind or a.dtype.kind == "V" and a.dtype != b.dtype
+    ):
+        return {"dtypes": [str(a.dtype), str(b.dtype)]}
+    if np.array_equal(a, b, equal_nan=numeric and a.dtype.kind in "fc"):
         return "identical"
-    if a.dtype.kind in "iub" and b.dtype.kind in "iub":
-        return {
-            "max_abs_diff": float(np.max(np.abs(a.astype(float) - b))),
-            **_count(a, b),
-        }
-    return _count(a, b)
+    out = _count(a, b)
+    if numeric:
+        kind = complex if "c" in (a.dtype.kind + b.dtype.kind) else np.float64
+        x, y = a.astype(kind), b.astype(kind)
+        both = ~(np.isnan(x) | np.isnan(y))
+        diff = np.abs(x[both] - y[both])
+        out = {"max_abs_diff": float(diff.max()) if diff.size else 0.0} | out
+    return out
 
 
 def _count(a: np.ndarray, b: np.ndarray) -> dict[str, int]:
     """How many entries differ, of how many (NaN equal to NaN)."""
     same = a == b
-    if a.dtype.kind in "fc":
+    if a.dtype.kind in "fc" and b.dtype.kind in "fc":
         same |= np.isnan(a) & np.isnan(b)
     return {"n_differ": int(np.count_nonzero(~same)), "size": int(a.size)}
+
+
+def _compare_files(fa: Path, fb: Path) -> dict[str, Any]:
+    """Every array of two ``.npz`` files, by ``file:array``."""
+    out: dict[str, Any] = {}
+    with np.load(fa, allow_pickle=False) as za, np.load(fb, allow_pickle=False) as zb:
+        for key in sorted(set(za.files) | set(zb.files)):
+            name = f"{fa.name}:{key}"
+            if key not in za.files or key not in zb.files:
+                out[name] = {"only_in": str(fa.parent if key in za else fb.parent)}
+                continue
+            try:
+                out[name] = compare_arrays(za[key], zb[key])
+            except (ValueError, TypeError) as err:  # e.g. an object array (pickle)
+                out[name] = {"unreadable": str(err)}
+    return out
 
 
 def main(run_a: str | Path, run_b: str | Path, out: str | Path | None = None):
     """Compare two run folders; see the module docstring."""
     a, b = Path(run_a), Path(run_b)
-    config = _differences(
-        _read_json(a, "config.json"), _read_json(b, "config.json"), PRESENTATION
-    )
-    ma, mb = _read_json(a, "metrics.json"), _read_json(b, "metrics.json")
-    ea, eb = ma.get("environment"), mb.get("environment")
-    environment = _differences(ea, eb) if ea and eb else "unrecorded"
-    for m in (ma, mb):
-        for key in IGNORED_METRICS:
-            m.pop(key, None)
-    metrics = _differences(ma, mb)
+    config_a, metrics_a, env_a = _read_run(a)
+    config_b, metrics_b, env_b = _read_run(b)
+    config = _differences(config_a, config_b, PRESENTATION)
+    environment = _differences(env_a, env_b) if env_a and env_b else "unrecorded"
+    metrics = _differences(metrics_a, metrics_b)
     names_a = {p.name for p in a.glob("*.npz")}
     names_b = {p.name for p in b.glob("*.npz")}
     arrays: dict[str, Any] = {}
     for name in sorted(names_a & names_b):
-        with (
-            np.load(a / name, allow_pickle=False) as za,
-            np.load(b / name, allow_pickle=False) as zb,
-        ):
-            for key in sorted(set(za.files) | set(zb.files)):
-                if key not in za.files or key not in zb.files:
-                    arrays[f"{name}:{key}"] = {"only_in": str(a if key in za else b)}
-                else:
-                    arrays[f"{name}:{key}"] = compare_arrays(za[key], zb[key])
+        arrays |= _compare_files(a / name, b / name)
     only_in = {str(a): sorted(names_a - names_b), str(b): sorted(names_b - names_a)}
     result = Comparison(config, environment, arrays, metrics, only_in)
     if out is not None:

@@ -49,6 +49,7 @@ def one_blas_thread(fn: Callable) -> Callable:
         with threadpool_limits(limits=1):
             return fn(*args, **kwargs)
 
+    wrapper.one_blas_thread = True  # for tests: which entry points are limited
     return wrapper
 
 
@@ -125,16 +126,21 @@ def _cpu_model() -> str:
 def _git_commit() -> str | None:
     """HEAD of the checkout this package runs from, ``+dirty`` if it has
     uncommitted changes to tracked files; None if it is not a git checkout."""
-    here = Path(__file__).resolve().parent
+    root = Path(__file__).resolve().parent.parent  # tasks/ sits at the repo's top
+
+    def git(*args: str) -> str:
+        return subprocess.run(
+            ["git", "--no-optional-locks", "-C", str(root), *args],
+            capture_output=True, text=True, timeout=10, check=True,
+        ).stdout.strip()  # fmt: skip
+
     try:
-        head = subprocess.run(
-            ["git", "-C", str(here), "rev-parse", "HEAD"],
-            capture_output=True, text=True, timeout=10, check=True,
-        ).stdout.strip()  # fmt: skip
-        dirty = subprocess.run(
-            ["git", "-C", str(here), "status", "--porcelain", "--untracked-files=no"],
-            capture_output=True, text=True, timeout=10, check=True,
-        ).stdout.strip()  # fmt: skip
+        # an install inside some other checkout (site-packages in its .venv) is not
+        # this code's checkout
+        if Path(git("rev-parse", "--show-toplevel")).resolve() != root:
+            return None
+        head = git("rev-parse", "HEAD")
+        dirty = git("status", "--porcelain", "--untracked-files=no")
     except (OSError, subprocess.SubprocessError):
         return None
     return head + ("+dirty" if dirty else "")
@@ -294,7 +300,7 @@ def pool_map(
     """``[fn(job) for job in jobs]`` in order, with a progress bar.
 
     ``workers == 1`` runs in this process (``initializer`` called here); otherwise a
-    process pool of ``workers`` runs the jobs, each worker at one BLAS thread (see
+    process pool of ``workers`` runs the jobs. Either way at one BLAS thread (see
     :func:`one_blas_thread`). Results never depend on ``workers``: every job
     carries its own seed.
     """
@@ -303,10 +309,11 @@ def pool_map(
     from tqdm.auto import tqdm
 
     if workers == 1:
-        if initializer is not None:
-            initializer(*initargs)
-        it = map(fn, jobs)
-        return list(tqdm(it, total=len(jobs), desc=desc, disable=not progress))
+        with threadpool_limits(limits=1):  # as the workers below
+            if initializer is not None:
+                initializer(*initargs)
+            it = map(fn, jobs)
+            return list(tqdm(it, total=len(jobs), desc=desc, disable=not progress))
     with ProcessPoolExecutor(
         workers, initializer=_init_worker, initargs=(initializer, initargs)
     ) as pool:

@@ -315,8 +315,11 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
     return old, todo
 
 
+@one_blas_thread
 def run_shard(job: ShardJob) -> ShardOutput:
-    """Gather one shard's transitions (runs in a worker)."""
+    """Gather one shard's transitions (runs in a worker, in-process, forkserver or
+    Dask alike: at one BLAS thread, so a Sarsa policy's data do not depend on
+    where it runs)."""
     spec = get_domain(job.domain)
     params = [spec.params_type(*row) for row in job.values]
     seq = np.random.SeedSequence(job.entropy, spawn_key=job.spawn_key)
@@ -375,7 +378,6 @@ def executor_for(workers: int, scheduler: str | None) -> Iterator[cf.Executor]:
             yield pool
 
 
-@one_blas_thread
 def generate(config: Config, *, executor: cf.Executor | None = None) -> Generated:
     """Run (or continue) the run `config` describes; see the module docstring.
 

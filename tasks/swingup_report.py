@@ -277,6 +277,7 @@ z (feature × (action, dimension)), feature 0 the mean dynamics:
 
 Run time: {s["total"]:.0f} s (batch data {s["batch_data"]:.0f} s, fit {s["fit"]:.0f} s,
 transfer {s["transfer"]:.0f} s, prediction {s["prediction"]:.0f} s).
+
 {describe_environment(metrics.get("environment"))}
 
 Figures: `learning_curves.png`, `weights.png`. Recording: `rerun acrobot.rrd`.

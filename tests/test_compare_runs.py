@@ -14,14 +14,14 @@ from tasks.experiment import write_json
 ENV = {"packages": {"numpy": "2.4.6"}, "blas": [{"architecture": "SkylakeX"}]}
 
 
-def _run(path, *, returns=None, config=None, metrics=None, env=ENV):
+def _run(path, *, returns=None, config=None, metrics=None, env=ENV, progress=True):
     path.mkdir()
-    write_json(path / "config.json", config or {"seed": 0, "progress": True})
+    write_json(path / "config.json", config or {"seed": 0, "progress": progress})
     m = metrics or {"paired_difference": {"hipmdp - average": -0.5}, "n": [1, 2]}
     m = m | {"seconds": {"total": 1.0}} | ({"environment": env} if env else {})
     write_json(path / "metrics.json", m)
     r = np.arange(12.0).reshape(3, 4) if returns is None else returns
-    meta = np.array(json.dumps({"config": {"n_support": 5, "progress": True}}))
+    meta = np.array(json.dumps({"config": {"n_support": 5, "progress": progress}}))
     np.savez(path / "trials.npz", returns=r, methods=np.array(["a", "b", "c"]))
     np.savez(path / "model.npz", f=np.ones(3), meta_json=meta)
     return path
@@ -51,7 +51,8 @@ def test_differences_are_located_and_counted(tmp_path):
         tmp_path / "b",
         returns=returns,
         config={"seed": 1, "progress": False},  # seed counts, progress does not
-        metrics={"paired_difference": {"hipmdp - average": -1.0}, "n": [1, 2]},
+        progress=False,  # nor in the model's metadata
+        metrics={"paired_difference": {"hipmdp - average": -1.5}, "n": [1, 2]},
         env={"packages": {"numpy": "2.3.0"}, "blas": [{"architecture": "Haswell"}]},
     )
     result = main(a, b)
@@ -64,9 +65,9 @@ def test_differences_are_located_and_counted(tmp_path):
         "max_abs_diff": 3.0, "n_differ": 2, "size": 12
     }  # fmt: skip
     assert result.arrays["model.npz:meta_json"] == "identical"  # progress only
-    assert result.metrics == {"paired_difference.hipmdp - average": [-0.5, -1.0]}
+    assert result.metrics == {"paired_difference.hipmdp - average": [-0.5, -1.5]}
     text = report(result)
-    assert "paired_difference: 1 value, largest relative difference 0.5" in text
+    assert "paired_difference: 1 value, largest relative difference 0.67" in text
     assert "verdict: the results differ" in text
 
 
@@ -83,16 +84,44 @@ def test_files_and_arrays_only_one_run_has(tmp_path):
     assert result.only_in == {str(a): ["model.npz"], str(b): []}
     assert result.arrays["trials.npz:methods"] == {"only_in": str(a)}
     assert not result.identical
+    np.savez(b / "trials.npz", **np.load(a / "trials.npz"))
+    assert not main(a, b).identical  # a missing file alone is a difference
 
 
-def test_compare_arrays_nan_shapes_and_strings():
-    nan = np.array([1.0, np.nan])
+def test_a_refit_folder_compares_with_its_run(tmp_path):
+    a = _run(tmp_path / "a")
+    b = tmp_path / "b"
+    b.mkdir()
+    write_json(b / "config.json", {"seed": 0, "refit": {"environment": ENV}})
+    np.savez(b / "model.npz", f=np.ones(3) + 1e-12, meta_json=np.array("{}"))
+    result = main(a, b)
+    assert result.config == {"refit": [None, {}]}  # only the refit itself
+    assert result.environment == {}  # read from config.json's refit
+    assert result.arrays["model.npz:f"] == {
+        "max_abs_diff": pytest.approx(1e-12, rel=0.01), "n_differ": 3, "size": 3
+    }  # fmt: skip
+
+
+def test_compare_arrays_nan_shapes_dtypes_and_strings():
+    nan = np.array([1.0, np.nan, 3.0])
     assert compare_arrays(nan, nan.copy()) == "identical"
+    moved = np.array([1.0, 2.0, np.nan])  # NaN moved: two entries differ
+    assert compare_arrays(nan, moved) == {
+        "max_abs_diff": 0.0, "n_differ": 2, "size": 3
+    }  # fmt: skip
+    big = np.array([2**53, 1], dtype=np.int64)
+    assert compare_arrays(big, big + [0, 5]) == {
+        "max_abs_diff": 5.0, "n_differ": 1, "size": 2
+    }  # fmt: skip
     assert compare_arrays(np.zeros(2), np.zeros(3)) == {"shapes": [[2], [3]]}
-    assert compare_arrays(np.array(["x", "y"]), np.array(["x", "z"])) == {
+    assert compare_arrays(np.array(["x", "y"]), np.array(["x", "zz"])) == {
         "n_differ": 1, "size": 2
     }  # fmt: skip
+    assert compare_arrays(np.zeros(2), np.array(["a", "b"])) == {
+        "dtypes": ["float64", "<U1"]
+    }  # fmt: skip
     assert flatten({"a": [1, {"b": 2}]}) == {"a.0": 1, "a.1.b": 2}
+    assert flatten({"a": []}) != flatten({})
 
 
 def test_cli_reports_and_rejects_a_folder_that_is_not_a_run(tmp_path, capsys):
