@@ -53,6 +53,9 @@ def one_blas_thread(fn: Callable) -> Callable:
     return wrapper
 
 
+BLAS_FIELDS = ("internal_api", "version", "architecture", "num_threads")
+
+
 def environment() -> dict[str, Any]:
     """What a run's floating-point results depend on besides its seed and config.
 
@@ -84,8 +87,7 @@ def environment() -> dict[str, Any]:
         "git_commit": _git_commit(),
         "numpy_simd": simd,
         "blas": [
-            {k: info.get(k) for k in ("internal_api", "version", "architecture")}
-            | {"num_threads": info.get("num_threads")}
+            {k: info.get(k) for k in BLAS_FIELDS}
             for info in threadpool_info()
             if info.get("user_api") == "blas"
         ],
