@@ -3,8 +3,8 @@
     python -m tasks.compare_runs runs/acrobot_swingup runs/my_rerun [--show 10]
 
 Reads two finished experiment folders (any experiment: they need ``config.json``
-and ``metrics.json``) and reports, from the first place results can part to the
-last:
+and ``metrics.json``; a ``tasks.acrobot_refit`` folder, ``config.json`` alone) and
+reports, from the first place results can part to the last:
 
 1. ``config``: the settings whose values differ (a different config is a
    different experiment, not a failed reproduction);
