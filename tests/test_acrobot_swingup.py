@@ -11,6 +11,7 @@ import pytest
 from threadpoolctl import threadpool_limits
 
 import hipmdp
+from tasks import compare_runs
 from tasks.acrobot_swingup import (
     PRESETS,
     SwingupConfig,
@@ -140,6 +141,16 @@ def test_trial_file_holds_what_the_curves_summarise(run):
     for i, method in enumerate(METHODS):
         per_trial = returns[i].reshape(-1, returns.shape[-1])
         np.testing.assert_allclose(per_trial.mean(0), m["returns"][method]["mean"])
+
+
+def test_results_do_not_depend_on_the_callers_blas_threads(run, tmp_path):
+    # `run` was made by a caller at two BLAS threads; without the limit inside
+    # main, its fitted f differs from a one-thread caller's by ~6e-9 here
+    with threadpool_limits(limits=1):
+        again = main(TINY, out=tmp_path)
+    comparison = compare_runs.main(run.out, again.out)
+    assert comparison.arrays["hipmdp_model.npz:f"] == "identical"
+    assert comparison.identical, compare_runs.report(comparison)
 
 
 def test_model_file_loads_and_predicts(run):

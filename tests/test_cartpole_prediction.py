@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import pytest
+from threadpoolctl import threadpool_limits
 
 import hipmdp
 from tasks.cartpole_prediction import DIM_NAMES, PredictionConfig, main, parse_args
@@ -41,7 +42,9 @@ TINY = PredictionConfig(
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
-    return main(TINY, out=tmp_path_factory.mktemp("cartpole"))
+    # as a user calling main after `import numpy`: OpenBLAS at two threads
+    with threadpool_limits(limits=2):
+        return main(TINY, out=tmp_path_factory.mktemp("cartpole"))
 
 
 def test_artefacts_and_schema(run):
@@ -64,8 +67,9 @@ def test_artefacts_and_schema(run):
     assert "Machine: " in (run.out / "report.md").read_text()
 
 
-def test_same_seed_same_metrics(run, tmp_path):
-    again = main(TINY, out=tmp_path)
+def test_same_seed_same_metrics_whatever_the_callers_blas_threads(run, tmp_path):
+    with threadpool_limits(limits=1):
+        again = main(TINY, out=tmp_path)
     a = json.loads((run.out / "metrics.json").read_text())
     b = json.loads((again.out / "metrics.json").read_text())
     a.pop("seconds"), b.pop("seconds")
