@@ -427,3 +427,30 @@ def test_the_planning_wrapper_skips_the_simulator_and_spares_the_recording(
     conserving = EnergyConserving(first, params).predict(s0, actions)
     assert np.any(np.all(np.isclose(raw, trace.predicted[0], atol=1e-12), axis=1))
     assert not np.any(np.all(np.isclose(conserving, trace.predicted[0]), axis=1))
+
+
+def test_recording_a_trial_does_not_change_its_results(run, monkeypatch):
+    """A recorded trial also filters step by step, for the trace; the belief it
+    goes on with must be the unrecorded trial's, bit for bit, or the chaotic
+    agent turns the round-off into other returns."""
+    from tasks import transfer
+    from tasks.acrobot_swingup import setting_params
+    from tasks.agents import ACROBOT
+
+    out, _ = run
+    hip = hipmdp.load(out / "hipmdp_model.npz")
+    monkeypatch.setattr(transfer, "_MODELS", {})  # this process's models: restored
+    transfer.set_models(ACROBOT, TINY.transfer, hip, None)
+    params = setting_params(*TINY.test_masses[0])
+    recorded, plain = (
+        transfer.run_trial(transfer.TrialJob("hipmdp", 0, 0, params, (7, ()), rec))
+        for rec in (True, False)
+    )
+    assert recorded.traces and plain.traces is None
+    np.testing.assert_array_equal(recorded.weight_means, plain.weight_means)
+    np.testing.assert_array_equal(recorded.returns, plain.returns)
+    # the trace ends where step-by-step filtering ends: at the batched belief up
+    # to round-off
+    np.testing.assert_allclose(
+        recorded.traces[0].belief_mean[-1], recorded.weight_means[1], rtol=1e-9
+    )
