@@ -40,7 +40,8 @@ import numpy as np
 
 from tasks.experiment import write_json
 
-IGNORED_METRICS = ("seconds", "environment")
+#: Metrics that say how long a run took, never what it found.
+IGNORED_METRICS = ("seconds",)
 #: Settings that change how a run is shown or scheduled, never its results.
 PRESENTATION = ("progress", "workers", "record")
 
