@@ -2,8 +2,9 @@
 MuJoCo, one compiled model per instance.
 
 Symbols: `m₁, m₂` link masses (kg); `l₁, l₂` link lengths (m); `lc_i = l_i / 2` the
-centres of mass; `I_i = m_i l_i²` the moments of inertia about the centres of mass
-(kg·m², the book's 1 at nominal: the shape is kept and scaled); `g = 9.8` m/s²;
+centres of mass; `I_i = k_i m_i l_i²` the moments of inertia about the centres of
+mass (kg·m², the book's 1 at nominal; the shape `k_i` is 1 unless set, see
+`AcrobotParams`); `g = 9.8` m/s²;
 `τ ∈ ACTIONS = (-1, 0, +1)` N·m the elbow torque.
 
 State `s = (θ₁, θ₂, θ̇₁, θ̇₂)`, shape `(4,)` (`STATE_DIM`): `θ₁ = 0` hangs straight
@@ -76,10 +77,19 @@ class AcrobotParams:
     link_mass_2     kg    1.0      [0.2, 5.0]
     link_length_1   m     1.0      [0.2, 5.0]
     link_length_2   m     1.0      [0.2, 5.0]
+    link_shape_1    1     1.0      [0.5, 2.0]
+    link_shape_2    1     1.0      [0.5, 2.0]
     ==============  ====  =======  ===========
 
-    Each link keeps its shape: centre of mass at mid-link and moment of inertia
-    about it `I_i = m_i l_i²` (1 kg·m² at nominal, as in the book).
+    The centre of mass is at mid-link. The moment of inertia about it is
+    `I_i = k_i m_i l_i²` with `k_i = link_shape_i`, the link's shape: at the
+    nominal 1 (1 kg·m² at nominal mass and length, as in the book), the shape is
+    kept and scaled when a mass or length changes (DESIGN §6). Then the passive
+    dynamics depend on the masses only through `m₁ / m₂`, and scaling both
+    scales the torque's effect alone. `k_i = 1 / (m_i l_i²)` instead holds the
+    book's `I_i = 1` kg·m² as the masses change, as the book's equations do when
+    only `m₁, m₂` are rewritten (`book_inertia`); then each mass also changes how
+    fast its link swings.
 
     Raises:
         ValueError: naming the field and the bound, for a value that is not a
@@ -90,25 +100,60 @@ class AcrobotParams:
     link_mass_2: float = parameter(1.0, "kg", 0.2, 5.0)
     link_length_1: float = parameter(1.0, "m", 0.2, 5.0)
     link_length_2: float = parameter(1.0, "m", 0.2, 5.0)
+    link_shape_1: float = parameter(1.0, "1", 0.5, 2.0)
+    link_shape_2: float = parameter(1.0, "1", 0.5, 2.0)
 
     def __post_init__(self) -> None:
         validate_parameters(self)
+
+    @property
+    def inertias(self) -> tuple[float, float]:
+        """`(I₁, I₂)`, kg·m²: each link's moment of inertia about its centre of
+        mass, `I_i = k_i m_i l_i²`."""
+        return (
+            self.link_shape_1 * self.link_mass_1 * self.link_length_1**2,
+            self.link_shape_2 * self.link_mass_2 * self.link_length_2**2,
+        )
+
+
+def book_inertia(
+    link_mass_1: float = 1.0,
+    link_mass_2: float = 1.0,
+    link_length_1: float = 1.0,
+    link_length_2: float = 1.0,
+) -> AcrobotParams:
+    """The instance whose links keep the book's `I₁ = I₂ = 1` kg·m² whatever
+    their masses and lengths (`k_i = 1 / (m_i l_i²)`, within its bounds).
+
+    Raises:
+        ValueError: as `AcrobotParams`, naming `link_shape_i` when `m_i l_i²`
+            is outside [0.5, 2] kg·m².
+    """
+    return AcrobotParams(
+        link_mass_1,
+        link_mass_2,
+        link_length_1,
+        link_length_2,
+        link_shape_1=1.0 / (link_mass_1 * link_length_1**2),
+        link_shape_2=1.0 / (link_mass_2 * link_length_2**2),
+    )
 
 
 def make_model(params: AcrobotParams | None = None) -> mujoco.MjModel:
     """Compile `assets/mjcf/acrobot.xml` rewritten to `params` with `mujoco.MjSpec`.
 
-    Link `i` gets mass `m_i`, centre of mass at `l_i / 2`, inertia `m_i l_i²` about
-    it and a capsule of length `l_i`; the elbow sits at `l₁` and the tip site at
+    Link `i` gets mass `m_i`, centre of mass at `l_i / 2`, inertia `I_i` about it
+    and a capsule of length `l_i`; the elbow sits at `l₁` and the tip site at
     `l₂` below it.
     """
     params = _check_params(params)
     spec = load_spec("acrobot.xml")
     m1, m2 = params.link_mass_1, params.link_mass_2
     l1, l2 = params.link_length_1, params.link_length_2
-    set_link(spec.body("link_1"), spec.geom("link_1"), m1, l1, m1 * l1**2, down=-1)
+    i1, i2 = params.inertias
+    set_link(spec.body("link_1"), spec.geom("link_1"), m1, l1, i1, down=-1)
     spec.body("link_2").pos = [0.0, 0.0, -l1]
-    set_link(spec.body("link_2"), spec.geom("link_2"), m2, l2, m2 * l2**2, down=-1)
+    set_link(spec.body("link_2"), spec.geom("link_2"), m2, l2, i2, down=-1)
     spec.site("tip").pos = [0.0, 0.0, -l2]
     return spec.compile()
 
@@ -144,7 +189,7 @@ def mass_matrix(states: Array, params: AcrobotParams | None = None) -> Array:
 
     `M = [[d₁, d₂], [d₂, m₂ l_c2² + I₂]]` with `d₁ = m₁ l_c1² + m₂ (l₁² + l_c2² +
     2 l₁ l_c2 cos θ₂) + I₁ + I₂`, `d₂ = m₂ (l_c2² + l₁ l_c2 cos θ₂) + I₂`,
-    `l_ci = l_i / 2` and `I_i = m_i l_i²` (Sutton & Barto 1998, §11.3).
+    `l_ci = l_i / 2` and `I_i` the links' inertias (Sutton & Barto 1998, §11.3).
 
     Args:
         states: `(..., 4)` states (only `θ₂` is used); params: the instance.
@@ -156,7 +201,8 @@ def mass_matrix(states: Array, params: AcrobotParams | None = None) -> Array:
     states = _check_states(states)
     m1, m2 = params.link_mass_1, params.link_mass_2
     l1, l2 = params.link_length_1, params.link_length_2
-    lc1, lc2, i1, i2 = l1 / 2, l2 / 2, m1 * l1**2, m2 * l2**2
+    lc1, lc2 = l1 / 2, l2 / 2
+    i1, i2 = params.inertias
     c2 = np.cos(states[..., 1])
     d1 = m1 * lc1**2 + m2 * (l1**2 + lc2**2 + 2 * l1 * lc2 * c2) + i1 + i2
     d2 = m2 * (lc2**2 + l1 * lc2 * c2) + i2

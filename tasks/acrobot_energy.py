@@ -75,7 +75,7 @@ from hipmdp.planning import LearnedModel, PlanResult, plan
 from hipmdp.sarsa import init_state
 from tasks import acrobot, agents
 from tasks.acrobot_identified import check_run, load_run
-from tasks.acrobot_swingup import setting_params
+from tasks.acrobot_swingup import run_test_instances
 from tasks.agents import ACROBOT, SimulatorModel, run_episode
 from tasks.experiment import (
     check_counts,
@@ -394,7 +394,7 @@ def _build_models(
 
 def _job(args) -> tuple[int, int, dict[str, Any]]:
     setting, trial, seed = args
-    params = setting_params(*_STATE["settings"][setting])
+    params = _STATE["settings"][setting]
     # the i-th child does not depend on how many are spawned: ss_weights is new
     ss_env, ss_starts, ss_plan, ss_noise, ss_sample, ss_weights = (
         np.random.SeedSequence(seed[0], spawn_key=seed[1]).spawn(6)
@@ -505,14 +505,14 @@ def main(
             f"({transfer.initial_planning_episodes}), got {last}"
         )
     batch_distance = BatchDistance(batch.states)
-    settings = [tuple(m) for m in config["test_masses"]]
+    settings = run_test_instances(config)
     ss_trials, ss_identify = np.random.SeedSequence(seed).spawn(2)
     beliefs = []
-    for ss, masses in zip(ss_identify.spawn(len(settings)), settings, strict=True):
+    for ss, params in zip(ss_identify.spawn(len(settings)), settings, strict=True):
         if "identified" not in names:
             break
         train = gather_split(
-            ACROBOT, setting_params(*masses), identify, 0, rng=np.random.default_rng(ss)
+            ACROBOT, params, identify, 0, rng=np.random.default_rng(ss)
         ).train
         beliefs.append(hip.update(hip.prior(), train))
     seeds = trial_seeds(ss_trials, len(settings), trials)
@@ -571,7 +571,7 @@ def main(
         "n_states": n_states,
         "last": last,
         "real_episodes": real,
-        "test_masses": [list(m) for m in settings],
+        "test_masses": [list(m) for m in config["test_masses"]],
         "models": names,
         "promised_steps": promised,
         "delivered_steps": delivered,

@@ -39,7 +39,7 @@ from tqdm.auto import tqdm
 
 from hipmdp.planning import LearnedModel, open_loop_errors
 from tasks.acrobot_identified import check_run, load_run
-from tasks.acrobot_swingup import setting_params
+from tasks.acrobot_swingup import run_test_instances
 from tasks.agents import ACROBOT
 from tasks.experiment import (
     check_counts,
@@ -85,14 +85,14 @@ def main(
     check_counts(identify=identify, evaluate=evaluate)
     config, hip, average, _ = load_run(run)
     masses = [tuple(m) for m in config["test_masses"]]
+    instances = run_test_instances(config)
     rmse = {m: {k: [] for k in horizons} for m in MODELS}
     p99 = {m: {k: [] for k in horizons} for m in MODELS}
     windows = {k: [] for k in horizons}
     seeds = np.random.SeedSequence(seed).spawn(len(masses))
-    for mm, ss in tqdm(
-        list(zip(masses, seeds, strict=True)), desc="settings", disable=not progress
+    for params, ss in tqdm(
+        list(zip(instances, seeds, strict=True)), desc="settings", disable=not progress
     ):
-        params = setting_params(*mm)
         ss_identify, ss_evaluate = ss.spawn(2)
         train = gather_split(
             ACROBOT, params, identify, 0, rng=np.random.default_rng(ss_identify)

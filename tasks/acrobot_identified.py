@@ -71,7 +71,7 @@ from hipmdp import baselines
 from hipmdp.data import wrap_angle
 from tasks import transfer
 from tasks.acrobot import AcrobotParams
-from tasks.acrobot_swingup import run_streams, setting_params
+from tasks.acrobot_swingup import run_streams, run_test_instances
 from tasks.agents import ACROBOT, EnergyConserving, SimulatorModel
 from tasks.experiment import (
     check_counts,
@@ -155,7 +155,7 @@ def _init(config: transfer.TransferConfig, hip, average, beliefs) -> None:
 
 
 def _job(args) -> tuple[str, int, int, np.ndarray]:
-    variant, setting, trial, masses, seed = args
+    variant, setting, trial, params, seed = args
     model, config = _STATE["hip"], _STATE["config"]
     base, energy = variant, None  # e.g. hipmdp_energy_nominal: hipmdp, "nominal"
     for suffix, kind in (("_energy_nominal", "nominal"), ("_energy", "instance")):
@@ -167,7 +167,7 @@ def _job(args) -> tuple[str, int, int, np.ndarray]:
             config, planning_episodes=0, initial_planning_episodes=0
         )
     elif variant == "true_first":
-        model = _TrueFirst(model, setting_params(*masses))
+        model = _TrueFirst(model, params)
     elif variant == "hipmdp_replan":
         first = config.first_planning_episodes
         config = dataclasses.replace(
@@ -196,7 +196,6 @@ def _job(args) -> tuple[str, int, int, np.ndarray]:
     method = {"average": "average", "true": "true", "model_free": "true"}.get(
         base, "hipmdp"
     )
-    params = setting_params(*masses)
     job = transfer.TrialJob(method, setting, trial, params, seed, False)
     return variant, setting, trial, transfer.run_trial(job).returns
 
@@ -287,7 +286,7 @@ def main(
             )
 
     config, hip, average, _ = load_run(run)
-    masses = [tuple(m) for m in config["test_masses"]]
+    instances = run_test_instances(config)
     protocol = dataclasses.replace(
         transfer.TransferConfig(**config["transfer"]), n_episodes=episodes
     )
@@ -301,10 +300,12 @@ def main(
     ss_trials, ss_identify = np.random.SeedSequence(seed).spawn(2)
     beliefs: dict[str, list] = {"model": [], "paper": []}
     if any(v.startswith("identified") for v in variants):
-        for params_seed, mm in zip(ss_identify.spawn(len(masses)), masses, strict=True):
+        for params_seed, params in zip(
+            ss_identify.spawn(len(instances)), instances, strict=True
+        ):
             split = gather_split(
                 ACROBOT,
-                setting_params(*mm),
+                params,
                 identify,
                 0,
                 rng=np.random.default_rng(params_seed),
@@ -315,14 +316,14 @@ def main(
                 )
     if run_seeds:  # the run's: tasks.acrobot_swingup.run_transfer's layout
         seeds = trial_seeds(
-            run_streams(config["seed"]).trials, len(masses), config["n_trials"]
+            run_streams(config["seed"]).trials, len(instances), config["n_trials"]
         )
     else:
-        seeds = trial_seeds(ss_trials, len(masses), trials)
+        seeds = trial_seeds(ss_trials, len(instances), trials)
     jobs = [
-        (v, i, t, mm, seeds[i][t])
+        (v, i, t, params, seeds[i][t])
         for v in variants
-        for i, mm in enumerate(masses)
+        for i, params in enumerate(instances)
         for t in range(trials)
     ]
     done = pool_map(

@@ -36,7 +36,7 @@ import numpy as np
 import hipmdp
 from hipmdp import baselines
 from hipmdp.data import atomic_write, npz_bytes
-from tasks.acrobot import AcrobotParams
+from tasks.acrobot import AcrobotParams, book_inertia
 from tasks.agents import ACROBOT
 from tasks.batch import gather_and_save
 from tasks.experiment import (
@@ -73,12 +73,26 @@ PAIRS = (("hipmdp", "average"), ("hipmdp", "true"), ("average", "true"))
 DIM_NAMES = ("dtheta1", "dtheta2", "dtheta1_dot", "dtheta2_dot")
 
 
-def setting_params(m1: float, m2: float) -> AcrobotParams:
+def setting_params(m1: float, m2: float, book: bool = False) -> AcrobotParams:
     """The swing-up's instance at link masses ``(m1, m2)`` kg, both links 1 m long
-    (the paper's test and training settings vary the masses only)."""
+    (the paper's test and training settings vary the masses only).
+
+    Each link's moment of inertia about its centre of mass follows its mass,
+    ``I = m l²`` (DESIGN §6), or with ``book`` stays at the book's 1 kg·m²
+    (``tasks.acrobot.book_inertia``).
+    """
+    if book:
+        return book_inertia(m1, m2, 1.0, 1.0)
     return AcrobotParams(
         link_mass_1=m1, link_mass_2=m2, link_length_1=1.0, link_length_2=1.0
     )
+
+
+def run_test_instances(config: dict[str, Any]) -> list[AcrobotParams]:
+    """The test instances of a finished run, from its ``config.json`` as a dict
+    (runs written before ``book_inertia`` existed had the default)."""
+    book = config.get("book_inertia", False)
+    return [setting_params(*mm, book) for mm in config["test_masses"]]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,6 +104,11 @@ class SwingupConfig:
         preset: the preset these values came from.
         seed: the one seed every random stream is spawned from.
         train_masses, test_masses: (m1, m2) settings, kg; lengths stay 1 m.
+        book_inertia: each link's moment of inertia about its centre of mass
+            stays at the book's 1 kg·m² as its mass changes (``--book-inertia``),
+            as the book's equations with only the masses rewritten, which the
+            paper presumably ran, have it; by default it follows the mass,
+            ``I = m l²`` (DESIGN §6).
         batch_repetitions, batch_episodes, batch_max_steps: Sarsa agents per
             training setting, episodes per agent, step limit of those episodes.
         fit: HiP-MDP settings.
@@ -111,6 +130,7 @@ class SwingupConfig:
     seed: int = 0
     train_masses: tuple[tuple[float, float], ...] = TRAIN_MASSES
     test_masses: tuple[tuple[float, float], ...] = QUICK_TEST_MASSES
+    book_inertia: bool = False
     # 2 agents per training setting: with 1, states the test agents reach fell
     # outside the batch data more often, where the HiP-MDP's weighted sum of
     # features extrapolates worse than one GP (its prior-mean model then started
@@ -138,7 +158,11 @@ class SwingupConfig:
     progress: bool = True
 
     def __post_init__(self) -> None:
-        check_settings(self, "train_masses", "test_masses", setting_params, "(m1, m2)")
+        if not isinstance(self.book_inertia, bool):
+            raise ValueError(
+                f"book_inertia: expected a bool, got {self.book_inertia!r}"
+            )
+        check_settings(self, "train_masses", "test_masses", self.params, "(m1, m2)")
         check_positive(self, (
             "batch_repetitions", "batch_episodes", "batch_max_steps", "average_n_max",
             "n_trials", "mse_train", "mse_test", "workers", "final_window",
@@ -153,6 +177,10 @@ class SwingupConfig:
                 f"n_floor_settings: expected 0..{len(self.train_masses)}, "
                 f"got {self.n_floor_settings}"
             )
+
+    def params(self, m1: float, m2: float) -> AcrobotParams:
+        """The instance at link masses ``(m1, m2)`` with this run's inertias."""
+        return setting_params(m1, m2, self.book_inertia)
 
 
 PRESETS: dict[str, SwingupConfig] = {
@@ -208,7 +236,7 @@ def run_transfer(config, hip, average, ss: np.random.SeedSequence) -> list:
             method=method,
             setting=i,
             trial=t,
-            params=setting_params(*masses),
+            params=config.params(*masses),
             seed=seeds[i][t],
             record=config.record and i == 0 and t == 0,
         )
@@ -232,7 +260,7 @@ def prediction_table(config, hip, average, batch, ss) -> dict[str, Any]:
     out = {}
     for (label, masses), seed in zip(groups.items(), ss.spawn(2), strict=True):
         scores = score_settings(
-            ACROBOT, [hip], average, batch, [setting_params(*mm) for mm in masses],
+            ACROBOT, [hip], average, batch, [config.params(*mm) for mm in masses],
             n_train=config.mse_train, n_test=config.mse_test, seed=seed,
             desc=f"prediction ({label})", progress=config.progress,
         )  # fmt: skip
@@ -253,7 +281,7 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
     timings: dict[str, float] = {}
 
     t0 = time.perf_counter()
-    train = [setting_params(*mm) for mm in config.train_masses]
+    train = [config.params(*mm) for mm in config.train_masses]
     batch = gather_and_save(
         "acrobot", train, path / "batch.npz",
         config=config, seed=ss_batch, progress=config.progress,
@@ -470,6 +498,12 @@ def parse_args(argv: list[str] | None = None) -> tuple[SwingupConfig, str | None
     )
     parser.add_argument("--trials", type=int, default=None, help="trials per setting")
     parser.add_argument("--episodes", type=int, default=None, help="real episodes")
+    parser.add_argument(
+        "--book-inertia",
+        action="store_true",
+        help="keep each link's moment of inertia at the book's 1 kg m^2 as its "
+        "mass changes (default: it follows the mass, I = m l^2)",
+    )
     args = parser.parse_args(argv)
     preset = PRESETS[args.preset]
     transfer = None
@@ -478,7 +512,14 @@ def parse_args(argv: list[str] | None = None) -> tuple[SwingupConfig, str | None
             transfer = dataclasses.replace(preset.transfer, n_episodes=args.episodes)
         except ValueError as err:
             parser.error(str(err))
-    config = apply_common(parser, args, preset, n_trials=args.trials, transfer=transfer)
+    config = apply_common(
+        parser,
+        args,
+        preset,
+        n_trials=args.trials,
+        transfer=transfer,
+        book_inertia=args.book_inertia or None,
+    )
     return config, args.out
 
 

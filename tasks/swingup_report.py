@@ -72,9 +72,7 @@ def record(file: Path, config, metrics: dict, trials: list) -> None:
     import rerun.blueprint as rrb
 
     m1, m2 = config.test_masses[0]
-    params = acrobot.AcrobotParams(
-        link_mass_1=m1, link_mass_2=m2, link_length_1=1.0, link_length_2=1.0
-    )
+    params = config.params(m1, m2)
     blueprint = rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
@@ -216,12 +214,18 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
     ll = metrics["loglik_difference"]
     ll_rows = [[m, fmt_ci(v)] for m, v in ll.items()]
     s = metrics["seconds"]
+    inertia = (
+        "Each link's moment of inertia stays at the book's 1 kg·m² as its mass "
+        "changes (`--book-inertia`)."
+        if config.book_inertia
+        else "Each link's moment of inertia follows its mass (I = m l²)."
+    )
     text = f"""# Acrobot swing-up transfer ({config.preset} preset, seed {config.seed})
 
 {len(config.test_masses)} test mass settings × {config.n_trials} trials per method;
 HiP-MDP fitted on {metrics["n_batch_transitions"]} batch transitions from
 {len(config.train_masses)} training settings; {metrics["n_latent_features"]} latent
-features inferred.
+features inferred. {inertia}
 
 ## Returns per real episode (mean [95% interval]; return = −steps to the goal)
 

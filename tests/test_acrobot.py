@@ -4,6 +4,7 @@ consistently; the swing-up task's reward, goal and step limit."""
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import mujoco
 import numpy as np
@@ -18,14 +19,19 @@ REWRITTEN = [
     AcrobotParams(0.7, 1.3, 1.0, 1.0),
     AcrobotParams(1.3, 0.7, 0.6, 1.8),
     AcrobotParams(0.2, 5.0, 5.0, 0.2),
+    # the book's I = 1 held while the masses change, and shapes of their own
+    acrobot.book_inertia(0.7, 1.3),
+    AcrobotParams(1.3, 0.7, 0.6, 1.8, link_shape_1=0.5, link_shape_2=2.0),
 ]
 
 
 def book_accelerations(s: np.ndarray, tau: float, p: AcrobotParams) -> np.ndarray:
-    """(θ̈₁, θ̈₂) from Sutton & Barto (1998) §11.3, with lc = l/2, I = m l², g = 9.8."""
+    """(θ̈₁, θ̈₂) from Sutton & Barto (1998) §11.3, with lc = l/2, g = 9.8 and the
+    instance's inertias."""
     m1, m2 = p.link_mass_1, p.link_mass_2
     l1, l2 = p.link_length_1, p.link_length_2
-    lc1, lc2, I1, I2, g = l1 / 2, l2 / 2, m1 * l1**2, m2 * l2**2, 9.8
+    lc1, lc2, g = l1 / 2, l2 / 2, 9.8
+    I1, I2 = p.link_shape_1 * m1 * l1**2, p.link_shape_2 * m2 * l2**2
     t1, t2, dt1, dt2 = s
     d1 = m1 * lc1**2 + m2 * (l1**2 + lc2**2 + 2 * l1 * lc2 * np.cos(t2)) + I1 + I2
     d2 = m2 * (lc2**2 + l1 * lc2 * np.cos(t2)) + I2
@@ -137,21 +143,62 @@ def test_tip_height_is_the_tip_site_height(params):
     )
 
 
-@pytest.mark.parametrize("field", [f.name for f in dataclasses.fields(AcrobotParams)])
+FIELDS = {f.name: f.metadata["bounds"] for f in dataclasses.fields(AcrobotParams)}
+
+
+@pytest.mark.parametrize("field", FIELDS)
 @pytest.mark.parametrize(
     "value, message",
     [
         (float("nan"), "not finite"),
         (float("inf"), "not finite"),
-        (0.0, "lower bound 0.2"),
-        (-1.0, "lower bound 0.2"),
-        (5.5, "upper bound 5.0"),
+        (0.0, "lower bound {low}"),
+        (-1.0, "lower bound {low}"),
+        ("above", "upper bound {high}"),
         ("1.0", "not a real number"),
     ],
 )
 def test_invalid_parameters_name_the_field_and_bound(field, value, message):
+    low, high = FIELDS[field]
+    value = 1.1 * high if value == "above" else value
+    message = re.escape(message.format(low=low, high=high))
     with pytest.raises(ValueError, match=rf"AcrobotParams\.{field} .*{message}"):
         AcrobotParams(**{field: value})
+
+
+def test_inertia_is_the_shape_times_m_l_squared():
+    params = AcrobotParams(0.7, 1.3, 0.9, 1.2, link_shape_1=0.5, link_shape_2=2.0)
+    assert params.inertias == pytest.approx((0.5 * 0.7 * 0.81, 2.0 * 1.3 * 1.44))
+    assert AcrobotParams(0.7, 1.3).inertias == pytest.approx((0.7, 1.3))
+    assert acrobot.book_inertia(0.7, 1.3).inertias == pytest.approx((1.0, 1.0))
+    assert acrobot.book_inertia(0.8, 1.2, 0.9, 1.1).inertias == pytest.approx((1, 1))
+    with pytest.raises(ValueError, match=r"AcrobotParams\.link_shape_1 .*upper"):
+        acrobot.book_inertia(0.4)  # I = 1 would need k = 2.5
+
+
+def accelerations(params: AcrobotParams, tau: float, states: np.ndarray) -> np.ndarray:
+    model = acrobot.make_model(params)
+    return np.array([mujoco_accelerations(model, s, tau) for s in states])
+
+
+def test_with_scaled_inertia_only_the_mass_ratio_shapes_the_passive_motion():
+    # I = m l²: M, the Coriolis and the gravity terms all scale with c when both
+    # masses do, so without torque the motion is the same and the torque's
+    # effect scales by 1/c. With the book's I = 1 held, the motion changes.
+    states = np.random.default_rng(7).uniform(-1, 1, (10, 4)) * [np.pi, np.pi, 3, 6]
+    light, heavy = AcrobotParams(0.7, 0.7), AcrobotParams(1.3, 1.3)
+    np.testing.assert_allclose(
+        accelerations(light, 0.0, states), accelerations(heavy, 0.0, states), atol=1e-9
+    )
+    torque = {
+        p: accelerations(p, 1.0, states) - accelerations(p, 0.0, states)
+        for p in (light, heavy)
+    }
+    np.testing.assert_allclose(torque[light] * 0.7, torque[heavy] * 1.3, atol=1e-9)
+    passive = [
+        accelerations(acrobot.book_inertia(m, m), 0.0, states) for m in (0.7, 1.3)
+    ]
+    assert np.abs(passive[0] - passive[1]).max() > 1.0
 
 
 def test_episode_starts_near_hanging_and_ends_at_the_goal():

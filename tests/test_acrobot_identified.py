@@ -108,7 +108,7 @@ def test_model_free_variant_plans_nothing(planned):
     for variant in ("model_free", "true"):
         init(TINY.transfer)
         v, *_, returns = acrobot_identified._job(
-            (variant, 0, 0, TINY.test_masses[0], seed)
+            (variant, 0, 0, TINY.params(*TINY.test_masses[0]), seed)
         )
         assert v == variant and len(returns) == TINY.transfer.n_episodes
         if variant == "model_free":
@@ -145,7 +145,9 @@ def test_first_planning_changes_only_the_planning_after_the_first_episode(planne
     base = TINY.transfer  # 1 initial, 2 real episodes, 1 planning episode each
     for first, expected in ((None, [1, 1, 1]), (3, [1, 3, 1])):
         init(dataclasses.replace(base, first_planning_episodes=first))
-        acrobot_identified._job(("hipmdp", 0, 0, TINY.test_masses[0], (7, ())))
+        acrobot_identified._job(
+            ("hipmdp", 0, 0, TINY.params(*TINY.test_masses[0]), (7, ()))
+        )
         assert calls == expected
     with pytest.raises(ValueError, match="first_planning_episodes: expected >= 0"):
         dataclasses.replace(base, first_planning_episodes=-1)
@@ -210,7 +212,9 @@ def test_replan_variant_plans_again_from_a_fresh_value_function(planned, monkeyp
     ):
         init(dataclasses.replace(base, first_planning_episodes=first))
         weights.clear()
-        acrobot_identified._job((variant, 0, 0, TINY.test_masses[0], (7, ())))
+        acrobot_identified._job(
+            (variant, 0, 0, TINY.params(*TINY.test_masses[0]), (7, ()))
+        )
         replan = variant == "hipmdp_replan"
         # the replanning takes the initial planning's size unless --first-planning
         assert calls == [2, (first or 2) if replan else 1, 1]
@@ -274,7 +278,7 @@ def test_run_seeds_replay_the_runs_own_trials(run, tmp_path, monkeypatch):
     monkeypatch.setattr(acrobot_swingup, "pool_map", capture("run", lambda j: j))
     swingup = SimpleNamespace(
         test_masses=config["test_masses"], n_trials=3, record=False, workers=1,
-        progress=False, transfer=None,
+        progress=False, transfer=None, params=acrobot_swingup.setting_params,
     )  # fmt: skip
     with pytest.raises(Captured):
         acrobot_swingup.run_transfer(swingup, None, None, run_streams(5).trials)
@@ -368,7 +372,7 @@ def test_energy_variants_plan_on_the_conserving_model_of_their_method(
     ):
         init(TINY.transfer)
         seen.clear()
-        acrobot_identified._job((variant, 0, 0, masses, (7, ())))
+        acrobot_identified._job((variant, 0, 0, setting_params(*masses), (7, ())))
         assert len(seen) == 1 + TINY.transfer.n_episodes
         for model in seen:
             if inner is None:  # the simulator is never wrapped

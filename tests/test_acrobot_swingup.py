@@ -11,17 +11,19 @@ import pytest
 from threadpoolctl import threadpool_limits
 
 import hipmdp
+from tasks import acrobot_swingup as swingup
 from tasks import compare_runs
 from tasks.acrobot_swingup import (
     PRESETS,
     SwingupConfig,
     main,
     parse_args,
+    run_test_instances,
     step_limit_split,
     transfer_metrics,
 )
 from tasks.recording import rrd_contents
-from tasks.transfer import METHODS, TransferConfig, TrialResult
+from tasks.transfer import METHODS, TransferConfig, TrialResult, run_trial
 
 TINY = SwingupConfig(
     name="tiny",
@@ -282,3 +284,39 @@ def test_step_limit_split_adds_up_and_counts_only_limit_episodes():
     assert everything["pairs"]["average - true"]["limit"] is None
     with pytest.raises(ValueError, match="equal shapes"):
         step_limit_split(returns, steps[:, :2], 50, methods=("true", "average"))
+
+
+def test_book_inertia_reaches_every_instance(run, tmp_path, monkeypatch):
+    config, _ = parse_args(["--book-inertia"])
+    assert config.book_inertia and not PRESETS["quick"].book_inertia
+    assert config.params(0.7, 1.3).inertias == pytest.approx((1.0, 1.0))
+    assert PRESETS["quick"].params(0.7, 1.3).inertias == pytest.approx((0.7, 1.3))
+    written = {"test_masses": [[0.7, 1.3]], "book_inertia": True}
+    assert run_test_instances(written)[0].inertias == pytest.approx((1.0, 1.0))
+    del written["book_inertia"]  # a run from before the option: the default
+    assert run_test_instances(written)[0].inertias == pytest.approx((0.7, 1.3))
+    with pytest.raises(ValueError, match="book_inertia: expected a bool"):
+        SwingupConfig(book_inertia=1)
+
+    trial_params = []
+
+    def spy(job):
+        trial_params.append(job.params)
+        return run_trial(job)
+
+    monkeypatch.setattr(swingup, "run_trial", spy)
+    book = main(dataclasses.replace(TINY, book_inertia=True, record=False), tmp_path)
+    assert trial_params and all(
+        p.inertias == pytest.approx((1.0, 1.0)) for p in trial_params
+    )
+    table = hipmdp.data.ParameterTable.load(book.out / "batch.npz")
+    shapes = table.values[:, [table.names.index(f"link_shape_{i}") for i in (1, 2)]]
+    masses = np.array(TINY.train_masses)
+    np.testing.assert_allclose(shapes * masses, 1.0)  # I = k m l² = 1
+    assert json.loads((book.out / "config.json").read_text())["book_inertia"]
+    assert "stays at the book's 1 kg·m²" in (book.out / "report.md").read_text()
+    # the same seed on other dynamics: other batch data and other returns
+    ours = hipmdp.Transitions.load(run.out / "batch.npz")
+    theirs = hipmdp.Transitions.load(book.out / "batch.npz")
+    n = min(len(ours), len(theirs))
+    assert not np.allclose(ours.next_states[:n], theirs.next_states[:n])

@@ -35,6 +35,8 @@ def test_transitions_follow_the_simulator_and_carry_the_parameters():
         "link_mass_2": 0.7,
         "link_length_1": 0.9,
         "link_length_2": 1.1,
+        "link_shape_1": 1.0,
+        "link_shape_2": 1.0,
     }
     np.testing.assert_array_equal(t.rewards, -1.0)
     np.testing.assert_array_equal(np.flatnonzero(t.dones), [14, 29, 44, 59])
