@@ -116,7 +116,7 @@ def cli(argv: list[str] | None = None) -> int:
         f"transitions, |θ̇₂| ≥ {s['fast']:g} (fast) and below (slow); parameters "
         + ", ".join(s["parameters"])
     )
-    print(f"{'instance':>8} {'parameters':>18} {'fast %':>6} " + "".join(
+    print(f"{'instance':>8} {'parameters':>30} {'fast %':>6} " + "".join(
         f"{m + ' ' + band:>16}" for m in MODELS for band in ("fast", "slow")
     ))  # fmt: skip
     for i, b in enumerate(s["instance_ids"]):
@@ -126,7 +126,7 @@ def cli(argv: list[str] | None = None) -> int:
             for band in ("fast", "slow")
         )
         p = ", ".join(f"{x:g}" for x in s["instance_parameters"][i])
-        print(f"{b:>8} {p:>18} {100 * s['fast_share'][i]:6.1f} {cells}")
+        print(f"{b:>8} {p:>30} {100 * s['fast_share'][i]:6.1f} {cells}")
     print(f"wrote {results.out}")
     return 0
 

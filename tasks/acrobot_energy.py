@@ -86,6 +86,7 @@ from tasks.experiment import (
     pool_map,
     run_or_exit,
     run_parser,
+    to_jsonable,
     trial_seeds,
     write_json,
 )
@@ -572,6 +573,7 @@ def main(
         "last": last,
         "real_episodes": real,
         "test_masses": [list(m) for m in config["test_masses"]],
+        "test_instances": to_jsonable(settings),
         "models": names,
         "promised_steps": promised,
         "delivered_steps": delivered,

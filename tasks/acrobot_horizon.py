@@ -47,6 +47,7 @@ from tasks.experiment import (
     one_blas_thread,
     run_or_exit,
     run_parser,
+    to_jsonable,
     write_json,
 )
 from tasks.prediction import gather_split
@@ -119,6 +120,7 @@ def main(
         "seed": seed,
         "identify_transitions": identify,
         "test_masses": [list(m) for m in masses],
+        "test_instances": to_jsonable(instances),
         "horizons": list(horizons),
         "dimensions": list(STATE_NAMES),
         "windows": {str(k): v for k, v in windows.items()},

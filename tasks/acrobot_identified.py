@@ -82,6 +82,7 @@ from tasks.experiment import (
     pool_map,
     run_or_exit,
     run_parser,
+    to_jsonable,
     trial_seeds,
     write_json,
 )
@@ -333,6 +334,7 @@ def main(
     returns = {v: np.array([r for (vv, _, _, r) in done if vv == v]) for v in variants}
     out: dict[str, Any] = {
         "run": str(run),
+        "test_instances": to_jsonable(instances),
         "seed": seed,
         "trial_seeds": "the run's" if run_seeds else "spawned from seed",
         "trials_per_setting": trials,

@@ -106,9 +106,9 @@ class SwingupConfig:
         train_masses, test_masses: (m1, m2) settings, kg; lengths stay 1 m.
         book_inertia: each link's moment of inertia about its centre of mass
             stays at the book's 1 kg·m² as its mass changes (``--book-inertia``),
-            as the book's equations with only the masses rewritten, which the
-            paper presumably ran, have it; by default it follows the mass,
-            ``I = m l²`` (DESIGN §6).
+            as in the book's equations with only the masses rewritten (the paper
+            names the book's acrobot and the masses, not the inertias); by
+            default it follows the mass, ``I = m l²`` (DESIGN §6).
         batch_repetitions, batch_episodes, batch_max_steps: Sarsa agents per
             training setting, episodes per agent, step limit of those episodes.
         fit: HiP-MDP settings.

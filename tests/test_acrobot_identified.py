@@ -458,3 +458,53 @@ def test_recording_a_trial_does_not_change_its_results(run, monkeypatch):
     np.testing.assert_allclose(
         recorded.traces[0].belief_mean[-1], recorded.weight_means[1], rtol=1e-9
     )
+
+
+def test_the_checks_build_the_runs_own_instances(run, tmp_path, monkeypatch):
+    """A run made with --book-inertia is checked on instances with the book's
+    inertias, by each check that builds instances."""
+    from tasks import acrobot_energy, acrobot_horizon
+
+    book = tmp_path / "book"
+    shutil.copytree(run[0], book)
+    config = json.loads((book / "config.json").read_text())
+    config["book_inertia"] = True
+    (book / "config.json").write_text(json.dumps(config))
+    seen: dict[str, list] = {}
+
+    class Captured(Exception):
+        pass
+
+    def capture(name, instances):
+        seen[name] = list(instances)
+        raise Captured
+
+    monkeypatch.setattr(
+        acrobot_identified,
+        "pool_map",
+        lambda fn, jobs, **kw: capture("identified", [j[3] for j in jobs]),
+    )
+    monkeypatch.setattr(
+        acrobot_energy,
+        "pool_map",
+        lambda fn, jobs, initargs, **kw: capture("energy", initargs[0]),
+    )
+    monkeypatch.setattr(
+        acrobot_horizon,
+        "gather_split",
+        lambda domain, params, *a, **kw: capture("horizon", [params]),
+    )
+    options = dict(progress=False, out=tmp_path / "check.json")
+    with pytest.raises(Captured):
+        acrobot_identified.main(book, variants=("true",), workers=1, **options)
+    with pytest.raises(Captured):
+        acrobot_energy.main(
+            book, models=("true", "prior"), last=1, workers=1, **options
+        )
+    with pytest.raises(Captured):
+        acrobot_horizon.main(book, **options)
+    assert set(seen) == {"identified", "energy", "horizon"}
+    for name, instances in seen.items():
+        assert instances, name
+        for params in instances:
+            assert params.inertias == pytest.approx((1.0, 1.0)), name

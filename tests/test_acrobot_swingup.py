@@ -22,6 +22,7 @@ from tasks.acrobot_swingup import (
     step_limit_split,
     transfer_metrics,
 )
+from tasks.prediction import score_settings
 from tasks.recording import rrd_contents
 from tasks.transfer import METHODS, TransferConfig, TrialResult, run_trial
 
@@ -305,10 +306,19 @@ def test_book_inertia_reaches_every_instance(run, tmp_path, monkeypatch):
         return run_trial(job)
 
     monkeypatch.setattr(swingup, "run_trial", spy)
+    scored = []
+
+    def score_spy(domain, models, average, batch, instances, *args, **kwargs):
+        scored.extend(instances)
+        return score_settings(
+            domain, models, average, batch, instances, *args, **kwargs
+        )
+
+    monkeypatch.setattr(swingup, "score_settings", score_spy)
     book = main(dataclasses.replace(TINY, book_inertia=True, record=False), tmp_path)
-    assert trial_params and all(
-        p.inertias == pytest.approx((1.0, 1.0)) for p in trial_params
-    )
+    for instances in (trial_params, scored):  # transfer trials, the MSE table
+        assert instances
+        assert all(p.inertias == pytest.approx((1.0, 1.0)) for p in instances)
     table = hipmdp.data.ParameterTable.load(book.out / "batch.npz")
     shapes = table.values[:, [table.names.index(f"link_shape_{i}") for i in (1, 2)]]
     masses = np.array(TINY.train_masses)

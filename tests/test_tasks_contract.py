@@ -148,8 +148,7 @@ def corners(params_type):
 def test_energy_is_conserved_at_every_corner_of_the_bounds(name):
     """Unforced and undamped, MuJoCo's total energy must stay constant: over 10 s
     from a large swing it drifts by less than 0.1% of its scale everywhere inside
-    the documented bounds (the worst acrobot corner, m₁ = 0.2, m₂ = 5, l = 0.2,
-    shapes 0.5, drifts 9.2e-4), so the chosen RK4 step
+    the documented bounds (the worst corner drifts 3.5e-4), so the chosen RK4 step
     is accurate for every valid instance."""
     module, _, _ = DOMAINS[name]
     n_actions = round(10.0 / module.CONTROL_TIMESTEP)
