@@ -225,6 +225,11 @@ def test_replan_variant_plans_again_from_a_fresh_value_function(planned, monkeyp
         dataclasses.replace(base, replan_after_first=1)
 
 
+class Captured(Exception):
+    """Raised by a test's stand-in once it has recorded what it was given, so
+    that nothing after it runs."""
+
+
 def test_run_seeds_replay_the_runs_own_trials(run, tmp_path, monkeypatch):
     from types import SimpleNamespace
 
@@ -264,9 +269,6 @@ def test_run_seeds_replay_the_runs_own_trials(run, tmp_path, monkeypatch):
     config.update(test_masses=[[0.9, 1.1], [1.3, 0.7]], n_trials=3, seed=5)
     (big / "config.json").write_text(json.dumps(config))
     seen: dict[str, list] = {}
-
-    class Captured(Exception):
-        pass
 
     def capture(name, key):
         def pool_map(fn, jobs, **kwargs):  # record the jobs, run none
@@ -471,9 +473,6 @@ def test_the_checks_build_the_runs_own_instances(run, tmp_path, monkeypatch):
     config["book_inertia"] = True
     (book / "config.json").write_text(json.dumps(config))
     seen: dict[str, list] = {}
-
-    class Captured(Exception):
-        pass
 
     def capture(name, instances):
         seen[name] = list(instances)
