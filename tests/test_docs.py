@@ -39,3 +39,44 @@ def test_links_are_found(tmp_path):  # the pattern itself
     )
     assert links(page) == ["docs/DESIGN.md", "../README.md", "runs/"]
     assert "docs/DESIGN.md" in links(ROOT / "README.md")
+
+
+# any link: a relative target with an anchor, or an anchor alone
+ANCHORED = re.compile(r"\]\(([^)\s#]*)#([^)\s]+)\)")
+
+
+def slug(heading: str) -> str:
+    """GitHub's anchor for a heading: lower case, punctuation dropped, spaces to -."""
+    text = re.sub(r"[^\w\- ]", "", heading.strip().lower())
+    return text.replace(" ", "-")
+
+
+def anchors(page: Path) -> set[str]:
+    """The anchors of a markdown page's headings (outside code blocks)."""
+    found, fenced = set(), False
+    for line in page.read_text().splitlines():
+        if line.startswith("```"):
+            fenced = not fenced
+        elif not fenced and re.match(r"#{1,6} ", line):
+            found.add(slug(line.lstrip("#")))
+    return found
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
+def test_anchors_name_a_heading_of_their_page(page):
+    for match in ANCHORED.finditer(page.read_text()):
+        target, anchor = match.groups()
+        if target.startswith(("http://", "https://")):
+            continue
+        linked = (page.parent / target).resolve() if target else page
+        assert anchor in anchors(linked), f"{page.name}: no heading for {match[0]}"
+
+
+def test_slugs_follow_github(tmp_path):  # the rule itself
+    assert slug(" What the first planning's gap responds to") == (
+        "what-the-first-plannings-gap-responds-to"
+    )
+    assert slug(" The `--book-inertia` run (I = 1)") == "the---book-inertia-run-i--1"
+    page = tmp_path / "page.md"
+    page.write_text("# Top\n```bash\n# not a heading\n```\n## Two words\n")
+    assert anchors(page) == {"top", "two-words"}
