@@ -139,6 +139,25 @@ def book_inertia(
     )
 
 
+def book_inertia_range() -> tuple[float, float]:
+    """`m l²` (kg·m²) over which a link can keep the book's 1 kg·m²: the link
+    shape `1 / (m l²)` must lie within its bounds, so `[1 / 1.5, 1 / 0.7]`."""
+    field = {f.name: f for f in dataclasses.fields(AcrobotParams)}["link_shape_1"]
+    low, high = field.metadata["bounds"]
+    return 1.0 / high, 1.0 / low
+
+
+def with_book_inertia(params: AcrobotParams) -> AcrobotParams:
+    """`params` with the link shapes that keep the book's `I₁ = I₂ = 1` kg·m²
+    at its masses and lengths (`book_inertia`; raises as it does)."""
+    return book_inertia(
+        params.link_mass_1,
+        params.link_mass_2,
+        params.link_length_1,
+        params.link_length_2,
+    )
+
+
 def make_model(params: AcrobotParams | None = None) -> mujoco.MjModel:
     """Compile `assets/mjcf/acrobot.xml` rewritten to `params` with `mujoco.MjSpec`.
 

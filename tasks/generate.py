@@ -11,7 +11,10 @@ follow `--distribution uniform` (default), `relative-normal` (`--sigma`) or `gri
 (`--grid K` points per parameter, `K^p` instances); the others stay nominal.
 `--split train|interpolation|extrapolation` restricts them to the inner box (the
 central `--inner-fraction` of every range), to held-out points inside it, or to
-outside it; `all` (default) is the whole box.
+outside it; `all` (default) is the whole box. For the acrobot, `--book-inertia`
+sets each drawn instance's link shapes so that its links keep the book's
+1 kg·m² moment of inertia (`tasks.acrobot.book_inertia`) instead of scaling it
+with mass × length²; the shapes are then derived, not varied.
 
 Policies: `random` (uniform actions on the dm_control environment), `sarsa` (an
 ε-greedy Sarsa(λ) agent learning per instance, the paper's way) and `open-loop`
@@ -51,6 +54,7 @@ import numpy as np
 from tqdm import tqdm
 
 from hipmdp import shards
+from tasks.acrobot import AcrobotParams, book_inertia_range, with_book_inertia
 from tasks.collect import DOMAINS, collect, collect_sarsa, get_domain
 from tasks.distributions import KINDS, SPLITS, Distribution, draw
 from tasks.experiment import one_blas_thread
@@ -85,10 +89,12 @@ class Config:
     scheduler: str | None = None
     resume: bool = False
     progress: bool = True
+    book_inertia: bool = False
 
     def manifest_config(self) -> dict[str, Any]:
         return {
             "domain": self.domain,
+            "book_inertia": self.book_inertia,
             "instances": self.instances,
             "episodes_per_instance": self.episodes_per_instance,
             "seed": self.seed,
@@ -154,6 +160,12 @@ def build_parser() -> argparse.ArgumentParser:
         "extrapolation: outside it; all (default): the whole box",
     )
     add("--inner-fraction", type=float, default=0.5, help="inner box share per range")
+    add(
+        "--book-inertia",
+        action="store_true",
+        help="acrobot: each link keeps the book's 1 kg m^2 moment of inertia as its "
+        "mass and length change (default: inertia scales as mass x length^2)",
+    )
     add("--policy", choices=sorted(POLICIES), default="random", help="default: random")
     add("--max-steps", type=int, default=None, help="step limit (default: task's)")
     add("--shard-size", type=int, default=16, help="instances per shard")
@@ -214,6 +226,8 @@ def _validate(args: argparse.Namespace) -> Config:
         sigma=args.sigma,
         inner_fraction=args.inner_fraction,
     )
+    if args.book_inertia:
+        _check_book_inertia(args.domain, distribution)
     return Config(
         domain=args.domain,
         instances=None if kind == "grid" else (args.instances or 4),
@@ -228,7 +242,38 @@ def _validate(args: argparse.Namespace) -> Config:
         scheduler=args.scheduler,
         resume=args.resume,
         progress=not args.no_progress,
+        book_inertia=args.book_inertia,
     )
+
+
+def _check_book_inertia(domain: str, distribution: Distribution) -> None:
+    """Raise ValueError unless every instance of `distribution` can keep the
+    book's inertias: the acrobot, link shapes not varied, and `m l²` of each link
+    within the range the shape's bounds allow at both corners of the box."""
+    if domain != "acrobot":
+        raise ValueError(f"--book-inertia is for the acrobot, not {domain}")
+    shapes = [n for n in distribution.names if n.startswith("link_shape_")]
+    if shapes:
+        raise ValueError(
+            f"--book-inertia derives {', '.join(shapes)}; do not --vary them"
+        )
+    low, high = book_inertia_range()
+    nominal = AcrobotParams()
+    bounds = zip(distribution.lows, distribution.highs, strict=True)
+    ranges = dict(zip(distribution.names, bounds, strict=True))
+    for link in (1, 2):
+        mass, length = f"link_mass_{link}", f"link_length_{link}"
+        m_lo, m_hi = ranges.get(mass, (getattr(nominal, mass),) * 2)
+        l_lo, l_hi = ranges.get(length, (getattr(nominal, length),) * 2)
+        reach = (float(m_lo * l_lo**2), float(m_hi * l_hi**2))
+        if reach[0] < low or reach[1] > high:
+            raise ValueError(
+                f"--book-inertia: link {link}'s mass x length^2 spans "
+                f"[{reach[0]:.3g}, {reach[1]:.3g}] kg m^2 over --vary ({mass} "
+                f"[{m_lo:g}, {m_hi:g}], {length} [{l_lo:g}, {l_hi:g}]); keeping "
+                f"I = 1 kg m^2 needs it within [{low:.3g}, {high:.3g}] (link_shape_"
+                f"{link} = 1 / (m l^2) within its bounds)"
+            )
 
 
 def _parse_range(item: str) -> tuple[str, float, float]:
@@ -250,6 +295,11 @@ def plan(config: Config) -> dict[str, Any]:
         config.distribution, config.instances, rng=np.random.default_rng(stream)
     )
     spec = get_domain(config.domain)
+    if config.book_inertia:
+        _check_book_inertia(config.domain, config.distribution)
+        booked = [with_book_inertia(p) for p in drawn.params]
+        values = np.array([dataclasses.astuple(p) for p in booked], dtype=float)
+        drawn = drawn._replace(params=booked, values=values)
     entries = []
     for index, start in enumerate(range(0, len(drawn.params), config.shard_size)):
         block = range(start, min(start + config.shard_size, len(drawn.params)))
@@ -370,10 +420,13 @@ def executor_for(workers: int, scheduler: str | None) -> Iterator[cf.Executor]:
     elif workers == 1:
         yield InlineExecutor()
     else:
-        # A fresh server process imports this module once and forks the workers:
-        # no threads or MuJoCo state of the caller are copied, no import per worker.
+        # A fresh server process imports the simulation code once and forks the
+        # workers: no threads or MuJoCo state of the caller are copied, no import
+        # per worker. Not this module itself: under `python -m tasks.generate` the
+        # server also runs it as the main module, and runpy warns when it was
+        # imported already.
         context = multiprocessing.get_context("forkserver")
-        context.set_forkserver_preload(["tasks.generate"])
+        context.set_forkserver_preload(["tasks.collect", "tasks.rollout"])
         with cf.ProcessPoolExecutor(workers, mp_context=context) as pool:
             yield pool
 

@@ -72,6 +72,49 @@ def test_shard_is_the_random_policy_on_its_instances_with_the_shard_stream(tmp_p
         np.testing.assert_array_equal(getattr(got, name), getattr(expected, name))
 
 
+def test_book_inertia_keeps_the_drawn_masses_at_the_books_inertia(tmp_path):
+    """`--book-inertia` draws the same masses as without it, derives each link's
+    shape so that I = 1 kg m^2, and the shards are simulated on those instances."""
+    argv = ["--domain", "acrobot", "--seed", "5", *TINY, *QUIET]
+    generate.main([*argv, "--out", str(tmp_path / "shape")])
+    generate.main([*argv, "--out", str(tmp_path / "book"), "--book-inertia"])
+    shape = shards.load_dataset(tmp_path / "shape")
+    book = shards.load_dataset(tmp_path / "book")
+    assert book.manifest["config"]["book_inertia"] is True
+    assert shape.manifest["config"]["book_inertia"] is False
+    np.testing.assert_array_equal(
+        book.parameters.values[:, :4], shape.parameters.values[:, :4]
+    )
+    np.testing.assert_array_equal(shape.parameters.values[:, 4:], 1.0)
+    masses, lengths = book.parameters.values[:, :2], book.parameters.values[:, 2:4]
+    np.testing.assert_allclose(book.parameters.values[:, 4:] * masses * lengths**2, 1.0)
+    for row in book.parameters.values:
+        np.testing.assert_allclose(AcrobotParams(*row).inertias, 1.0)
+    entry = book.manifest["shards"][1]
+    expected = collect.collect(
+        "acrobot",
+        [AcrobotParams(*row) for row in entry["parameters"]],
+        episodes_per_instance=2,
+        max_steps=10,
+        rng=np.random.default_rng(np.random.SeedSequence(5, spawn_key=(1, 0, 1))),
+        instance_ids=[2],
+    ).transitions
+    got = Transitions.load(tmp_path / "book" / "shard-00001.npz")
+    np.testing.assert_array_equal(got.next_states, expected.next_states)
+    other = Transitions.load(tmp_path / "shape" / "shard-00001.npz")
+    np.testing.assert_array_equal(got.states[0], other.states[0])  # same start
+    assert not np.array_equal(got.next_states, other.next_states)  # other dynamics
+
+
+def test_book_inertia_is_part_of_the_run(tmp_path, capsys):
+    out = tmp_path / "data"
+    argv = ["--domain", "acrobot", "--out", str(out), *TINY, *QUIET]
+    generate.main([*argv, "--book-inertia"])
+    with pytest.raises(SystemExit):
+        generate.main([*argv, "--resume"])
+    assert "book_inertia" in capsys.readouterr().err
+
+
 def test_same_arguments_write_identical_files(tmp_path):
     for name in ("a", "b"):
         generate.main(
@@ -149,6 +192,20 @@ def test_other_policies_write_chained_episodes(tmp_path, policy):
             "inner_fraction must be in (0, 1)",
         ),
         (["--domain", "acrobot", "--policy", "greedy"], "invalid choice"),
+        (["--domain", "cartpole", "--book-inertia"], "is for the acrobot"),
+        (
+            ["--domain", "acrobot", "--book-inertia", "--vary", "link_shape_2=1:1.2"],
+            "derives link_shape_2; do not --vary",
+        ),
+        (
+            ["--domain", "acrobot", "--book-inertia", "--vary", "link_length_2=0.5:1"],
+            "link 2's mass x length^2 spans [0.25, 1]",
+        ),
+        (
+            ["--domain", "acrobot", "--book-inertia", "--vary", "link_mass_1=0.7:1.5"],
+            "spans [0.7, 1.5] kg m^2 over --vary (link_mass_1 [0.7, 1.5], "
+            "link_length_1 [1, 1]); keeping I = 1 kg m^2 needs it within [0.667, 1.43]",
+        ),
         (["--domain", "acrobot", "--workers", "0"], "--workers must be >= 1"),
         (["--domain", "acrobot", "--shard-size", "0"], "--shard-size must be >= 1"),
         (
