@@ -392,7 +392,12 @@ def common_parser(prog: str, doc: str, presets: Sequence[str], out_default: str)
     )  # fmt: skip
     parser.add_argument("--seed", type=int, default=0, help="the one seed (default 0)")
     parser.add_argument("--out", default=None, help=f"output folder ({out_default})")
-    parser.add_argument("--workers", type=int, default=None, help="processes")
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="worker processes (default: the preset's, 2); results do not depend on it",
+    )
     parser.add_argument("--no-record", action="store_true", help="no .rrd recording")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     return parser
