@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -80,3 +81,54 @@ def test_slugs_follow_github(tmp_path):  # the rule itself
     page = tmp_path / "page.md"
     page.write_text("# Top\n```bash\n# not a heading\n```\n## Two words\n")
     assert anchors(page) == {"top", "two-words"}
+
+
+def python_block(page: Path, heading: str) -> str:
+    """The first ```python block after `heading` in `page`."""
+    text = page.read_text()
+    start = text.index("```python\n", text.index(f"\n{heading}\n")) + len("```python\n")
+    return text[start : text.index("```\n", start)]
+
+
+def test_readmes_model_example_runs_as_written(tmp_path, monkeypatch):
+    """README's model example, on a small batch where the quick start puts one,
+    with the fit made tiny (the one change, checked to apply)."""
+    from tasks import collect
+    from tasks.acrobot import AcrobotParams
+
+    code = python_block(ROOT / "README.md", "## The model")
+    sizes = "n_support=500, n_sweeps=60"
+    assert sizes in code
+    code = code.replace(sizes, "n_support=30, n_sweeps=4, n_hyper=200, progress=False")
+    batch = collect.collect(
+        "acrobot",
+        [AcrobotParams(m, 1.0) for m in (0.8, 1.0, 1.2)],
+        episodes_per_instance=2,
+        max_steps=60,
+        rng=np.random.default_rng(0),
+    ).transitions
+    (tmp_path / "runs" / "acrobot_swingup").mkdir(parents=True)
+    batch.save(tmp_path / "runs" / "acrobot_swingup" / "batch.npz")
+    monkeypatch.chdir(tmp_path)
+    namespace: dict = {}
+    exec(compile(code, "README.md", "exec"), namespace)
+    assert namespace["model"].weights.shape[1] == 2  # fitted on all but one
+    assert namespace["mean"].shape == (50, 4)
+    assert (tmp_path / "model.npz").exists()
+
+
+def test_readmes_dataset_example_runs_on_the_default_generate_run(
+    tmp_path, monkeypatch
+):
+    from tasks import generate
+
+    monkeypatch.chdir(tmp_path)
+    generate.main(["--domain", "acrobot", "--max-steps", "5", "--no-progress"])
+    namespace: dict = {}
+    code = python_block(
+        ROOT / "README.md",
+        "To read a run (here the first command's, `runs/data`, 4 instances):",
+    )
+    exec(compile(code, "README.md", "exec"), namespace)
+    assert set(namespace["data"].instances) == {0, 3}
+    assert namespace["ds"].parameters.values.shape == (4, 6)
