@@ -83,10 +83,10 @@ def test_slugs_follow_github(tmp_path):  # the rule itself
     assert anchors(page) == {"top", "two-words"}
 
 
-def python_block(page: Path, heading: str) -> str:
-    """The first ```python block after `heading` in `page`."""
+def python_block(page: Path, line: str) -> str:
+    """The first ```python block after the whole line `line` of `page`."""
     text = page.read_text()
-    start = text.index("```python\n", text.index(f"\n{heading}\n")) + len("```python\n")
+    start = text.index("```python\n", text.index(f"\n{line}\n")) + len("```python\n")
     return text[start : text.index("```\n", start)]
 
 

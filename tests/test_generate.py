@@ -50,6 +50,20 @@ def test_main_writes_loadable_shards_and_a_manifest(tmp_path, capsys):
     assert "wrote 2 shards" in capsys.readouterr().out
 
 
+def random_policy_shard(entry: dict, *, seed: int) -> Transitions:
+    """What `collect` gathers on a TINY acrobot run's shard `entry` (split `all`)
+    with the stream `SeedSequence(seed, spawn_key=(1, split, shard))`."""
+    stream = np.random.SeedSequence(seed, spawn_key=(1, 0, entry["index"]))
+    return collect.collect(
+        "acrobot",
+        [AcrobotParams(*row) for row in entry["parameters"]],
+        episodes_per_instance=2,
+        max_steps=10,
+        rng=np.random.default_rng(stream),
+        instance_ids=entry["instances"],
+    ).transitions
+
+
 def test_shard_is_the_random_policy_on_its_instances_with_the_shard_stream(tmp_path):
     """A shard holds exactly what `collect` gathers on its instances with the
     stream `SeedSequence(seed, spawn_key=(1, split, shard))`."""
@@ -58,15 +72,7 @@ def test_shard_is_the_random_policy_on_its_instances_with_the_shard_stream(tmp_p
         ["--domain", "acrobot", "--seed", "5", "--out", str(out), *TINY, *QUIET]
     )
     entry = json.loads((out / "manifest.json").read_text())["shards"][1]
-    stream = np.random.SeedSequence(5, spawn_key=(1, 0, 1))
-    expected = collect.collect(
-        "acrobot",
-        [AcrobotParams(*row) for row in entry["parameters"]],
-        episodes_per_instance=2,
-        max_steps=10,
-        rng=np.random.default_rng(stream),
-        instance_ids=[2],
-    ).transitions
+    expected = random_policy_shard(entry, seed=5)
     got = Transitions.load(out / "shard-00001.npz")
     for name in ("states", "actions", "next_states", "instances", "rewards", "dones"):
         np.testing.assert_array_equal(getattr(got, name), getattr(expected, name))
@@ -90,15 +96,7 @@ def test_book_inertia_keeps_the_drawn_masses_at_the_books_inertia(tmp_path):
     np.testing.assert_allclose(book.parameters.values[:, 4:] * masses * lengths**2, 1.0)
     for row in book.parameters.values:
         np.testing.assert_allclose(AcrobotParams(*row).inertias, 1.0)
-    entry = book.manifest["shards"][1]
-    expected = collect.collect(
-        "acrobot",
-        [AcrobotParams(*row) for row in entry["parameters"]],
-        episodes_per_instance=2,
-        max_steps=10,
-        rng=np.random.default_rng(np.random.SeedSequence(5, spawn_key=(1, 0, 1))),
-        instance_ids=[2],
-    ).transitions
+    expected = random_policy_shard(book.manifest["shards"][1], seed=5)
     got = Transitions.load(tmp_path / "book" / "shard-00001.npz")
     np.testing.assert_array_equal(got.next_states, expected.next_states)
     other = Transitions.load(tmp_path / "shape" / "shard-00001.npz")
