@@ -17,8 +17,9 @@ measured side by side in one run from the same state:
 2. the time of single conditionals, structured vs dense (f-block of one row, one
    z decision, one new-feature weight draw, the w-block);
 3. the seconds of a whole 250-sweep fit (one chain, N_w = 1000, `run_chains`);
-4. the sweep time for m ∈ {250, 500, 1000, 2000} (dense only for m ≤ 500: one
-   dense sweep at m = 1000 factors ~40 matrices of size 7000²).
+4. the sweep time for m ∈ {250, 500, 1000, 2000}, with the warm state's number of
+   features K+ (dense only for m ≤ 500: one dense sweep at m = 1000 factors ~40
+   matrices of size 7000²).
 
 Timings are wall-clock medians; the machine is shared, so they are noisy.
 """
@@ -91,8 +92,9 @@ def warm_state(data, priors, cache, n: int = 10):
     return state
 
 
-def sweeps(m: int, n_w: int, with_dense: bool, repeat: int) -> tuple[float, float]:
-    """(structured, dense) seconds of one sweep from the same warm state."""
+def sweeps(m: int, n_w: int, with_dense: bool, repeat: int) -> tuple[float, float, int]:
+    """(structured, dense) seconds of one sweep from the same warm state, and its
+    number of features K+."""
     data = synthetic(m, rng=np.random.default_rng(0))
     priors = GibbsPriors(alpha=2.0, sigma_w=4.0, sigma_w0=1.0, n_w=n_w)
     cache = prepare(data)
@@ -183,12 +185,13 @@ def main(quick: bool = False) -> None:
     )
 
     print("\nsweep time vs m (N_w = 1000 structured; dense at N_w = 4, m <= 500 only)")
-    print(f"{'m':>6s} {'structured':>12s} {'dense':>10s}")
+    print("(the warm state's K+ features differ with m; a sweep's cost grows with K+)")
+    print(f"{'m':>6s} {'K+':>4s} {'structured':>12s} {'dense':>10s}")
     for mm in (250, 500) if quick else (250, 500, 1000, 2000):
-        tf = sweeps(mm, n_w=1000, with_dense=False, repeat=3)[0]
+        tf, _, kk = sweeps(mm, n_w=1000, with_dense=False, repeat=3)
         td = sweeps(mm, n_w=4, with_dense=True, repeat=1)[1] if mm <= 500 else None
         dtxt = f"{td:10.2f}" if td is not None else f"{'-':>10s}"
-        print(f"{mm:6d} {tf:12.4f} {dtxt}")
+        print(f"{mm:6d} {kk:4d} {tf:12.4f} {dtxt}")
 
 
 if __name__ == "__main__":
