@@ -74,6 +74,11 @@ class Config:
 
     `manifest_config()` is what determines the data; `out`, `workers`,
     `scheduler`, `resume` and `progress` only say where and how it runs.
+
+    Raises:
+        ValueError: for `book_inertia` on another domain than the acrobot, with
+            varied link shapes, or on a box some of whose instances cannot keep
+            the book's inertias (`_check_book_inertia`).
     """
 
     domain: str
@@ -90,6 +95,10 @@ class Config:
     resume: bool = False
     progress: bool = True
     book_inertia: bool = False
+
+    def __post_init__(self) -> None:
+        if self.book_inertia:
+            _check_book_inertia(self.domain, self.distribution)
 
     def manifest_config(self) -> dict[str, Any]:
         return {
@@ -226,8 +235,6 @@ def _validate(args: argparse.Namespace) -> Config:
         sigma=args.sigma,
         inner_fraction=args.inner_fraction,
     )
-    if args.book_inertia:
-        _check_book_inertia(args.domain, distribution)
     return Config(
         domain=args.domain,
         instances=None if kind == "grid" else (args.instances or 4),
@@ -296,7 +303,6 @@ def plan(config: Config) -> dict[str, Any]:
     )
     spec = get_domain(config.domain)
     if config.book_inertia:
-        _check_book_inertia(config.domain, config.distribution)
         booked = [with_book_inertia(p) for p in drawn.params]
         values = np.array([dataclasses.astuple(p) for p in booked], dtype=float)
         drawn = drawn._replace(params=booked, values=values)
