@@ -49,8 +49,9 @@ def validate_parameters(params: Any) -> None:
     for field in dataclasses.fields(params):
         value = getattr(params, field.name)
         low, high = field.metadata["bounds"]
-        unit = field.metadata["unit"]
-        where = f"{cls}.{field.name} must be in [{low}, {high}] {unit}"
+        # "-" marks a dimensionless parameter: no unit in the message.
+        unit = "" if field.metadata["unit"] == "-" else " " + field.metadata["unit"]
+        where = f"{cls}.{field.name} must be in [{low}, {high}]{unit}"
         if isinstance(value, bool) or not isinstance(
             value, int | float | np.integer | np.floating
         ):
@@ -61,7 +62,7 @@ def validate_parameters(params: Any) -> None:
             bound = "lower bound" if value < low else "upper bound"
             raise ValueError(
                 f"{where}, got {value!r} (outside the {bound} "
-                f"{low if value < low else high} {unit})"
+                f"{low if value < low else high}{unit})"
             )
         # Frozen dataclass: store plain floats so equality and hashing behave.
         object.__setattr__(params, field.name, float(value))

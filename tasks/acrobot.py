@@ -77,13 +77,14 @@ class AcrobotParams:
     link_mass_2     kg    1.0      [0.2, 5.0]
     link_length_1   m     1.0      [0.2, 5.0]
     link_length_2   m     1.0      [0.2, 5.0]
-    link_shape_1    m·l²  1.0      [0.7, 1.5]
-    link_shape_2    m·l²  1.0      [0.7, 1.5]
+    link_shape_1    -     1.0      [0.7, 1.5]
+    link_shape_2    -     1.0      [0.7, 1.5]
     ==============  ====  =======  ===========
 
-    The centre of mass is at mid-link. The moment of inertia about it is
-    `I_i = k_i m_i l_i²` with `k_i = link_shape_i`, the link's shape (the
-    nominal 1 gives the book's 1 kg·m² at nominal mass and length). A fixed
+    `-` marks a dimensionless parameter. The centre of mass is at mid-link.
+    The moment of inertia about it is `I_i = k_i m_i l_i²` with
+    `k_i = link_shape_i`, the link's shape (the nominal 1 gives the book's
+    1 kg·m² at nominal mass and length). A fixed
     `k_i` keeps the shape when a mass or length changes (DESIGN §6); then the
     passive dynamics depend on the masses only through `m₁ / m₂`, and scaling
     both scales the torque's effect alone. `k_i = 1 / (m_i l_i²)` instead holds
@@ -100,8 +101,8 @@ class AcrobotParams:
     link_mass_2: float = parameter(1.0, "kg", 0.2, 5.0)
     link_length_1: float = parameter(1.0, "m", 0.2, 5.0)
     link_length_2: float = parameter(1.0, "m", 0.2, 5.0)
-    link_shape_1: float = parameter(1.0, "m·l²", 0.7, 1.5)
-    link_shape_2: float = parameter(1.0, "m·l²", 0.7, 1.5)
+    link_shape_1: float = parameter(1.0, "-", 0.7, 1.5)
+    link_shape_2: float = parameter(1.0, "-", 0.7, 1.5)
 
     def __post_init__(self) -> None:
         validate_parameters(self)
