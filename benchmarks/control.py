@@ -22,7 +22,7 @@ Measured side by side in one run, on one instance (nominal unless ``--param``):
 Every rate is also printed as a ratio to the raw simulator's steps/s. The planning
 episodes start from the real episodes' initial states.
 
-    python benchmarks/control.py --domain acrobot
+    python -m benchmarks.control --domain acrobot
 """
 
 from __future__ import annotations
@@ -73,7 +73,7 @@ def timed(fn: Callable[[], int]) -> tuple[int, float]:
 
 def main(argv: list[str] | None = None) -> dict[str, float]:
     parser = argparse.ArgumentParser(
-        prog="python benchmarks/control.py", description=__doc__.split("\n\n")[0]
+        prog="python -m benchmarks.control", description=__doc__.split("\n\n")[0]
     )
     parser.add_argument("--domain", choices=sorted(DOMAINS), default="acrobot")
     parser.add_argument(

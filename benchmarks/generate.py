@@ -1,6 +1,6 @@
 """Data-generation speed: raw MuJoCo against our open-loop, random and Sarsa paths.
 
-    python benchmarks/generate.py [--domain acrobot] [--repeats 3]
+    python -m benchmarks.generate [--domain acrobot] [--repeats 3]
 
 Measured side by side in one run, in MuJoCo steps (`mj_step` calls) per second:
 

@@ -1,6 +1,6 @@
 """Benchmark of `hipmdp.fit` at paper scale and of the online filter.
 
-Run:  /work/venv/bin/python benchmarks/model.py [--sweeps 250] [--chains 2]
+Run:  python -m benchmarks.model [--sweeps 250] [--chains 2]
 
 Data: B = 7 training instances of a synthetic HiP-MDP with 2 actions and 4-dimensional
 states (two latent parameters acting on different (action, dimension) rows), 6000

@@ -1,6 +1,6 @@
 """Speed of the blocked Gibbs sampler: structured (eigenbasis) vs dense reference.
 
-Run:  python -m benchmarks.sampler   (~10 min)
+Run:  python -m benchmarks.sampler   (3-10 min: the dense sweeps)
       python -m benchmarks.sampler --quick
 
 (On a shared machine a multi-threaded BLAS spins against the other processes and

@@ -1,6 +1,6 @@
 """Simulation speed: raw `mujoco.mj_step` against our dm_control environments.
 
-    python benchmarks/simulation.py [--steps 5000]
+    python -m benchmarks.simulation [--steps 5000]
 
 For each domain, measured side by side in one run on the same compiled model:
 
