@@ -2,6 +2,18 @@
 
 Importing `tasks` sets its process defaults (one BLAS thread, headless MuJoCo; see
 tasks/__init__.py); numpy is not loaded yet when pytest reads this file.
+
+Hypothesis runs derandomized (its examples follow from each test's source, not
+from a fresh seed or from failures replayed out of a local `.hypothesis/`
+folder) and without its per-example deadline, which a loaded machine can miss:
+the suite gives the same result on every run and machine.
 """
 
 import tasks  # noqa: F401
+
+# isort: split
+
+from hypothesis import settings
+
+settings.register_profile("hipmdp", derandomize=True, database=None, deadline=None)
+settings.load_profile("hipmdp")

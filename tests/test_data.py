@@ -6,7 +6,7 @@ import os
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from hipmdp import Transitions
@@ -36,6 +36,11 @@ def table_for(t: Transitions) -> ParameterTable:
 
 
 @given(st.floats(-1e3, 1e3, allow_nan=False))
+@example(np.pi)
+@example(-np.pi)
+@example(3 * np.pi)
+@example(-1e3)
+@example(1e3)
 def test_wrap_angle_range_and_equivalence(x):
     y = float(wrap_angle(x))
     assert -np.pi < y <= np.pi
