@@ -6,13 +6,17 @@ Monte Carlo tolerance (used throughout): for n independent draws of a Gaussian w
 variance v, the sample mean has standard error √(v/n) and the sample variance has
 standard error ≈ v √(2/(n−1)); a Bernoulli(p) frequency has √(p(1−p)/n). We accept
 within 4 standard errors: a correct sampler fails a single check with probability
-~6e-5 (and the seeds are fixed, so the outcome is deterministic).
+~6e-5 (and the seeds are fixed, so the outcome is deterministic). Checks of a whole
+covariance matrix compare d(d+1)/2 entries at once and accept within 5 standard
+errors each, which keeps the chance that any of them fails near the same 6e-5
+(Bonferroni: 120 entries × 5.7e-7).
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import linalg
 from scipy.special import expit
 from scipy.stats import poisson
 
@@ -28,7 +32,7 @@ from hipmdp.gibbs import (
     run_chains,
 )
 from hipmdp.gibbs_model import harmonic, sample_mu_w
-from hipmdp.gibbs_sweep import new_feature_step, remove_unused, z_step_row
+from hipmdp.gibbs_sweep import new_feature_step, remove_unused, sweep, z_step_row
 
 N_DRAWS = 4000
 
@@ -42,6 +46,23 @@ def assert_moments(draws: np.ndarray, mean: np.ndarray, var: np.ndarray) -> None
     assert np.all(np.abs(draws.var(axis=0, ddof=1) - var) < 4 * se_var)
 
 
+def assert_whitened(draws: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> None:
+    """Draws (n, d) of N(mean, cov), whitened with cov's Cholesky factor L: x =
+    L⁻¹(draw − mean) must be standard normal in every coordinate *and every pair*.
+    The sample second moment S = xᵀx / n (known mean) has entries with standard
+    error 1/√n off the diagonal and √(2/n) on it; the mean of x has 1/√n. So a
+    sampler with the right variances but the wrong correlations (e.g. independent
+    coordinates, or a transposed eigenbasis) fails here, where a check of the
+    diagonal alone would pass."""
+    n, d = draws.shape
+    L = linalg.cholesky(cov, lower=True)
+    x = linalg.solve_triangular(L, (draws - mean).T, lower=True).T
+    assert np.all(np.abs(x.mean(axis=0)) < 5 / np.sqrt(n))
+    S = x.T @ x / n
+    se = np.where(np.eye(d, dtype=bool), np.sqrt(2.0 / n), 1.0 / np.sqrt(n))
+    assert np.all(np.abs(S - np.eye(d)) < 5 * se)
+
+
 def small_problem(seed: int, R: int = 3, B: int = 4, m: int = 5):
     rng = np.random.default_rng(seed)
     A = rng.normal(size=(R, m, m))
@@ -50,15 +71,41 @@ def small_problem(seed: int, R: int = 3, B: int = 4, m: int = 5):
 
 
 def test_f_draws_reproduce_dense_posterior():
+    """Three features (k = 3): with two, |V₁₂| = |V₂₁| for any 2 × 2 rotation, and
+    a transposed eigenbasis would leave even the covariance's diagonal right."""
     data, rng = small_problem(0)
     cache = prepare(data)
     alg = fast.EigenAlgebra(cache)
-    W = rng.normal(size=(4, 2))
+    W = rng.normal(size=(4, 3))
     draws = np.array(
         [alg.f_draw(1, cache.Yt[1], W, rng=rng) @ cache.U[1].T for _ in range(N_DRAWS)]
     )
     ref = dense.f_posterior(data.Y[1], W, data.K[1], data.noise[1])
-    assert_moments(draws.reshape(N_DRAWS, -1), ref.mean, np.diag(ref.cov))
+    assert_whitened(draws.reshape(N_DRAWS, -1), ref.mean, ref.cov)
+
+
+def test_dense_reference_draws_reproduce_their_posterior():
+    """The dense reference algebra's own draws (it is the benchmark's and the
+    sweep comparison's reference, so it is checked too)."""
+    data, rng = small_problem(0)
+    alg = dense.DenseAlgebra(data)
+    W = rng.normal(size=(4, 3))
+    draws = np.array(
+        [alg.f_draw(1, data.Y[1], W, rng=rng).ravel() for _ in range(N_DRAWS)]
+    )
+    ref = dense.f_posterior(data.Y[1], W, data.K[1], data.noise[1])
+    assert_whitened(draws, ref.mean, ref.cov)
+    z = np.array([[1, 1, 1], [1, 0, 1], [0, 1, 1]], dtype=bool)
+    f = rng.normal(size=(3, 3, 5)) * z[:, :, None]
+    mu_w = np.array([0.0, 0.5, -0.3])
+    wd = np.array([alg.w_draw(z, f, mu_w, 0.8, rng=rng) for _ in range(N_DRAWS)])
+    ref = dense.w_posterior(z, f, data.Y, data.noise, mu_w, 0.8)
+    B = ref.mean.shape[1]
+    assert_whitened(
+        wd.transpose(0, 2, 1).reshape(N_DRAWS, -1),
+        ref.mean.T.ravel(),
+        np.kron(np.eye(B), ref.cov),
+    )
 
 
 def test_w_draws_reproduce_dense_posterior():
@@ -72,8 +119,80 @@ def test_w_draws_reproduce_dense_posterior():
     ft = fast.to_eigen(f, cache)
     draws = np.array([alg.w_draw(z, ft, mu_w, 0.8, rng=rng) for _ in range(N_DRAWS)])
     ref = dense.w_posterior(z, f, data.Y, data.noise, mu_w, 0.8)
-    var = np.broadcast_to(np.diag(ref.cov)[:, None], ref.mean.shape)
-    assert_moments(draws, ref.mean, var)
+    # every instance's weights, jointly: correlated within an instance through the
+    # shared basis, independent across instances
+    B = ref.mean.shape[1]
+    assert_whitened(
+        draws.transpose(0, 2, 1).reshape(N_DRAWS, -1),
+        ref.mean.T.ravel(),
+        np.kron(np.eye(B), ref.cov),
+    )
+
+
+class _MeanEigen(fast.EigenAlgebra):
+    """The structured algebra with every f and w draw replaced by its posterior
+    mean, after consuming the same standard normals as a draw."""
+
+    def f_draw(self, r, Yr, W, *, rng):
+        post = fast.f_posterior(Yr, W, self.cache.lam[r], self.noise[r])
+        rng.standard_normal(post.mean.shape)
+        return post.mean
+
+    def w_draw(self, z, f, mu_w, sigma_w, *, rng):
+        mean, _ = fast.w_posterior(z, f, self.Yc, self.noise, mu_w, sigma_w)
+        rng.standard_normal(mean.shape)
+        return mean
+
+
+class _MeanDense(dense.DenseAlgebra):
+    """The dense reference algebra, with means for draws as `_MeanEigen`."""
+
+    def f_draw(self, r, Yr, W, *, rng):
+        post = dense.f_posterior(Yr, W, self.K[r], self.noise[r])
+        rng.standard_normal(post.mean.size)
+        return post.mean.reshape(W.shape[1], -1)
+
+    def w_draw(self, z, f, mu_w, sigma_w, *, rng):
+        post = dense.w_posterior(z, f, self.Yc, self.noise, mu_w, sigma_w)
+        rng.standard_normal(post.mean.shape)
+        return post.mean
+
+
+def test_structured_sweeps_follow_the_dense_reference_sweeps():
+    """Whole sweeps, structured against dense, from the same state and seed. The
+    two algebras draw f and w through different square roots of the same
+    covariance, so their draws differ; with each draw replaced by its mean (the
+    same normals consumed) every other random choice (z decisions, new-feature
+    proposals and their acceptance, μ_w) sees the same uniforms, and the chains
+    must agree step for step: z exactly, w, f and μ_w to round-off. This covers
+    what the conditional-by-conditional tests do not: the sweep's wiring of them,
+    the eigen-coordinate bookkeeping, and the new-feature step with data."""
+    data, _ = small_problem(15, R=4, B=5, m=6)
+    priors = GibbsPriors(alpha=2.0, sigma_w=1.0, sigma_w0=1.0, n_w=50)
+    cache = prepare(data)
+    state = init_state(data, priors, rng=np.random.default_rng(16))
+    z, w, f, mu = state.z, state.w, state.f, state.mu_w
+    zt, wt, ft, mut = z, w, fast.to_eigen(f, cache), mu
+    n_features = set()
+    for i in range(12):
+        z, w, f, mu = sweep(
+            _MeanDense(data), z, w, f, mu, priors, rng=np.random.default_rng(100 + i)
+        )
+        zt, wt, ft, mut = sweep(
+            _MeanEigen(cache),
+            zt,
+            wt,
+            ft,
+            mut,
+            priors,
+            rng=np.random.default_rng(100 + i),
+        )
+        np.testing.assert_array_equal(zt, z)
+        np.testing.assert_allclose(wt, w, rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(fast.from_eigen(ft, cache), f, atol=1e-8)
+        np.testing.assert_allclose(mut, mu, rtol=1e-8, atol=1e-10)
+        n_features.add(z.shape[0])
+    assert len(n_features) > 1  # features were born or died: the test is informative
 
 
 def test_mu_w_draws_reproduce_gaussian_conditioning():
