@@ -1,0 +1,84 @@
+"""The fitting pipeline's fast steps against plain dense formulas: GP smoothing of
+each instance's transitions onto the support points, and the training instances'
+posterior weights."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hipmdp import gibbs_dense as dense
+from hipmdp.data import Transitions
+from hipmdp.fitting import posterior_weights, smooth_onto_support
+from hipmdp.gp import HyperSet, subsample
+
+
+def _dense_gp_mean(X, y, Xs, ell, sf2, sn2):
+    """k(X*, X) (K + σ²I)⁻¹ y with k = σ_f² exp(−½ Σ_j ((x_j − x'_j)/ℓ_j)²)."""
+
+    def k(P, Q):
+        r2 = (((P[:, None, :] - Q[None, :, :]) / ell) ** 2).sum(axis=-1)
+        return sf2 * np.exp(-0.5 * r2)
+
+    return k(Xs, X) @ np.linalg.solve(k(X, X) + sn2 * np.eye(len(X)), y)
+
+
+def _batch(rng, B=3, A=2, D=3, n=40):
+    S = rng.uniform(-1, 1, size=(B * n, D))
+    return Transitions(
+        S,
+        rng.integers(0, A, size=B * n),
+        S + 0.3 * np.sin(S) + 0.05 * rng.normal(size=S.shape),
+        np.repeat(np.arange(B) * 2 + 1, n),  # ids 1, 3, 5: not positions
+    )
+
+
+def _hyper(rng, A=2, D=3):
+    return HyperSet(
+        lengthscales=rng.uniform(0.5, 2.0, size=(A, D, D)),
+        signal_var=rng.uniform(0.1, 1.0, size=(A, D)),
+        noise_var=rng.uniform(1e-3, 1e-2, size=(A, D)),
+    )
+
+
+def test_smoothing_matches_a_dense_solve_per_instance_action_and_dimension():
+    rng = np.random.default_rng(0)
+    data, hyper = _batch(rng), _hyper(rng)
+    support = rng.uniform(-1, 1, size=(7, 3))
+    for n_smooth in (1000, 8):  # every transition, then a subsample per cell
+        Y = smooth_onto_support(
+            data, support, hyper, n_smooth=n_smooth, rng=np.random.default_rng(1)
+        )
+        assert Y.shape == (2, 3, 3, 7)
+        sub_rng = np.random.default_rng(1)  # the subsamples, drawn in the same order
+        cut = 0
+        for bi, b in enumerate(data.instance_ids):
+            for a in range(2):
+                cell = np.flatnonzero((data.instances == b) & (data.actions == a))
+                idx = cell[subsample(len(cell), n_smooth, rng=sub_rng)]
+                cut += len(idx) < len(cell)
+                for d in range(3):
+                    ref = _dense_gp_mean(
+                        data.states[idx],
+                        data.deltas[idx, d],
+                        support,
+                        hyper.lengthscales[a, d],
+                        hyper.signal_var[a, d],
+                        hyper.noise_var[a, d],
+                    )
+                    np.testing.assert_allclose(Y[a, d, bi], ref, rtol=1e-8, atol=1e-12)
+        assert cut == (0 if n_smooth == 1000 else 6)  # subsampled every cell, or none
+
+
+def test_posterior_weights_match_the_dense_w_posterior_mean():
+    rng = np.random.default_rng(2)
+    K, R, B, m = 4, 5, 6, 8
+    z = rng.random((K, R)) < 0.6
+    z[0] = True
+    f = rng.normal(size=(K, R, m)) * z[:, :, None]
+    Y = rng.normal(size=(R, B, m))
+    noise = rng.uniform(0.05, 0.3, size=R)
+    mu_w = rng.normal(size=K)
+    W = posterior_weights(Y, f, z, noise, mu_w, 0.7)
+    ref = dense.w_posterior(z, f, Y, noise, mu_w, 0.7)
+    np.testing.assert_array_equal(W[0], 1.0)
+    np.testing.assert_allclose(W[1:], ref.mean, rtol=1e-10, atol=1e-12)
