@@ -25,6 +25,7 @@ from hipmdp import gibbs_eigen as fast
 from hipmdp.gibbs import (
     GibbsData,
     GibbsPriors,
+    gibbs_sweep,
     init_state,
     log_joint,
     log_marginal,
@@ -255,6 +256,34 @@ def test_no_data_reproduces_ibp_prior():
     # `se` lies between the i.i.d. value and one independent draw per batch
     var = alpha * harmonic(R)  # Poisson variance
     assert np.sqrt(var / k.size) < se < np.sqrt(var / 20)
+
+
+def test_no_data_reproduces_the_ibp_prior_beyond_its_mean():
+    """As above, sweep by sweep, with three more moments of the IBP prior over R
+    rows: Var[K+] = α H_R (K+ is Poisson), E[Σ_k m_k] = α R (each row takes α
+    features in expectation, shared or new), and E[m_k / R] over features, which
+    the shared-feature odds m₋ᵣ,ₖ/(R − m₋ᵣ,ₖ) set (E[Σ m_k] / E[K+] = R / H_R).
+    Standard errors by batch means, as above."""
+    R, m, alpha = 5, 3, 2.0
+    data = GibbsData(np.zeros((R, 0, m)), np.tile(np.eye(m), (R, 1, 1)), np.ones(R))
+    priors = GibbsPriors(alpha=alpha, sigma_w=1.0, sigma_w0=1.0, n_w=3)
+    cache = prepare(data)
+    rng = np.random.default_rng(17)
+    state = init_state(data, priors, rng=rng)
+    k_plus, ones = [], []
+    for _ in range(1650):
+        state = gibbs_sweep(state, data, priors, cache, rng=rng)
+        k_plus.append(state.z.shape[0] - 1)  # feature 0 is not the IBP's
+        ones.append(int(state.z[1:].sum()))
+    k_plus, ones = np.array(k_plus[50:], float), np.array(ones[50:], float)
+
+    def within(x, expected):
+        batches = x.reshape(40, 40).mean(axis=1)
+        assert abs(x.mean() - expected) < 4 * batches.std(ddof=1) / np.sqrt(40)
+
+    h = harmonic(R)
+    within((k_plus - alpha * h) ** 2, alpha * h)
+    within(ones, alpha * R)
 
 
 @pytest.mark.parametrize("noise_var", [0.1, 1e-3])
