@@ -42,10 +42,12 @@ from tasks.batch import gather_and_save
 from tasks.experiment import (
     apply_common,
     check_positive,
+    check_run_fields,
     check_settings,
     common_parser,
     environment,
     first_episode_within,
+    flag_error,
     mean_ci,
     one_blas_thread,
     paired_difference,
@@ -158,6 +160,12 @@ class SwingupConfig:
     progress: bool = True
 
     def __post_init__(self) -> None:
+        check_run_fields(self)
+        if not isinstance(self.transfer, TransferConfig):
+            raise ValueError(
+                f"transfer: expected a tasks.transfer.TransferConfig, "
+                f"got {type(self.transfer).__name__}"
+            )
         if not isinstance(self.book_inertia, bool):
             raise ValueError(
                 f"book_inertia: expected a bool, got {self.book_inertia!r}"
@@ -182,6 +190,13 @@ class SwingupConfig:
         """The instance at link masses ``(m1, m2)`` with this run's inertias."""
         return setting_params(m1, m2, self.book_inertia)
 
+
+#: Every file a run writes in its folder (glob patterns); `main` deletes a
+#: previous run's before it starts (`tasks.experiment.run_dir`).
+ARTEFACTS = (
+    "config.json", "batch.npz", "hipmdp_model.npz", "trials.npz", "metrics.json",
+    "report.md", "learning_curves.png", "weights.png", "acrobot.rrd",
+)  # fmt: skip
 
 PRESETS: dict[str, SwingupConfig] = {
     "quick": SwingupConfig(),  # 4 settings x 12 trials: ~2 minutes on two cores
@@ -275,7 +290,7 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
 
     started = time.perf_counter()
     machine = environment()  # the code and machine as the run starts
-    path = run_dir(out, config.name)
+    path = run_dir(out, config.name, ARTEFACTS)
     write_json(path / "config.json", config)
     ss_batch, ss_fit, ss_avg, ss_trials, ss_mse = run_streams(config.seed)
     timings: dict[str, float] = {}
@@ -506,18 +521,23 @@ def parse_args(argv: list[str] | None = None) -> tuple[SwingupConfig, str | None
     )
     args = parser.parse_args(argv)
     preset = PRESETS[args.preset]
-    transfer = None
+    transfer = final_window = None
     if args.episodes is not None:
         try:
             transfer = dataclasses.replace(preset.transfer, n_episodes=args.episodes)
         except ValueError as err:
-            parser.error(str(err))
+            parser.error(flag_error(err))
+        # the target is the true model's mean over the last 3 episodes, or over
+        # all of them in a shorter run
+        final_window = min(preset.final_window, args.episodes)
     config = apply_common(
         parser,
         args,
         preset,
         n_trials=args.trials,
         transfer=transfer,
+        artefacts=ARTEFACTS,
+        final_window=final_window,
         book_inertia=args.book_inertia or None,
     )
     return config, args.out

@@ -40,6 +40,7 @@ from tasks.cartpole import CartpoleParams
 from tasks.experiment import (
     apply_common,
     check_positive,
+    check_run_fields,
     check_settings,
     common_parser,
     environment,
@@ -110,6 +111,7 @@ class PredictionConfig:
     progress: bool = True
 
     def __post_init__(self) -> None:
+        check_run_fields(self)
         check_settings(
             self, "train_settings", "test_settings", _params, "(mass, half-length)"
         )
@@ -118,6 +120,13 @@ class PredictionConfig:
             "average_n_max", "n_train", "n_test", "gather_episodes", "workers",
         ))  # fmt: skip
 
+
+#: Every file a run writes in its folder (glob patterns); `main` deletes a
+#: previous run's before it starts (`tasks.experiment.run_dir`).
+ARTEFACTS = (
+    "config.json", "batch.npz", "hipmdp_run*.npz", "metrics.json", "report.md",
+    "weights.png", "cartpole.rrd",
+)  # fmt: skip
 
 PRESETS = {
     "quick": PredictionConfig(),
@@ -147,7 +156,7 @@ def main(config: PredictionConfig, out: str | os.PathLike | None = None) -> Resu
 
     started = time.perf_counter()
     machine = environment()  # the code and machine as the run starts
-    path = run_dir(out, config.name)
+    path = run_dir(out, config.name, ARTEFACTS)
     write_json(path / "config.json", config)
     ss_batch, ss_fit, ss_avg, ss_test = np.random.SeedSequence(config.seed).spawn(4)
     seconds: dict[str, float] = {}
@@ -248,7 +257,10 @@ def parse_args(argv: list[str] | None = None) -> tuple[PredictionConfig, str | N
     )  # fmt: skip
     parser.add_argument("--runs", type=int, default=None, help="HiP-MDP fits")
     args = parser.parse_args(argv)
-    return apply_common(parser, args, PRESETS[args.preset], n_runs=args.runs), args.out
+    config = apply_common(
+        parser, args, PRESETS[args.preset], artefacts=ARTEFACTS, n_runs=args.runs
+    )
+    return config, args.out
 
 
 def cli(argv: list[str] | None = None) -> int:

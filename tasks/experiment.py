@@ -3,7 +3,9 @@
 An experiment writes ``runs/<name>/``: ``config.json``, ``metrics.json``,
 ``report.md``, PNG figures, a rerun ``.rrd`` and the fitted model. Every file is
 written to a temporary name and renamed, so a killed run leaves no half-written
-artefact. All randomness of a run is spawned from one ``np.random.SeedSequence``.
+artefact; and a run first deletes the previous run's files from its folder
+(:func:`run_dir`), so a folder never mixes two runs. All randomness of a run is
+spawned from one ``np.random.SeedSequence``.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import json
 import os
 import platform
 import subprocess
+import sys
 from collections.abc import Callable, Sequence
 from importlib import metadata
 from pathlib import Path
@@ -25,6 +28,7 @@ import scipy.linalg  # noqa: F401  (loads scipy's BLAS, so one_blas_thread limit
 from scipy import stats
 from threadpoolctl import threadpool_info, threadpool_limits
 
+import hipmdp
 from hipmdp.data import atomic_write
 
 Array = np.ndarray
@@ -191,11 +195,63 @@ def save_figure(fig, path: str | os.PathLike) -> Path:
         plt.close(fig)
 
 
-def run_dir(out: str | os.PathLike | None, name: str) -> Path:
-    """``out`` if given, else ``runs/<name>`` under the working directory."""
-    path = Path(out) if out is not None else Path("runs") / name
+def run_dir(
+    out: str | os.PathLike | None, name: str, artefacts: Sequence[str] = ()
+) -> Path:
+    """``out`` if given, else ``runs/<name>`` under the working directory, made
+    if need be.
+
+    A run replaces the previous run of the same experiment in its folder: the
+    files matching the glob patterns ``artefacts`` (what the experiment writes)
+    are deleted first, so a run that stops early, or writes fewer files
+    (``--no-record``, fewer fits), never leaves its folder holding files of two
+    runs. Other files (a check's JSON on the previous run, say) are left, and
+    named on stderr.
+
+    Raises:
+        ValueError: before anything is deleted or written, if ``out`` exists and
+            is not a folder, or holds files named like the artefacts without a
+            ``config.json`` of a ``name`` run (a folder that is not this
+            experiment's run folder).
+    """
+    path, stale = check_out(out, name, artefacts)
     path.mkdir(parents=True, exist_ok=True)
+    for file in stale:
+        file.unlink()
+    others = sorted(f.name for f in path.iterdir() if not f.name.startswith("."))
+    if stale and others:
+        print(
+            f"{path}: replaced the previous run's files; left {', '.join(others)}, "
+            "which belong to the previous run",
+            file=sys.stderr,
+        )
     return path
+
+
+def check_out(
+    out: str | os.PathLike | None, name: str, artefacts: Sequence[str] = ()
+) -> tuple[Path, list[Path]]:
+    """:func:`run_dir`'s checks, with no side effect: the folder and the previous
+    run's files in it that a run would delete. Raises ``ValueError`` as
+    :func:`run_dir`."""
+    path = Path(out) if out is not None else Path("runs") / name
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"out: {path} exists and is not a folder")
+    stale = sorted({f for pattern in artefacts for f in path.glob(pattern)})
+    if stale and _run_name(path / "config.json") != name:
+        raise ValueError(
+            f"out: {path} holds {', '.join(f.name for f in stale)}, but no "
+            f"config.json of a {name} run; choose a new or empty folder"
+        )
+    return path, stale
+
+
+def _run_name(config_file: Path) -> str | None:
+    """The ``name`` in a run's ``config.json``, or None if there is none."""
+    try:
+        return json.loads(config_file.read_text()).get("name")
+    except (OSError, ValueError, AttributeError):
+        return None
 
 
 def mean_ci(x: Sequence[float] | Array, axis: int = 0, level: float = 0.95) -> dict:
@@ -352,10 +408,49 @@ def check_positive(config: Any, names: Sequence[str]) -> None:
 
 
 def check_counts(**values: Any) -> None:
-    """Raise ``ValueError`` naming the first keyword whose value is not >= 1."""
+    """Raise ``ValueError`` naming the first keyword whose value is not an integer
+    >= 1."""
     for name, value in values.items():
-        if int(value) < 1:
-            raise ValueError(f"{name}: expected >= 1, got {value}")
+        check_integer(name, value, 1)
+
+
+def check_integer(name: str, value: Any, minimum: int) -> None:
+    """Raise ``ValueError`` naming ``name`` unless ``value`` is an integer (a
+    Python or numpy integer, not a bool, a float or a string) >= ``minimum``."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise ValueError(
+            f"{name}: expected an integer >= {minimum}, got {value!r} "
+            f"({type(value).__name__})"
+        )
+    if value < minimum:
+        raise ValueError(f"{name}: expected >= {minimum}, got {value}")
+
+
+def check_run_fields(config: Any) -> None:
+    """The fields every experiment's config has: ``seed`` (an integer >= 0, as
+    ``numpy.random.SeedSequence`` takes), ``fit`` (a ``hipmdp.FitConfig``),
+    ``record`` and ``progress`` (bools). Raise ``ValueError`` naming the field."""
+    check_integer("seed", config.seed, 0)
+    if not isinstance(config.fit, hipmdp.FitConfig):
+        raise ValueError(
+            f"fit: expected a hipmdp.FitConfig, got {type(config.fit).__name__}"
+        )
+    for name in ("record", "progress"):
+        if not isinstance(getattr(config, name), bool):
+            raise ValueError(
+                f"{name}: expected True or False, got {getattr(config, name)!r}"
+            )
+
+
+def seed_argument(text: str) -> int:
+    """argparse type of ``--seed``: an integer >= 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {value}")
+    return value
 
 
 def run_parser(prog: str, doc: str):
@@ -390,7 +485,9 @@ def common_parser(prog: str, doc: str, presets: Sequence[str], out_default: str)
         "--preset", choices=sorted(presets), default="quick",
         help="quick: minutes on two cores (default); paper: the paper's sizes",
     )  # fmt: skip
-    parser.add_argument("--seed", type=int, default=0, help="the one seed (default 0)")
+    parser.add_argument(
+        "--seed", type=seed_argument, default=0, help="the one seed (default 0)"
+    )
     parser.add_argument("--out", default=None, help=f"output folder ({out_default})")
     parser.add_argument(
         "--workers",
@@ -403,9 +500,24 @@ def common_parser(prog: str, doc: str, presets: Sequence[str], out_default: str)
     return parser
 
 
-def apply_common(parser, args, preset: Any, **changes: Any) -> Any:
-    """The preset with the common options (and ``changes``) applied; a bad value
-    is reported through ``parser.error`` (exit status 2)."""
+#: The command-line flag of each config field the flags set, for error messages.
+FLAGS = {
+    "out": "--out",
+    "seed": "--seed",
+    "workers": "--workers",
+    "n_trials": "--trials",
+    "n_episodes": "--episodes",
+    "n_runs": "--runs",
+}
+
+
+def apply_common(
+    parser, args, preset: Any, *, artefacts: Sequence[str] = (), **changes: Any
+) -> Any:
+    """The preset with the common options (and ``changes``) applied, and
+    ``--out`` checked as the run will use it (:func:`check_out`, with the
+    experiment's ``artefacts``); a bad value is reported through
+    ``parser.error`` (exit status 2), naming the flag."""
     changes = {k: v for k, v in changes.items() if v is not None}
     changes["seed"] = args.seed
     if args.workers is not None:
@@ -415,9 +527,20 @@ def apply_common(parser, args, preset: Any, **changes: Any) -> Any:
     if args.no_progress:
         changes["progress"] = False
     try:
-        return dataclasses.replace(preset, **changes)
+        config = dataclasses.replace(preset, **changes)
+        check_out(args.out, config.name, artefacts)
     except ValueError as err:
-        parser.error(str(err))
+        parser.error(flag_error(err))
+    return config
+
+
+def flag_error(err: ValueError) -> str:
+    """A config's error message ("field: expected ..."), led by the field's flag
+    where a flag sets it ("--trials (n_trials): expected ...")."""
+    field, sep, rest = str(err).partition(":")
+    if sep and field in FLAGS:
+        return f"{FLAGS[field]} ({field}):{rest}"
+    return str(err)
 
 
 def weights_figure(

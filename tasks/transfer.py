@@ -36,7 +36,7 @@ from hipmdp.data import Transitions
 from hipmdp.planning import LearnedModel, plan
 from hipmdp.sarsa import init_state
 from tasks.agents import Domain, SimulatorModel, episode_transitions, run_episode
-from tasks.experiment import check_positive
+from tasks.experiment import check_integer, check_positive
 
 Array = np.ndarray
 
@@ -84,8 +84,8 @@ class TransferConfig:
             "first_planning_episodes",
         ):
             value = getattr(self, name)  # first_planning_episodes may be None
-            if value is not None and int(value) < 0:
-                raise ValueError(f"{name}: expected >= 0, got {value}")
+            if value is not None:
+                check_integer(name, value, 0)
         if not isinstance(self.replan_after_first, bool):
             raise ValueError(
                 f"replan_after_first: expected True or False, "

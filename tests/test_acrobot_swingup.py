@@ -181,11 +181,39 @@ def test_cli_presets_and_bad_options(capsys):
     assert PRESETS["quick"].preset == "quick" and out is None
     with pytest.raises(SystemExit):
         parse_args(["--workers", "0"])
-    assert "workers: expected >= 1" in capsys.readouterr().err
+    assert "--workers (workers): expected >= 1" in capsys.readouterr().err
+    for bad, flag in (("-1", "--seed"), ("x", "--seed"), ("0", "--trials")):
+        with pytest.raises(SystemExit):
+            parse_args([flag, bad])
+        assert flag in capsys.readouterr().err
+    # fewer than 3 episodes: the target is the true model's mean over all of them
+    config, _ = parse_args(["--episodes", "2"])
+    assert config.transfer.n_episodes == 2 and config.final_window == 2
     with pytest.raises(ValueError, match="link_mass_1"):
         SwingupConfig(test_masses=((0.0, 1.0),))
     with pytest.raises(ValueError, match="final_window: expected <= "):
         SwingupConfig(final_window=50)
+
+
+@pytest.mark.parametrize(
+    ("field", "bad"),
+    [
+        ("seed", -1),
+        ("seed", "0"),
+        ("seed", 1.5),
+        ("n_trials", 2.5),
+        ("n_trials", True),
+        ("fit", {}),
+        ("transfer", {}),
+        ("record", "no"),
+        ("progress", 1),
+    ],
+)
+def test_config_fields_of_the_wrong_type_are_refused_on_construction(field, bad):
+    """Before any work: a float count or a string seed would otherwise fail (or
+    be truncated) minutes into a run, after its folder was written."""
+    with pytest.raises(ValueError, match=f"^{field}: expected"):
+        SwingupConfig(**{field: bad})
 
 
 def test_every_method_meets_the_same_initial_states(run):

@@ -87,7 +87,10 @@ def test_recording(run):
 def test_cli_bad_option(capsys):
     with pytest.raises(SystemExit):
         parse_args(["--runs", "0"])
-    assert "n_runs: expected >= 1" in capsys.readouterr().err
+    assert "--runs (n_runs): expected >= 1" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        parse_args(["--seed", "-5"])
+    assert "--seed" in capsys.readouterr().err
 
 
 def test_gather_split_keeps_learning_until_it_has_enough():
@@ -113,6 +116,9 @@ def test_gather_split_keeps_learning_until_it_has_enough():
         (dict(train_settings=((0.1, 0.4),)), "train_settings: expected at least two"),
         (dict(test_settings=((0.1,),)), r"test_settings: expected \(mass, half-length"),
         (dict(test_settings=((0.1, 9.0),)), "pole_half_length"),
+        (dict(seed=-5), "seed: expected >= 0"),
+        (dict(n_runs=2.0), "n_runs: expected an integer"),
+        (dict(record="yes"), "record: expected True or False"),
     ],
 )
 def test_bad_settings(kw, match):

@@ -23,6 +23,7 @@ from tasks.experiment import (
     one_blas_thread,
     paired_difference,
     pool_map,
+    run_dir,
     to_jsonable,
     trial_seeds,
     write_json,
@@ -184,3 +185,31 @@ def test_environment_is_plain_json_naming_versions_blas_and_commit():
     line = describe_environment(env)
     assert f"numpy {np.__version__}" in line and env["blas"][0]["version"] in line
     assert describe_environment(None) == ""
+
+
+def test_run_dir_replaces_the_previous_run_of_the_same_experiment(tmp_path, capsys):
+    out = tmp_path / "run"
+    out.mkdir()
+    write_json(out / "config.json", {"name": "exp"})
+    for name in ("metrics.json", "fit_run3.npz", "identified.json"):
+        (out / name).write_text("old")
+    assert run_dir(out, "exp", ("config.json", "metrics.json", "fit_run*.npz")) == out
+    # the experiment's own files are gone (a shorter run cannot mix with them);
+    # a check's file on the old run stays, and is named
+    assert sorted(f.name for f in out.iterdir()) == ["identified.json"]
+    assert "identified.json" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("config", [None, {"name": "other"}])
+def test_run_dir_refuses_a_folder_that_is_not_its_run(tmp_path, config):
+    """A folder holding files named like the artefacts (a user's report.md, or
+    another experiment's run) is not deleted from: nothing is touched."""
+    (tmp_path / "report.md").write_text("mine")
+    if config is not None:
+        write_json(tmp_path / "config.json", config)
+    with pytest.raises(ValueError, match="^out: .* choose a new or empty folder"):
+        run_dir(tmp_path, "exp", ("config.json", "report.md"))
+    assert (tmp_path / "report.md").read_text() == "mine"
+    file = tmp_path / "report.md"
+    with pytest.raises(ValueError, match="exists and is not a folder"):
+        run_dir(file, "exp")
