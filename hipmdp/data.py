@@ -95,21 +95,25 @@ def check_queries(
 ) -> tuple[Array, Array]:
     """Validate a model query: states (n, D) finite, actions (n,) in [0, A).
 
-    Returns the states as floats and the actions as integers.
+    Actions are discrete: integers, or floats with whole values; fractional
+    actions (a continuous action would be truncated to its index) and bools are
+    refused. Returns the states as floats and the actions as integers.
     """
-    states = np.asarray(states, dtype=float)
-    actions = np.asarray(actions)
+    states = np.asarray(states)
+    if states.dtype == object or not (
+        np.issubdtype(states.dtype, np.floating)
+        or np.issubdtype(states.dtype, np.integer)
+    ):
+        raise ValueError(f"states: expected a numeric array, got dtype {states.dtype}")
+    states = states.astype(float)
     if states.ndim != 2 or states.shape[1] != state_dim:
         raise ValueError(f"states: expected shape (n, {state_dim}), got {states.shape}")
-    if actions.shape != (len(states),):
-        raise ValueError(
-            f"actions: expected shape ({len(states)},), got {actions.shape}"
-        )
     if not np.all(np.isfinite(states)):
         raise ValueError("states: expected finite values")
+    actions = _int_array("actions", actions, len(states))
     if len(actions) and (actions.min() < 0 or actions.max() >= n_actions):
         raise ValueError(f"actions: expected integers in [0, {n_actions})")
-    return states, actions.astype(int)
+    return states, actions
 
 
 def _finite_float(name: str, x, shape_desc: str, ndim: int) -> Array:
@@ -138,6 +142,8 @@ def _int_array(name: str, x, n: int) -> Array:
             raise ValueError(f"{name}: expected integers, got non-integer values")
     elif not np.issubdtype(arr.dtype, np.integer) or arr.dtype == bool:
         raise ValueError(f"{name}: expected an integer array, got dtype {arr.dtype}")
+    elif arr.dtype == np.uint64 and arr.size and arr.max() > np.iinfo(np.int64).max:
+        raise ValueError(f"{name}: expected values below 2**63, got {arr.max()}")
     return arr.astype(np.int64)
 
 

@@ -47,6 +47,16 @@ class Belief:
             )
         if not (np.all(np.isfinite(h)) and np.all(np.isfinite(P))):
             raise ValueError("Belief: expected finite h and P")
+        scale = np.abs(P).max(initial=0.0)
+        if np.abs(P - P.T).max(initial=0.0) > 1e-8 * scale:
+            raise ValueError("Belief: expected a symmetric precision P")
+        if len(h):
+            try:
+                np.linalg.cholesky(P)
+            except np.linalg.LinAlgError:
+                raise ValueError(
+                    "Belief: expected a positive-definite precision P"
+                ) from None
         object.__setattr__(self, "h", h)
         object.__setattr__(self, "P", P)
 

@@ -231,6 +231,11 @@ class HipMDP:
         return prior_belief(self.mu_w[1:], self.sigma_w)
 
     def _check_belief(self, belief: Belief) -> None:
+        if not isinstance(belief, Belief):
+            raise ValueError(
+                f"belief: expected a hipmdp.Belief (from prior() or update()), "
+                f"got {type(belief).__name__}"
+            )
         if belief.dim != self.n_features - 1:
             raise ValueError(
                 f"belief: expected {self.n_features - 1} weights, got {belief.dim}"
@@ -248,6 +253,10 @@ class HipMDP:
         """
         self._check_belief(belief)
         self._check_data(data)
+        if not isinstance(model_error, bool):
+            raise ValueError(
+                f"model_error: expected True or False, got {model_error!r}"
+            )
         F, v = self._evaluate(data.states, data.actions, with_var=model_error)
         noise = self._filter_noise(data.actions, v)
         return update_belief(belief, F[..., 1:], data.deltas - F[..., 0], noise)

@@ -153,6 +153,11 @@ def test_missing_action_needs_hyperparameters():
         (np.zeros((3, D)), np.zeros(2, int), "actions: expected shape"),
         (np.full((3, D), np.nan), np.zeros(3, int), "states: expected finite"),
         (np.zeros((3, D)), np.full(3, 7), r"actions: expected integers in \[0, 2\)"),
+        # a continuous action is refused, not truncated to an index
+        (np.zeros((2, D)), [0.7, 1.2], "actions: expected integers, got non-integer"),
+        (np.zeros((2, D)), [True, False], "actions: expected an integer array"),
+        (np.zeros((2, D)), ["0", "1"], "actions: expected an integer array"),
+        ([["a"] * D], [0], "states: expected a numeric array"),
     ],
 )
 def test_bad_queries(states, actions, match):

@@ -234,3 +234,25 @@ def test_prior_and_errors():
         model.predict(np.zeros((1, D)), np.array([A]), prior)
     with pytest.raises(ValueError, match="Belief"):
         Belief(np.zeros(2), np.eye(3))
+    with pytest.raises(ValueError, match="actions: expected integers, got non-int"):
+        model.predict(np.zeros((1, D)), np.array([0.5]), prior)
+    with pytest.raises(ValueError, match="belief: expected a hipmdp.Belief"):
+        model.predict(np.zeros((1, D)), np.zeros(1, int), prior.mean)
+    with pytest.raises(ValueError, match="belief: expected a hipmdp.Belief"):
+        model.mean_predictor(None)
+    with pytest.raises(ValueError, match="model_error: expected True or False"):
+        data = _data(model, model.mu_w[1:], 3, np.random.default_rng(0))
+        model.update(prior, data, model_error="no")
+
+
+@pytest.mark.parametrize(
+    ("P", "match"),
+    [
+        (-np.eye(2), "positive-definite"),
+        (np.zeros((2, 2)), "positive-definite"),
+        (np.triu(np.ones((2, 2))) + np.eye(2), "symmetric"),
+    ],
+)
+def test_belief_precision_must_be_symmetric_positive_definite(P, match):
+    with pytest.raises(ValueError, match=f"Belief: expected a {match} precision"):
+        Belief(np.zeros(2), P)
