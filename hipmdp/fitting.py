@@ -298,6 +298,7 @@ def fit(data: Transitions, config: FitConfig, *, rng: np.random.Generator) -> Hi
         "best_log_joint": float(result.best_log_joint),
         "n_transitions": int(len(data)),
         "angle_dims": list(data.angle_dims),
+        "dt": data.dt,
     }
     model = HipMDP(
         support=support,

@@ -76,7 +76,22 @@ class HyperSet:
     periodic: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
-        dim = np.shape(self.lengthscales)[-1]
+        ell = np.asarray(self.lengthscales, dtype=float)
+        if ell.ndim != 3 or ell.shape[1] != ell.shape[2]:
+            raise ValueError(
+                f"HyperSet.lengthscales: expected shape (A, D, D), got {ell.shape}"
+            )
+        for name in ("lengthscales", "signal_var", "noise_var"):
+            value = np.asarray(getattr(self, name), dtype=float)
+            if name != "lengthscales" and value.shape != ell.shape[:2]:
+                raise ValueError(
+                    f"HyperSet.{name}: expected shape {ell.shape[:2]} (A, D), "
+                    f"got {value.shape}"
+                )
+            if not np.all(np.isfinite(value) & (value > 0)):
+                raise ValueError(f"HyperSet.{name}: expected finite values > 0")
+            object.__setattr__(self, name, value)
+        dim = ell.shape[-1]
         object.__setattr__(self, "periodic", check_periodic(self.periodic, dim))
 
     def get(self, a: int, d: int) -> GPHyper:

@@ -55,15 +55,15 @@ paper's filter (τ² = σ²).
 
 from __future__ import annotations
 
-import io
 import json
 import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from scipy import linalg
 
-from hipmdp.data import Transitions, atomic_write, check_queries
+from hipmdp.data import Transitions, atomic_write, check_queries, npz_bytes
 from hipmdp.filter import Belief, predictive, prior_belief, update_belief
 from hipmdp.gp import HyperSet
 from hipmdp.kernels import KernelMeans, se_kernel
@@ -132,7 +132,26 @@ class HipMDP:
     interp_var_scale: Array | None = None
 
     def __post_init__(self) -> None:
+        if np.ndim(self.f) != 4:
+            raise ValueError(f"f: expected shape (K, A, D, m), got {np.shape(self.f)}")
         K, A, D, m = self.f.shape
+        if self.hyper.signal_var.shape != (A, D):
+            raise ValueError(
+                f"hyper: expected (A, D) = ({A}, {D}) GPs as f has, got "
+                f"{self.hyper.signal_var.shape}"
+            )
+        if not np.all(np.isfinite(self.f)):
+            raise ValueError("f: expected finite values")
+        if not (np.isfinite(self.sigma_w) and self.sigma_w > 0):
+            raise ValueError(
+                f"sigma_w: expected a finite value > 0, got {self.sigma_w}"
+            )
+        B = len(self.instance_ids)
+        if np.shape(self.weights) != (K, B):
+            raise ValueError(
+                f"weights: expected shape (K, B) = ({K}, {B}) (B instance_ids), "
+                f"got {np.shape(self.weights)}"
+            )
         for name in ("residual_var", "interp_var_scale"):
             if getattr(self, name) is not None:
                 r = np.asarray(getattr(self, name), dtype=float)
@@ -335,10 +354,31 @@ class HipMDP:
             raise ValueError(
                 f"data: expected state dimension {self.state_dim}, got {data.state_dim}"
             )
+        # Δs of angles depend on angle_dims and dt (hipmdp.data): the filter must
+        # compute them as the fit did. (Models saved before dt was recorded
+        # lack "dt"; their angle_dims are still checked.)
+        for name in ("angle_dims", "dt"):
+            if name not in self.info:
+                continue
+            fitted, got = self.info[name], getattr(data, name)
+            if name == "angle_dims":
+                fitted, got = tuple(fitted), tuple(got)
+            if fitted != got:
+                raise ValueError(
+                    f"data: {name} {got!r} differs from the fitted model's "
+                    f"{fitted!r}; build the new instance's Transitions as the batch's"
+                )
 
     # -- files -------------------------------------------------------------------------
-    def save(self, path: str | os.PathLike) -> None:
-        """Write one .npz (arrays + a JSON metadata string), atomically, no pickle."""
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write one .npz (arrays + a JSON metadata string), atomically, no pickle.
+
+        The bytes depend only on the model (see :func:`hipmdp.data.npz_bytes`).
+        Returns the path.
+        """
+        path = Path(path)
+        if path.suffix != ".npz":
+            raise ValueError(f"path: expected a .npz file name, got {path.name!r}")
         arrays = {
             "support": self.support,
             "lengthscales": self.hyper.lengthscales,
@@ -361,11 +401,8 @@ class HipMDP:
             "info": self.info,
         }
         arrays["meta_json"] = np.array(json.dumps(meta))
-
-        def write(fh: io.BufferedWriter) -> None:
-            np.savez(fh, **arrays)
-
-        atomic_write(path, write)
+        data = npz_bytes(arrays)
+        return atomic_write(path, lambda fh: fh.write(data))
 
 
 def load(path: str | os.PathLike) -> HipMDP:
@@ -382,22 +419,33 @@ def load(path: str | os.PathLike) -> HipMDP:
         periodic = (
             tuple(int(j) for j in npz["periodic"]) if "periodic" in npz.files else ()
         )
-        meta = json.loads(str(npz["meta_json"]))
-    if meta.get("format_version") != FORMAT_VERSION:
+        try:
+            meta = json.loads(str(npz["meta_json"]))
+        except ValueError:
+            raise ValueError(f"{path}: meta_json is not valid JSON") from None
+    if not isinstance(meta, dict) or meta.get("format_version") != FORMAT_VERSION:
+        version = meta.get("format_version") if isinstance(meta, dict) else None
         raise ValueError(
-            f"{path}: expected format_version {FORMAT_VERSION}, got "
-            f"{meta.get('format_version')}"
+            f"{path}: expected format_version {FORMAT_VERSION}, got {version}"
         )
-    hyper = HyperSet(arr["lengthscales"], arr["signal_var"], arr["noise_var"], periodic)
-    return HipMDP(
-        support=arr["support"],
-        hyper=hyper,
-        z=arr["z"].astype(bool),
-        f=arr["f"],
-        weights=arr["weights"],
-        mu_w=arr["mu_w"],
-        sigma_w=float(meta["sigma_w"]),
-        instance_ids=arr["instance_ids"],
-        info=meta["info"],
-        **optional,
-    )
+    missing = [k for k in ("sigma_w", "info") if k not in meta]
+    if missing:
+        raise ValueError(f"{path}: meta_json lacks {missing}")
+    try:
+        hyper = HyperSet(
+            arr["lengthscales"], arr["signal_var"], arr["noise_var"], periodic
+        )
+        return HipMDP(
+            support=arr["support"],
+            hyper=hyper,
+            z=arr["z"].astype(bool),
+            f=arr["f"],
+            weights=arr["weights"],
+            mu_w=arr["mu_w"],
+            sigma_w=float(meta["sigma_w"]),
+            instance_ids=arr["instance_ids"],
+            info=meta["info"],
+            **optional,
+        )
+    except (ValueError, TypeError) as err:
+        raise ValueError(f"{path}: {err}") from None

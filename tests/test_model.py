@@ -153,11 +153,10 @@ def test_save_is_atomic(fitted, tmp_path, monkeypatch):
     fitted.save(path)
     before = path.read_bytes()
 
-    def broken(fh, **arrays):
-        fh.write(b"partial")
+    def broken(fd):  # the bytes are written, not yet on disk: the disk fills
         raise OSError("disk full")
 
-    monkeypatch.setattr(np, "savez", broken)
+    monkeypatch.setattr(os, "fsync", broken)
     with pytest.raises(OSError, match="disk full"):
         fitted.save(path)
     assert path.read_bytes() == before  # the old file is intact
@@ -169,6 +168,48 @@ def test_load_rejects_other_files(tmp_path):
     np.savez(path, a=np.zeros(2))
     with pytest.raises(ValueError, match="missing"):
         load(path)
+
+
+def test_save_bytes_depend_only_on_the_model(fitted, tmp_path):
+    a, b = fitted.save(tmp_path / "a.npz"), fitted.save(tmp_path / "b.npz")
+    assert a.read_bytes() == b.read_bytes()
+    with pytest.raises(ValueError, match="path: expected a .npz file name"):
+        fitted.save(tmp_path / "model.bin")
+
+
+@pytest.mark.parametrize(
+    ("name", "edit", "match"),
+    [
+        ("lengthscales", lambda x: x[:, :, :1], r"lengthscales: expected shape"),
+        ("noise_var", lambda x: -x, r"noise_var: expected finite values > 0"),
+        ("signal_var", lambda x: x[:1], r"signal_var: expected shape"),
+        ("f", lambda x: x[0], r"f: expected shape \(K, A, D, m\)"),
+        ("weights", lambda x: x[:, :-1], r"weights: expected shape \(K, B\)"),
+        ("meta_json", lambda x: np.array("{not json"), "meta_json is not valid JSON"),
+    ],
+)
+def test_load_names_the_field_of_a_damaged_file(fitted, tmp_path, name, edit, match):
+    """A hand-edited or damaged model file fails on load, naming the file and
+    the field, not later inside numpy or scipy."""
+    path = fitted.save(tmp_path / "model.npz")
+    with np.load(path, allow_pickle=False) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    arrays[name] = edit(arrays[name])
+    np.savez(path, **arrays)
+    with pytest.raises(ValueError, match=f"model.npz: .*{match}"):
+        load(path)
+
+
+def test_filtering_data_must_treat_angles_as_the_fit_did(fitted):
+    """Δs of an angle depends on angle_dims and dt (wrapped or unwrapped): data
+    built otherwise than the batch would be filtered on other Δs."""
+    data = _instance(7, np.array([0.5, 0.5]), 10, np.random.default_rng(3))
+    assert fitted.info["angle_dims"] == [] and fitted.info["dt"] is None
+    as_angle = Transitions(
+        data.states, data.actions, data.next_states, data.instances, angle_dims=(0,)
+    )
+    with pytest.raises(ValueError, match=r"data: angle_dims \(0,\) differs"):
+        fitted.update(fitted.prior(), as_angle)
 
 
 @pytest.mark.parametrize(
