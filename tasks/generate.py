@@ -57,7 +57,7 @@ from hipmdp import shards
 from tasks.acrobot import AcrobotParams, book_inertia_range, with_book_inertia
 from tasks.collect import DOMAINS, collect, collect_sarsa, get_domain
 from tasks.distributions import KINDS, SPLITS, Distribution, draw
-from tasks.experiment import one_blas_thread
+from tasks.experiment import one_blas_thread, seed_argument
 from tasks.rollout import collect_open_loop
 
 #: Parameters varied when no `--vary` is given: name -> (low, high).
@@ -155,7 +155,7 @@ def build_parser() -> argparse.ArgumentParser:
     add("--domain", required=True, choices=sorted(DOMAINS))
     add("--instances", type=int, default=None, help="instances drawn (default 4)")
     add("--episodes-per-instance", type=int, default=2)
-    add("--seed", type=int, default=0, help="the one seed of every stream")
+    add("--seed", type=seed_argument, default=0, help="the one seed of every stream")
     add("--out", type=Path, default=Path("runs/data"), help="run directory")
     add("--vary", action="append", metavar="NAME=LOW:HIGH", help="repeatable")
     add("--distribution", choices=KINDS, default=None, help="default: uniform")
@@ -339,6 +339,8 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
             differences), or of this run unfinished without `config.resume`, or
             shard files without a manifest. (This run finished: nothing to do.)
     """
+    if config.out.exists() and not config.out.is_dir():
+        raise ValueError(f"--out {config.out} exists and is not a folder")
     fresh = plan(config)
     old = shards.read_manifest(config.out)
     if old is None:
@@ -449,9 +451,6 @@ def generate(config: Config, *, executor: cf.Executor | None = None) -> Generate
     out = config.out
     if not todo and manifest["complete"]:  # finished already: touch nothing
         return Generated(out / shards.MANIFEST, manifest, ())
-    out.mkdir(parents=True, exist_ok=True)
-    shards.remove_temporaries(out)
-    path = shards.write_manifest(out, manifest)
     entries = {e["index"]: e for e in manifest["shards"]}
     split = SPLITS.index(config.distribution.split)
     jobs = [
@@ -480,6 +479,11 @@ def generate(config: Config, *, executor: cf.Executor | None = None) -> Generate
         disable=not config.progress,
     )
     with context as pool, bar:
+        # the manifest once the workers (or the Dask scheduler) are there: a
+        # scheduler that cannot be reached leaves no unfinished run behind
+        out.mkdir(parents=True, exist_ok=True)
+        shards.remove_temporaries(out)
+        path = shards.write_manifest(out, manifest)
         in_flight = 2 * max(config.workers, 1) if config.scheduler is None else 64
         pending: set[cf.Future] = set()
         queue = list(reversed(jobs))
@@ -508,7 +512,10 @@ def main(argv: Sequence[str] | None = None) -> Generated:
         prepare(config)  # a bad --out stops here, before anything is written
     except ValueError as error:
         parser.error(str(error))
-    result = generate(config)
+    try:
+        result = generate(config)
+    except OSError as error:  # a scheduler that cannot be reached, a full disk
+        parser.exit(1, f"{parser.prog}: error: {error}\n")
     counts = [e["counts"] for e in result.content["shards"]]
     print(
         f"wrote {len(counts)} shards and {result.manifest}: "

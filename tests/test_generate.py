@@ -210,6 +210,7 @@ def test_other_policies_write_chained_episodes(tmp_path, policy):
             ["--domain", "acrobot", "--workers", "2", "--scheduler", "tcp://x:1"],
             "--workers and --scheduler are exclusive",
         ),
+        (["--domain", "acrobot", "--seed", "-1"], "--seed: expected an integer >= 0"),
     ],
 )
 def test_bad_options_stop_with_a_message_and_write_nothing(
@@ -221,6 +222,16 @@ def test_bad_options_stop_with_a_message_and_write_nothing(
     assert stopped.value.code == 2
     assert message in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_an_out_that_is_a_file_is_refused(tmp_path, capsys):
+    out = tmp_path / "file"
+    out.write_text("mine")
+    with pytest.raises(SystemExit) as stopped:
+        generate.main(["--domain", "acrobot", "--out", str(out)])
+    assert stopped.value.code == 2
+    assert "exists and is not a folder" in capsys.readouterr().err
+    assert out.read_text() == "mine"
 
 
 def test_help_describes_the_options(capsys):
