@@ -117,7 +117,10 @@ def check_queries(
 
 
 def _finite_float(name: str, x, shape_desc: str, ndim: int) -> Array:
-    arr = np.asarray(x)
+    try:
+        arr = np.asarray(x)
+    except ValueError:  # ragged nested lists
+        raise ValueError(f"{name}: expected an array of shape {shape_desc}") from None
     if arr.dtype == object or not (
         np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
     ):
@@ -134,7 +137,10 @@ def _finite_float(name: str, x, shape_desc: str, ndim: int) -> Array:
 
 
 def _int_array(name: str, x, n: int) -> Array:
-    arr = np.asarray(x)
+    try:
+        arr = np.asarray(x)
+    except ValueError:  # ragged nested lists
+        raise ValueError(f"{name}: expected an array of shape ({n},)") from None
     if arr.ndim != 1 or arr.shape[0] != n:
         raise ValueError(f"{name}: expected shape ({n},), got {arr.shape}")
     if np.issubdtype(arr.dtype, np.floating):
@@ -263,13 +269,25 @@ class Transitions:
                 if not np.all(np.isin(done, (0, 1))):
                     raise ValueError("dones: expected booleans (or 0/1)")
                 done = done.astype(bool)
-        angles = tuple(int(i) for i in self.angle_dims)
+        try:
+            raw = tuple(self.angle_dims)
+        except TypeError:
+            raise ValueError(
+                f"angle_dims: expected a sequence of indices, got {self.angle_dims!r}"
+            ) from None
+        if not all(
+            isinstance(i, int | np.integer) and not isinstance(i, bool) for i in raw
+        ):
+            raise ValueError(f"angle_dims: expected integer indices, got {raw}")
+        angles = tuple(int(i) for i in raw)
         if any(i < 0 or i >= d for i in angles) or len(set(angles)) != len(angles):
             raise ValueError(
                 f"angle_dims: expected distinct indices in [0, {d}), got {angles}"
             )
         dt = self.dt
         if dt is not None:
+            if isinstance(dt, bool) or not isinstance(dt, int | float | np.number):
+                raise ValueError(f"dt: expected a finite number > 0, got {dt!r}")
             dt = float(dt)
             if not (np.isfinite(dt) and dt > 0):
                 raise ValueError(f"dt: expected a finite number > 0, got {self.dt}")
@@ -375,10 +393,11 @@ class Transitions:
         parts = list(parts)
         if not parts:
             raise ValueError("concatenate: expected at least one Transitions")
-        d, angles, dt = parts[0].state_dim, parts[0].angle_dims, parts[0].dt
         for i, p in enumerate(parts):
             if not isinstance(p, Transitions):
                 raise ValueError(f"concatenate: part {i} is {type(p).__name__}")
+        d, angles, dt = parts[0].state_dim, parts[0].angle_dims, parts[0].dt
+        for i, p in enumerate(parts):
             if p.state_dim != d or p.angle_dims != angles or p.dt != dt:
                 raise ValueError(
                     f"concatenate: part {i} has state_dim {p.state_dim}, angle_dims"
@@ -469,15 +488,32 @@ class Transitions:
 
                 return Dataset(path).load(instances=instances)
         data = cls._load_file(path)
-        return data if instances is None else data.select(instances=instances)
+        if instances is None:
+            return data
+        wanted = np.atleast_1d(np.asarray(instances))
+        unknown = sorted(set(wanted.tolist()) - set(data.instance_ids.tolist()))
+        if unknown:
+            raise ValueError(f"instances {unknown} are not in {path}")
+        return data.select(instances=instances)
 
     @classmethod
     def _load_file(cls, path) -> Transitions:
         with np.load(path, allow_pickle=False) as f:
-            version = int(f["format_version"]) if "format_version" in f else None
+            if "format_version" not in f:
+                raise ValueError(
+                    f"{path}: not a hipmdp Transitions file (no format_version)"
+                )
+            version = int(f["format_version"])
             if version != FORMAT_VERSION:
                 raise ValueError(
                     f"{path}: format_version {version}, expected {FORMAT_VERSION}"
+                )
+            required = ("states", "actions", "next_states", "instances", "angle_dims")
+            missing = [k for k in required if k not in f]
+            if missing:
+                raise ValueError(
+                    f"{path}: not a complete hipmdp Transitions file (missing "
+                    f"{', '.join(missing)})"
                 )
             return cls(
                 states=f["states"],

@@ -127,11 +127,18 @@ class Dataset:
         manifest: the parsed manifest.
 
     Raises:
+        FileNotFoundError: if `path` does not exist.
         ValueError: if there is no manifest of this format at `path`.
     """
 
     def __init__(self, path: str | Path) -> None:
         path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"{path}: no such file or folder")
+        if path.is_file() and path.name != MANIFEST:
+            raise ValueError(
+                f"{path}: expected a run folder or its {MANIFEST}, got another file"
+            )
         self.directory = path.parent if path.name == MANIFEST else path
         manifest = read_manifest(self.directory)
         if manifest is None:

@@ -268,3 +268,49 @@ def test_dt_is_kept_by_selection_files_and_checked(tmp_path):
         make(dt=-1.0)
     with pytest.raises(ValueError, match=r"dt: needs the \(qpos, qvel\) layout"):
         make(d=3, dt=0.1, angle_dims=(0,))
+
+
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [
+        (dict(angle_dims=(0.7,)), r"angle_dims: expected integer indices"),
+        (dict(angle_dims=0), "angle_dims: expected a sequence of indices"),
+        (dict(dt="x"), "dt: expected a finite number > 0"),
+        (dict(states=[[0.0] * 4, [0.0] * 2]), r"states: expected an array of shape"),
+        (
+            dict(actions=np.array([2**63, 0], dtype=np.uint64)),
+            r"actions: expected values below 2\*\*63",
+        ),
+    ],
+)
+def test_constructor_names_the_field_of_malformed_input(change, match):
+    args = dict(
+        states=np.zeros((2, 4)),
+        actions=[0, 1],
+        next_states=np.zeros((2, 4)),
+        instances=[0, 0],
+    )
+    with pytest.raises(ValueError, match=match):
+        Transitions(**(args | change))
+
+
+def test_concatenate_checks_its_parts_first():
+    with pytest.raises(ValueError, match="concatenate: part 0 is int"):
+        Transitions.concatenate([1, 2])
+
+
+def test_load_errors_name_what_is_wrong(tmp_path):
+    t = make(n=10)
+    path = t.save(tmp_path / "t.npz")
+    with pytest.raises(ValueError, match=r"instances \[42\] are not in"):
+        Transitions.load(path, instances=[42])
+    with np.load(path, allow_pickle=False) as npz:
+        arrays = {k: npz[k] for k in npz.files if k != "next_states"}
+    np.savez(tmp_path / "cut.npz", **arrays)
+    with pytest.raises(ValueError, match="missing next_states"):
+        Transitions.load(tmp_path / "cut.npz")
+    np.savez(tmp_path / "other.npz", a=np.zeros(3))
+    with pytest.raises(ValueError, match="not a hipmdp Transitions file"):
+        Transitions.load(tmp_path / "other.npz")
+    with pytest.raises(FileNotFoundError, match="nope.json: no such file"):
+        Transitions.load(tmp_path / "nope.json")
