@@ -135,6 +135,11 @@ def check_batch(data: Transitions, config: FitConfig) -> None:
         )
     if not (np.all(np.isfinite(data.states)) and np.all(np.isfinite(data.next_states))):
         raise ValueError("data: expected finite states and next_states")
+    if config.periodic and not data.angle_dims:
+        raise ValueError(
+            "FitConfig.periodic: the data declare no angle_dims, so no kernel "
+            "would be periodic; set Transitions(..., angle_dims=...) or periodic=False"
+        )
     ids = data.instance_ids
     if len(ids) < 2:
         raise ValueError(

@@ -278,6 +278,8 @@ def test_bad_input_errors(no_work):
         fit(batch, {"n_support": 5}, rng=rng)
     with pytest.raises(ValueError, match="rng"):
         fit(batch, CONFIG, rng=0)
+    with pytest.raises(ValueError, match="FitConfig.periodic: the data declare no"):
+        fit(batch, dataclasses.replace(CONFIG, periodic=True), rng=rng)
     nan = Transitions(
         batch.states.copy(), batch.actions, batch.next_states, batch.instances
     )
