@@ -51,10 +51,8 @@ def _batch():
     )
 
 
-# Several chains: at this signal-to-noise a single chain can settle in a mode that
-# splits a feature in two. With 4 chains x 100 sweeps the fit found exactly the true
-# pattern for 6 of 8 generator seeds (0-7; both misses split row (0, 1)); 2 x 60
-# found it for 3 of 8. The seed of `fitted` predates this measurement.
+# The sampler's budget: 4 chains x 100 sweeps (see the z-pattern test for what
+# more buys: nothing).
 CONFIG = FitConfig(
     n_support=60,
     n_sweeps=100,
@@ -71,14 +69,29 @@ def fitted():
     return fit(_batch(), CONFIG, rng=np.random.default_rng(1))
 
 
-def test_fit_recovers_the_z_pattern(fitted):
-    # One column of z per true latent parameter, no split or spurious features.
-    rows = sorted(
-        sorted((a, d) for a in range(A) for d in range(D) if fitted.z[k, a, d])
-        for k in range(1, fitted.n_features)
-    )
-    assert rows == sorted(sorted(r) for r in TRUE_ROWS)
-    assert fitted.weights.shape == (fitted.n_features, W_TRAIN.shape[1])
+@pytest.mark.parametrize("seed", range(8))
+def test_fit_finds_the_latent_structure_up_to_splits(seed):
+    """Every inferred feature acts on rows of one true latent parameter only (none
+    on row (1, 1), which is mean dynamics alone, none mixing the two parameters),
+    and together they cover every row a parameter acts on.
+
+    Exact recovery, one feature per parameter, is not what the posterior gives
+    every time: on 20 fit seeds (0-19) it was exact for 14; the other 6 split a
+    parameter's feature into two or three on its rows (row (0, 1) five times;
+    (0, 0) and (1, 0) apart once), and those fits have the higher log joint
+    (e.g. 5,637 and 5,694 against 5,256 for an exact one): with six training
+    instances, an extra feature absorbs their smoothed data's residuals. More
+    sampling does not change it: 6 chains x 150 sweeps was exact for 13 of 20.
+    So the test asserts the structure, on 8 seeds, not a lucky exact one."""
+    model = fit(_batch(), CONFIG, rng=np.random.default_rng(seed))
+    true = [set(r) for r in TRUE_ROWS]
+    rows = [
+        {(a, d) for a in range(A) for d in range(D) if model.z[k, a, d]}
+        for k in range(1, model.n_features)
+    ]
+    assert rows and all(any(r <= t for t in true) for r in rows), rows
+    assert set().union(*rows) == set().union(*true), rows
+    assert model.weights.shape == (model.n_features, W_TRAIN.shape[1])
 
 
 def test_new_instance_prediction_after_40_transitions(fitted):
