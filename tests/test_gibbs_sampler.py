@@ -70,6 +70,18 @@ def assert_whitened(draws: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> Non
     assert np.all(np.abs(S - np.eye(d)) < 5 * se)
 
 
+def assert_w_draws(draws: np.ndarray, ref: dense.Gaussian) -> None:
+    """Draws (n, Kf − 1, B) of every instance's weights, jointly: correlated within
+    an instance through the shared basis (ref.cov), independent across
+    instances."""
+    n, _, B = draws.shape
+    assert_whitened(
+        draws.transpose(0, 2, 1).reshape(n, -1),
+        ref.mean.T.ravel(),
+        np.kron(np.eye(B), ref.cov),
+    )
+
+
 def small_problem(seed: int, R: int = 3, B: int = 4, m: int = 5):
     rng = np.random.default_rng(seed)
     A = rng.normal(size=(R, m, m))
@@ -106,13 +118,7 @@ def test_dense_reference_draws_reproduce_their_posterior():
     f = rng.normal(size=(3, 3, 5)) * z[:, :, None]
     mu_w = np.array([0.0, 0.5, -0.3])
     wd = np.array([alg.w_draw(z, f, mu_w, 0.8, rng=rng) for _ in range(N_DRAWS)])
-    ref = dense.w_posterior(z, f, data.Y, data.noise, mu_w, 0.8)
-    B = ref.mean.shape[1]
-    assert_whitened(
-        wd.transpose(0, 2, 1).reshape(N_DRAWS, -1),
-        ref.mean.T.ravel(),
-        np.kron(np.eye(B), ref.cov),
-    )
+    assert_w_draws(wd, dense.w_posterior(z, f, data.Y, data.noise, mu_w, 0.8))
 
 
 def test_w_draws_reproduce_dense_posterior():
@@ -125,15 +131,7 @@ def test_w_draws_reproduce_dense_posterior():
     alg = fast.EigenAlgebra(cache)
     ft = fast.to_eigen(f, cache)
     draws = np.array([alg.w_draw(z, ft, mu_w, 0.8, rng=rng) for _ in range(N_DRAWS)])
-    ref = dense.w_posterior(z, f, data.Y, data.noise, mu_w, 0.8)
-    # every instance's weights, jointly: correlated within an instance through the
-    # shared basis, independent across instances
-    B = ref.mean.shape[1]
-    assert_whitened(
-        draws.transpose(0, 2, 1).reshape(N_DRAWS, -1),
-        ref.mean.T.ravel(),
-        np.kron(np.eye(B), ref.cov),
-    )
+    assert_w_draws(draws, dense.w_posterior(z, f, data.Y, data.noise, mu_w, 0.8))
 
 
 class _MeanEigen(fast.EigenAlgebra):
