@@ -279,7 +279,8 @@ def prediction_table(config, hip, average, batch, ss) -> dict[str, Any]:
             n_train=config.mse_train, n_test=config.mse_test, seed=seed,
             desc=f"prediction ({label})", progress=config.progress,
         )  # fmt: skip
-        out[label] = summarise(scores, DIM_NAMES) if scores else None
+        seen = [tuple(mm) in set(config.train_masses) for mm in masses]
+        out[label] = summarise(scores, DIM_NAMES, seen) if scores else None
     return out
 
 
@@ -332,6 +333,12 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
     metrics.update(
         mse=mse["test"]["mse"],
         loglik_difference=mse["test"]["loglik_difference"],
+        test_settings_seen=mse["test"]["seen"],
+        unseen=mse["test"]["unseen"],
+        per_setting_mse={  # as the cart-pole's: [setting][dimension]
+            m: np.array(list(dims.values())).T.tolist()
+            for m, dims in mse["test"]["per_instance"]["mse"].items()
+        },
         approximation_floor=mse["floor"]["mse"] if mse["floor"] else None,
         n_latent_features=int(hip.n_features) - 1,
         z=hip.z.astype(int).tolist(),
@@ -385,6 +392,7 @@ def transfer_metrics(config: SwingupConfig, trials: list) -> dict[str, Any]:
             key=lambda r: (r.setting, r.trial),
         )
         per_method[method] = np.array([r.returns for r in runs])
+        settings = np.array([r.setting for r in runs])  # the same for every method
         curves[method] = mean_ci(per_method[method], axis=0)
         all_steps[method] = np.array([r.steps for r in runs])
         at_limit[method] = np.mean(
@@ -417,7 +425,9 @@ def transfer_metrics(config: SwingupConfig, trials: list) -> dict[str, Any]:
         # the per-trial return differences on the same (setting, trial): a
         # mean over several episodes, paired, so far less noisy than the curves
         "paired_difference": {
-            f"{a} - {b}": paired_difference(per_method[a], per_method[b])
+            f"{a} - {b}": paired_difference(
+                per_method[a], per_method[b], groups=settings
+            )
             for a, b in PAIRS
         },
         "step_limit_rate": at_limit,

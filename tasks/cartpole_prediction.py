@@ -214,11 +214,18 @@ def main(config: PredictionConfig, out: str | os.PathLike | None = None) -> Resu
         )
     seconds["prediction"] = time.perf_counter() - t0
 
-    table = summarise(scores, DIM_NAMES)
+    train = set(config.train_settings)
+    table = summarise(
+        scores, DIM_NAMES, [tuple(p) in train for p in config.test_settings]
+    )
+    unseen = table["unseen"]
     metrics: dict[str, Any] = {
         "mse": table["mse"],
         "loglik_difference": table["loglik_difference"],
         "mse_ratio_to_best_baseline": _ratios(table["mse"]),
+        "test_settings_seen": table["seen"],
+        "unseen": unseen
+        and {**unseen, "mse_ratio_to_best_baseline": _ratios(unseen["mse"])},
         "per_setting_mse": {
             m: [s.mse[m].tolist() for s in scores] for m in PREDICTION_METHODS
         },

@@ -283,13 +283,21 @@ def first_episode_within(
     return int(ok[0]) + 1 if ok.size else None
 
 
-def paired_difference(a: Array, b: Array, level: float = 0.95) -> dict:
+def paired_difference(
+    a: Array, b: Array, level: float = 0.95, groups: Array | None = None
+) -> dict:
     """Method ``a`` minus method ``b`` on the same (setting, trial) pairs.
 
     ``a`` and ``b`` have shape (trials, episodes) with rows in the same (setting,
     trial) order. Returns ``{"all_episodes": mean_ci of each trial's mean return
     difference over its episodes, "per_episode": mean_ci per episode}``; both are
     paired, so what the trials share (instance, start states, seeds) cancels.
+    Their unit is the trial: they answer for these settings.
+
+    ``groups`` (trials,), each row's setting: then also ``"by_setting"``, the
+    ``all_episodes`` interval with the setting as the unit (a mean over its
+    trials per setting), which answers for new settings drawn like these; it is
+    wider when the difference varies from setting to setting.
     """
     a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
     if a.ndim != 2 or a.shape != b.shape:
@@ -297,10 +305,19 @@ def paired_difference(a: Array, b: Array, level: float = 0.95) -> dict:
             f"a, b: expected equal shapes (trials, episodes), got {a.shape}, {b.shape}"
         )
     diff = a - b
-    return {
+    out = {
         "all_episodes": mean_ci(diff.mean(axis=1), level=level),
         "per_episode": mean_ci(diff, axis=0, level=level),
     }
+    if groups is not None:
+        groups = np.asarray(groups)
+        if groups.shape != (len(diff),):
+            raise ValueError(
+                f"groups: expected shape ({len(diff)},), got {groups.shape}"
+            )
+        means = [diff[groups == g].mean() for g in np.unique(groups)]
+        out["by_setting"] = mean_ci(means, level=level)
+    return out
 
 
 def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:

@@ -32,7 +32,7 @@ import numpy as np
 from hipmdp import baselines
 from hipmdp.data import Transitions
 from tasks.agents import Domain, learn
-from tasks.experiment import mean_ci
+from tasks.experiment import fmt_ci, markdown_table, mean_ci
 
 Array = np.ndarray
 
@@ -155,23 +155,57 @@ def score_instance(
 
 
 def summarise(
-    scores: Sequence[InstanceScores], dim_names: Sequence[str]
+    scores: Sequence[InstanceScores],
+    dim_names: Sequence[str],
+    seen: Sequence[bool] | None = None,
 ) -> dict[str, Any]:
-    """Intervals over instances: ``mse[method][dim]`` and
-    ``loglik_difference[method]`` (HiP-MDP minus method; > 0 favours the HiP-MDP)."""
-    mse = {
-        m: {
-            name: mean_ci([s.mse[m][d] for s in scores])
-            for d, name in enumerate(dim_names)
-        }
-        for m in PREDICTION_METHODS
+    """Intervals over instances (the unit is the test setting): ``mse[method][dim]``
+    and ``loglik_difference[method]`` (HiP-MDP minus method; > 0 favours the
+    HiP-MDP), and ``per_instance``, the same values setting by setting.
+
+    ``seen[i]``: whether instance i has the parameters of a training instance (the
+    test grids include the training settings, as in the paper). Given, the result
+    also has ``seen`` and ``unseen``: the intervals on the other settings alone
+    (None if there are none), the claim about parameters never seen in training.
+    """
+    per_instance = {
+        "mse": {
+            m: {name: [float(s.mse[m][d]) for s in scores]
+                for d, name in enumerate(dim_names)}
+            for m in PREDICTION_METHODS
+        },
+        "loglik_difference": {
+            m: [float(s.loglik["hipmdp"] - s.loglik[m]) for s in scores]
+            for m in PREDICTION_METHODS
+            if m != "hipmdp"
+        },
+    }  # fmt: skip
+    out = _intervals(per_instance, range(len(scores)))
+    out["per_instance"] = per_instance
+    if seen is not None:
+        seen = [bool(x) for x in seen]
+        if len(seen) != len(scores):
+            raise ValueError(f"seen: expected {len(scores)} flags, got {len(seen)}")
+        others = [i for i, x in enumerate(seen) if not x]
+        out["seen"] = seen
+        out["unseen"] = _intervals(per_instance, others) if others else None
+    return out
+
+
+def _intervals(per_instance: dict[str, Any], rows: Sequence[int]) -> dict[str, Any]:
+    """``mse`` and ``loglik_difference`` intervals over the instances ``rows``."""
+    rows = list(rows)
+    return {
+        "mse": {
+            m: {name: mean_ci(np.asarray(v)[rows]) for name, v in dims.items()}
+            for m, dims in per_instance["mse"].items()
+        },
+        "loglik_difference": {
+            m: mean_ci(np.asarray(v)[rows])
+            for m, v in per_instance["loglik_difference"].items()
+        },
+        "n_instances": len(rows),
     }
-    diff = {
-        m: mean_ci([s.loglik["hipmdp"] - s.loglik[m] for s in scores])
-        for m in PREDICTION_METHODS
-        if m != "hipmdp"
-    }
-    return {"mse": mse, "loglik_difference": diff, "n_instances": len(scores)}
 
 
 def score_settings(
@@ -202,3 +236,39 @@ def score_settings(
             score_instance(hips, average, batch, split.train, split.test, rng=rng)
         )
     return scores
+
+
+def unseen_section(metrics: dict[str, Any], mse_table) -> str:
+    """The MSE table and log-likelihood differences on the test settings whose
+    parameters no training instance has (the test grids include the training
+    settings, as in the paper)."""
+    seen, unseen = metrics.get("test_settings_seen"), metrics.get("unseen")
+    if seen is None:
+        return ""
+    n_seen = sum(seen)
+    head = (
+        f"{n_seen} of the {len(seen)} test settings are training settings (the "
+        "HiP-MDP has their dynamics among its training instances)."
+    )
+    if unseen is None:
+        return head + " No test setting is new."
+    ll = markdown_table(
+        ["method", "difference"],
+        [[m, fmt_ci(v)] for m, v in unseen["loglik_difference"].items()],
+    )
+    ratios = unseen.get("mse_ratio_to_best_baseline")
+    ratio_text = (
+        "\n\nHiP-MDP MSE divided by the best baseline's there: "
+        + ", ".join(
+            f"{d} {v:.2f}" if v is not None else f"{d} —" for d, v in ratios.items()
+        )
+        + "."
+        if ratios
+        else ""
+    )
+    return f"""{head} On the {unseen["n_instances"]} others alone (MSE, then
+test log-likelihood, HiP-MDP minus method):
+
+{mse_table(unseen["mse"])}
+
+{ll}{ratio_text}"""

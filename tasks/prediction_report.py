@@ -17,7 +17,7 @@ from tasks.experiment import (
     weights_figure,
     write_text,
 )
-from tasks.prediction import PREDICTION_METHODS
+from tasks.prediction import PREDICTION_METHODS, unseen_section
 from tasks.recording import Recording
 
 ENTITY = {m: m.replace(" + ", "_").replace(" ", "_") for m in PREDICTION_METHODS}
@@ -119,9 +119,13 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
     """report.md: the MSE table, log-likelihood differences and latent structure."""
     mse = metrics["mse"]
     dims = list(next(iter(mse.values())))
-    table = markdown_table(
-        ["method", *dims], [[m] + [fmt_ci(mse[m][d]) for d in dims] for m in mse]
-    )
+
+    def mse_table(mse: dict) -> str:
+        return markdown_table(
+            ["method", *dims], [[m] + [fmt_ci(mse[m][d]) for d in dims] for m in mse]
+        )
+
+    table = mse_table(mse)
     ratios = markdown_table(
         dims,
         [[f"{v:.2f}" if v is not None else "—" for v in
@@ -149,9 +153,13 @@ paper reports 0.3 on Δẋ and 0.17 on Δθ̇):
 
 {ratios}
 
-## Test log-likelihood (sum over 50 test transitions; positive favours the HiP-MDP)
+## Test log-likelihood (HiP-MDP minus method, over {config.n_test} test transitions)
+
+Positive favours the HiP-MDP; mean [95% interval] over test settings.
 
 {ll}
+
+{unseen_section(metrics, mse_table)}
 
 ## Latent structure
 

@@ -16,6 +16,7 @@ from tasks.experiment import (
     weights_figure,
     write_text,
 )
+from tasks.prediction import unseen_section
 from tasks.recording import Recording
 from tasks.transfer import METHODS
 
@@ -156,9 +157,10 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
     paired = metrics["paired_difference"]
     n_show = min(2, n_ep)
     paired_table = markdown_table(
-        ["difference", "all episodes"] + [f"episode {e + 1}" for e in range(n_show)],
+        ["difference", "all episodes", "setting as unit"]
+        + [f"episode {e + 1}" for e in range(n_show)],
         [
-            [pair, fmt_ci(d["all_episodes"], 4)]
+            [pair, fmt_ci(d["all_episodes"], 4), fmt_ci(d["by_setting"], 4)]
             + [
                 fmt_ci({k: d["per_episode"][k][e] for k in ("mean", "low", "high")}, 4)
                 for e in range(n_show)
@@ -213,6 +215,7 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
 
     ll = metrics["loglik_difference"]
     ll_rows = [[m, fmt_ci(v)] for m, v in ll.items()]
+    unseen_text = unseen_section(metrics, mse_table)
     s = metrics["seconds"]
     inertia = (
         "Each link's moment of inertia stays at the book's 1 kg·m² as its mass "
@@ -238,6 +241,11 @@ features inferred. {inertia}
 Each trial's return minus the other method's on the same instance and seeds;
 "all episodes" is the difference of the two trials' mean returns over all
 {n_ep} real episodes. An interval above 0 means the first method is clearly ahead.
+Its unit is the trial, so it answers for these {len(config.test_masses)} settings;
+"setting as unit" is the same mean with an interval over the settings' means,
+which answers for new settings drawn like these (wider when the difference
+varies from setting to setting). Every interval is conditional on this run's one
+batch and one fit.
 
 {paired_table}
 
@@ -262,13 +270,18 @@ is then within 10% of the true model's final median
 
 {median_table}
 
-## One-step prediction error on test settings (MSE of Δs, mean [95% interval])
+## One-step prediction error on test settings (MSE of Δs)
+
+Mean over settings [95% interval over settings]:
 
 {mse_table(metrics["mse"])}
 
-Test log-likelihood, HiP-MDP minus method (positive favours the HiP-MDP):
+Test log-likelihood over {config.mse_test} test transitions, HiP-MDP minus method
+(positive favours the HiP-MDP; interval over settings):
 
 {markdown_table(["method", "difference"], ll_rows)}
+
+{unseen_text}
 
 ## Approximation floor (the same protocol on training settings)
 

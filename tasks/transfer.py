@@ -7,7 +7,8 @@ For one test instance, one trial and one method:
    prior-mean model for the HiP-MDP, the average model, or the true simulator.
 2. Then, for each of ``n_episodes`` real episodes: act and learn on the real
    instance; filter the HiP-MDP weight belief with every transition of the episode
-   (one transition at a time, as online filtering during the episode); then run
+   (one batched update after the episode: the belief is not used within it, so
+   this is online filtering up to round-off, see ``_filter_episode``); then run
    ``planning_episodes`` simulated episodes on the model with the posterior-mean
    weights (the average and true models stay as they are). After the first real
    episode, ``first_planning_episodes`` simulated episodes instead, if set (not
@@ -20,8 +21,13 @@ Simulated episodes start from initial states of real episodes (the instance's ow
 start distribution): the planning start states are the first states of every real
 episode so far plus ``n_start_states`` states drawn from the task's reset.
 
-Methods are compared on the same instances and seeds: the environment's seed and the
-agent's exploration stream depend only on (setting, trial), never on the method.
+Methods are compared on the same instances and seeds: the environment's seed (so
+every real episode's initial state), the planning start states and the agent's
+random stream's seed depend only on (setting, trial), never on the method. The one
+agent stream serves planning (start picks, exploration in simulated episodes) and
+acting alike, and each method's planning draws from it differently, so the
+exploration in real episodes is not paired across methods after the first
+planning; the instance and the initial states are.
 """
 
 from __future__ import annotations

@@ -104,6 +104,15 @@ def test_metrics_schema(run):
         }  # fmt: skip
         assert all(v["mean"] >= 0 for v in m["mse"][method].values())
     assert m["n_latent_features"] == len(m["z"]) - 1
+    # the one test setting is not a training one: the "unseen" table is the table
+    assert m["test_settings_seen"] == [False] and m["unseen"]["n_instances"] == 1
+    for method, dims in m["mse"].items():
+        for d, v in dims.items():
+            assert m["unseen"]["mse"][method][d]["mean"] == pytest.approx(v["mean"])
+        assert np.array(m["per_setting_mse"][method]).shape == (1, 4)
+    for d in m["paired_difference"].values():  # one setting: its mean is the mean
+        assert d["by_setting"]["mean"] == pytest.approx(d["all_episodes"]["mean"])
+        assert d["by_setting"]["n"] == 1
     assert json.loads((run.out / "config.json").read_text())["seed"] == 0
     # the run pinned BLAS to one thread, whatever the caller had (one_blas_thread)
     assert {b["num_threads"] for b in m["environment"]["blas"]} == {1}

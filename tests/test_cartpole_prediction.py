@@ -62,6 +62,10 @@ def test_artefacts_and_schema(run):
             [m["mse"][method][d]["mean"] for d in DIM_NAMES], per_setting.mean(0)
         )
     assert len(m["n_latent_features"]) == 2 and len(m["z"]) == 2
+    # no test setting of TINY is a training one
+    assert m["test_settings_seen"] == [False, False]
+    assert m["unseen"]["n_instances"] == 2
+    assert m["unseen"]["mse_ratio_to_best_baseline"] == m["mse_ratio_to_best_baseline"]
     assert set(m["mse_ratio_to_best_baseline"]) == set(DIM_NAMES)
     assert m["environment"]["packages"]["numpy"] == np.__version__
     assert "Machine: " in (run.out / "report.md").read_text()
@@ -124,3 +128,20 @@ def test_gather_split_keeps_learning_until_it_has_enough():
 def test_bad_settings(kw, match):
     with pytest.raises(ValueError, match=match):
         PredictionConfig(**kw)
+
+
+def test_summarise_separates_the_settings_seen_in_training():
+    from tasks.prediction import InstanceScores, summarise
+
+    def scores(x):
+        mse = {m: np.full(4, x) for m in PREDICTION_METHODS}
+        return InstanceScores(mse=mse, loglik={m: x for m in PREDICTION_METHODS})
+
+    table = summarise([scores(1.0), scores(2.0), scores(4.0)], DIM_NAMES, [1, 0, 0])
+    assert table["seen"] == [True, False, False]
+    assert table["mse"]["hipmdp"]["dx"]["mean"] == pytest.approx(7 / 3)
+    assert table["unseen"]["mse"]["hipmdp"]["dx"]["mean"] == pytest.approx(3.0)
+    assert table["unseen"]["n_instances"] == 2
+    assert summarise([scores(1.0)], DIM_NAMES, [True])["unseen"] is None
+    with pytest.raises(ValueError, match="seen: expected 1 flags"):
+        summarise([scores(1.0)], DIM_NAMES, [True, False])

@@ -81,6 +81,31 @@ def test_paired_difference_is_the_t_interval_of_per_trial_mean_gaps():
     )
 
 
+def test_paired_difference_with_the_setting_as_the_unit():
+    """4 settings × 6 trials whose gaps are 10, 0, −10 and 20 with small trial
+    noise: over the settings' means (n = 4) the interval is the t-interval of
+    those 4 means. Over the 24 trials it treats them as independent: about
+    √6 · t₃/t₂₃ ≈ 3.8 times narrower when the gap is all setting-to-setting."""
+    rng = np.random.default_rng(3)
+    effect = np.repeat([10.0, 0.0, -10.0, 20.0], 6)
+    b = rng.normal(-120.0, 5.0, size=(24, 5))
+    a = b + effect[:, None] + rng.normal(0.0, 1.0, size=(24, 5))
+    groups = np.repeat(np.arange(4), 6)
+    d = paired_difference(a, b, groups=groups)
+    means = [(a - b)[groups == g].mean() for g in range(4)]
+    low, high = stats.t.interval(0.95, df=3, loc=np.mean(means), scale=stats.sem(means))
+    by = d["by_setting"]
+    np.testing.assert_allclose(
+        [by["mean"], by["low"], by["high"]], [np.mean(means), low, high]
+    )
+    assert by["n"] == 4 and by["mean"] == pytest.approx(d["all_episodes"]["mean"])
+    assert by["high"] - by["low"] > 3 * (
+        d["all_episodes"]["high"] - d["all_episodes"]["low"]
+    )
+    with pytest.raises(ValueError, match="groups: expected shape"):
+        paired_difference(a, b, groups=groups[:-1])
+
+
 def test_paired_difference_rejects_unpaired_shapes():
     with pytest.raises(ValueError, match="a, b: expected equal shapes"):
         paired_difference(np.zeros((3, 2)), np.zeros((4, 2)))
