@@ -48,6 +48,7 @@ from tasks.experiment import (
     environment,
     first_episode_within,
     flag_error,
+    margin_to_target,
     mean_ci,
     one_blas_thread,
     paired_difference,
@@ -333,6 +334,7 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
     metrics.update(
         mse=mse["test"]["mse"],
         loglik_difference=mse["test"]["loglik_difference"],
+        mse_ratio_per_setting=mse["test"]["mse_ratio_per_setting"],
         test_settings_seen=mse["test"]["seen"],
         unseen=mse["test"]["unseen"],
         per_setting_mse={  # as the cart-pole's: [setting][dimension]
@@ -429,6 +431,15 @@ def transfer_metrics(config: SwingupConfig, trials: list) -> dict[str, Any]:
                 per_method[a], per_method[b], groups=settings
             )
             for a, b in PAIRS
+        },
+        # per trial and episode, the return minus the 10% threshold of the true
+        # model's final return on the same trial: the target's verdict with an
+        # interval (above 0: within 10%)
+        "margin_to_target": {
+            m: margin_to_target(
+                per_method[m], per_method["true"], config.final_window, margin=0.1
+            )
+            for m in METHODS
         },
         "step_limit_rate": at_limit,
         "step_limit_split": step_limit_split(

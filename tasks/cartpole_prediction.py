@@ -223,6 +223,7 @@ def main(config: PredictionConfig, out: str | os.PathLike | None = None) -> Resu
         "mse": table["mse"],
         "loglik_difference": table["loglik_difference"],
         "mse_ratio_to_best_baseline": _ratios(table["mse"]),
+        "mse_ratio_per_setting": table["mse_ratio_per_setting"],
         "test_settings_seen": table["seen"],
         "unseen": unseen
         and {**unseen, "mse_ratio_to_best_baseline": _ratios(unseen["mse"])},

@@ -283,6 +283,27 @@ def first_episode_within(
     return int(ok[0]) + 1 if ok.size else None
 
 
+def margin_to_target(
+    returns: Array, reference: Array, window: int, margin: float = 0.1
+) -> dict:
+    """Each trial's return, per episode, minus the "within ``margin``" threshold of
+    the reference method's final return *on the same trial*: ``returns[i, e] -
+    (r_i - margin |r_i|)`` with ``r_i`` the mean of ``reference[i]`` over its last
+    ``window`` episodes. Per episode, a ``mean_ci`` over trials; its mean is the
+    curve's distance above the threshold that ``first_episode_within`` compares
+    with, and its interval says whether "within 10% by episode e" is clear, clearly
+    not met, or undecided at this sample size. Above 0: within."""
+    returns, reference = np.asarray(returns, float), np.asarray(reference, float)
+    if returns.ndim != 2 or returns.shape[0] != reference.shape[0]:
+        raise ValueError(
+            f"returns, reference: expected (trials, episodes) with the same trials, "
+            f"got {returns.shape} and {reference.shape}"
+        )
+    final = reference[:, -window:].mean(axis=1)
+    threshold = final - margin * np.abs(final)
+    return mean_ci(returns - threshold[:, None], axis=0)
+
+
 def paired_difference(
     a: Array, b: Array, level: float = 0.95, groups: Array | None = None
 ) -> dict:

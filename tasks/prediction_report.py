@@ -17,7 +17,7 @@ from tasks.experiment import (
     weights_figure,
     write_text,
 )
-from tasks.prediction import PREDICTION_METHODS, unseen_section
+from tasks.prediction import PREDICTION_METHODS, ratio_text, unseen_section
 from tasks.recording import Recording
 
 ENTITY = {m: m.replace(" + ", "_").replace(" ", "_") for m in PREDICTION_METHODS}
@@ -152,6 +152,8 @@ HiP-MDP MSE divided by the best baseline's (below 1: the HiP-MDP is better; the
 paper reports 0.3 on Δẋ and 0.17 on Δθ̇):
 
 {ratios}
+
+{ratio_text(metrics)}
 
 ## Test log-likelihood (HiP-MDP minus method, over {config.n_test} test transitions)
 

@@ -16,7 +16,7 @@ from tasks.experiment import (
     weights_figure,
     write_text,
 )
-from tasks.prediction import unseen_section
+from tasks.prediction import ratio_text, unseen_section
 from tasks.recording import Recording
 from tasks.transfer import METHODS
 
@@ -154,6 +154,18 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
         rows,
     )
 
+    margins = metrics["margin_to_target"]
+    margin_table = markdown_table(
+        ["method"] + [f"episode {e + 1}" for e in range(min(2, n_ep))],
+        [
+            [m]
+            + [
+                fmt_ci({k: margins[m][k][e] for k in ("mean", "low", "high")}, 4)
+                for e in range(min(2, n_ep))
+            ]
+            for m in margins
+        ],
+    )
     paired = metrics["paired_difference"]
     n_show = min(2, n_ep)
     paired_table = markdown_table(
@@ -235,6 +247,10 @@ features inferred. {inertia}
 {transfer}
 
 "Near-optimal" is within 10% of the true model's final mean return ({target:.1f}).
+Per trial, each method's return minus 10% below the true model's final return on
+the same trial (mean [95% interval] over trials; above 0: within 10%):
+
+{margin_table}
 
 ## Paired differences in return (mean [95% interval] over trials)
 
@@ -275,6 +291,8 @@ is then within 10% of the true model's final median
 Mean over settings [95% interval over settings]:
 
 {mse_table(metrics["mse"])}
+
+{ratio_text(metrics)}
 
 Test log-likelihood over {config.mse_test} test transitions, HiP-MDP minus method
 (positive favours the HiP-MDP; interval over settings):

@@ -145,3 +145,17 @@ def test_summarise_separates_the_settings_seen_in_training():
     assert summarise([scores(1.0)], DIM_NAMES, [True])["unseen"] is None
     with pytest.raises(ValueError, match="seen: expected 1 flags"):
         summarise([scores(1.0)], DIM_NAMES, [True, False])
+
+
+def test_mse_ratios_are_paired_per_setting():
+    from tasks.prediction import mse_ratios
+
+    per = {
+        "hipmdp": {"dx": [1.0, 2.0, 4.0, 0.0]},
+        "batch only": {"dx": [10.0, 10.0, 2.0, 1.0]},
+    }
+    r = mse_ratios(per)["batch only"]["dx"]
+    logs = np.log([0.1, 0.2, 2.0])  # the setting with a zero MSE is left out
+    assert r["geometric_mean"] == pytest.approx(np.exp(logs.mean()))
+    assert r["n"] == 3 and r["hipmdp_lower"] == 3  # 1 < 10, 2 < 10, 0 < 1
+    assert r["low"] < r["geometric_mean"] < r["high"]

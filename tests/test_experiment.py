@@ -19,6 +19,7 @@ from tasks.experiment import (
     environment,
     first_episode_within,
     fmt_ci,
+    margin_to_target,
     mean_ci,
     one_blas_thread,
     paired_difference,
@@ -104,6 +105,28 @@ def test_paired_difference_with_the_setting_as_the_unit():
     )
     with pytest.raises(ValueError, match="groups: expected shape"):
         paired_difference(a, b, groups=groups[:-1])
+
+
+def test_margin_to_target_is_the_curve_above_the_threshold_with_an_interval():
+    rng = np.random.default_rng(4)
+    true = rng.normal(-100.0, 10.0, size=(30, 5))
+    other = rng.normal(-115.0, 10.0, size=(30, 5))
+    d = margin_to_target(other, true, window=3)
+    target = true[:, -3:].mean()
+    # its mean is the curve minus the threshold first_episode_within compares with
+    np.testing.assert_allclose(d["mean"], other.mean(0) - 1.1 * target)
+    for e in range(5):
+        assert (d["mean"][e] >= 0) == (
+            first_episode_within(other.mean(0)[e : e + 1], target) == 1
+        )
+    # the interval is over trials of per-trial margins
+    per_trial = other[:, 1] - 1.1 * true[:, -3:].mean(axis=1)
+    low, high = stats.t.interval(
+        0.95, df=29, loc=per_trial.mean(), scale=stats.sem(per_trial)
+    )
+    np.testing.assert_allclose([d["low"][1], d["high"][1]], [low, high])
+    with pytest.raises(ValueError, match="same trials"):
+        margin_to_target(other[:5], true, window=3)
 
 
 def test_paired_difference_rejects_unpaired_shapes():
