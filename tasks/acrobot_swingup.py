@@ -273,14 +273,14 @@ def prediction_table(config, hip, average, batch, ss) -> dict[str, Any]:
         "test": config.test_masses,
         "floor": config.train_masses[: config.n_floor_settings],
     }
-    out = {}
+    out, train = {}, set(config.train_masses)
     for (label, masses), seed in zip(groups.items(), ss.spawn(2), strict=True):
         scores = score_settings(
             ACROBOT, [hip], average, batch, [config.params(*mm) for mm in masses],
             n_train=config.mse_train, n_test=config.mse_test, seed=seed,
             desc=f"prediction ({label})", progress=config.progress,
         )  # fmt: skip
-        seen = [tuple(mm) in set(config.train_masses) for mm in masses]
+        seen = [tuple(mm) in train for mm in masses]
         out[label] = summarise(scores, DIM_NAMES, seen) if scores else None
     return out
 

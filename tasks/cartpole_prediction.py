@@ -51,6 +51,7 @@ from tasks.experiment import (
 )
 from tasks.prediction import (
     PREDICTION_METHODS,
+    best_baseline,
     gather_split,
     score_instance,
     summarise,
@@ -253,7 +254,7 @@ def _ratios(mse: dict) -> dict[str, float]:
     """HiP-MDP MSE over the best baseline's, per dimension (< 1: HiP-MDP better)."""
     out = {}
     for d in DIM_NAMES:
-        best = min(mse[m][d]["mean"] for m in PREDICTION_METHODS if m != "hipmdp")
+        best = mse[best_baseline(mse, d)][d]["mean"]
         out[d] = float(mse["hipmdp"][d]["mean"] / best) if best > 0 else None
     return out
 

@@ -304,6 +304,14 @@ test log-likelihood, HiP-MDP minus method):
 {ll}{ratio_text}"""
 
 
+def best_baseline(mse: dict[str, Any], dimension: str) -> str:
+    """The baseline with the lowest mean MSE on ``dimension`` (``mse[method][dim]``
+    intervals, as :func:`summarise` gives them)."""
+    return min(
+        (m for m in mse if m != "hipmdp"), key=lambda m: mse[m][dimension]["mean"]
+    )
+
+
 def ratio_text(table: dict[str, Any]) -> str:
     """One line per dimension: the HiP-MDP's per-setting MSE ratio to the best
     baseline (lowest mean MSE) of that dimension, as :func:`mse_ratios` gives it."""
@@ -312,7 +320,7 @@ def ratio_text(table: dict[str, Any]) -> str:
         return ""
     lines = []
     for d in mse["hipmdp"]:
-        best = min((m for m in mse if m != "hipmdp"), key=lambda m: mse[m][d]["mean"])
+        best = best_baseline(mse, d)
         r = ratios[best][d]
         if r is None:
             continue
