@@ -51,6 +51,7 @@ from tasks.experiment import (
 )
 from tasks.prediction import (
     PREDICTION_METHODS,
+    SPLITS,
     best_baseline,
     gather_split,
     score_instance,
@@ -88,6 +89,8 @@ class PredictionConfig:
         average_n_max: transitions per action in the batch GPs.
         n_train, n_test: transitions per test setting (paper: 50 and 50).
         gather_episodes: Sarsa episodes gathered per test setting.
+        split: ``"random"`` (the paper's) or ``"time"``: how a test setting's
+            transitions are split into train and test (``gather_split``).
         workers: processes for the batch data.
     """
 
@@ -107,12 +110,15 @@ class PredictionConfig:
     n_train: int = 50
     n_test: int = 50
     gather_episodes: int = 3
+    split: str = "random"
     workers: int = 2
     record: bool = True
     progress: bool = True
 
     def __post_init__(self) -> None:
         check_run_fields(self)
+        if self.split not in SPLITS:
+            raise ValueError(f"split: expected one of {SPLITS}, got {self.split!r}")
         check_settings(
             self, "train_settings", "test_settings", _params, "(mass, half-length)"
         )
@@ -199,7 +205,7 @@ def main(config: PredictionConfig, out: str | os.PathLike | None = None) -> Resu
         rng = np.random.default_rng(stream)
         split = gather_split(
             CARTPOLE, _params(*p), config.n_train, config.n_test, rng=rng,
-            n_episodes=config.gather_episodes,
+            n_episodes=config.gather_episodes, split=config.split,
         )  # fmt: skip
         splits.append(split)
         scores.append(
@@ -265,10 +271,18 @@ def parse_args(argv: list[str] | None = None) -> tuple[PredictionConfig, str | N
         "runs/cartpole_prediction",
     )  # fmt: skip
     parser.add_argument("--runs", type=int, default=None, help="HiP-MDP fits")
+    parser.add_argument(
+        "--split",
+        choices=SPLITS,
+        default=None,
+        help="train/test split of each test setting's transitions: random (the "
+        "paper's, default) or time (the first to train on, the last to test on)",
+    )
     args = parser.parse_args(argv)
     config = apply_common(
-        parser, args, PRESETS[args.preset], artefacts=ARTEFACTS, n_runs=args.runs
-    )
+        parser, args, PRESETS[args.preset], artefacts=ARTEFACTS, n_runs=args.runs,
+        split=args.split,
+    )  # fmt: skip
     return config, args.out
 
 

@@ -37,6 +37,8 @@ from tasks.experiment import fmt_ci, markdown_table, mean_ci
 Array = np.ndarray
 
 PREDICTION_METHODS = ("hipmdp", "batch only", "train only", "batch + train")
+#: How a test setting's gathered transitions are split (:func:`gather_split`).
+SPLITS = ("random", "time")
 
 
 class InstanceScores(NamedTuple):
@@ -65,8 +67,14 @@ def gather_split(
     n_episodes: int = 3,
     max_steps: int | None = None,
     max_episodes: int = 500,
+    split: str = "random",
 ) -> Split:
-    """Transitions along Sarsa trajectories on ``params``, split at random.
+    """Transitions along Sarsa trajectories on ``params``, split at random (the
+    paper's "50 (different) test points") or, with ``split="time"``, in time: the
+    first ``n_train`` transitions to train on and the last ``n_test`` to test on,
+    so that no test transition has a train transition a step away (unless
+    exactly ``n_train + n_test`` were gathered) and the test is a prediction of
+    the instance's later behaviour.
 
     One agent learns for at least ``n_episodes`` episodes, and on (an episode at a
     time) until it has seen ``n_train + n_test`` transitions: a fresh cart-pole
@@ -78,6 +86,8 @@ def gather_split(
     Raises:
         ValueError: if ``max_episodes`` episodes are not enough.
     """
+    if split not in SPLITS:
+        raise ValueError(f"split: expected one of {SPLITS}, got {split!r}")
     env_seed, agent_seed, split_seed = np.random.SeedSequence(
         int(rng.integers(2**63))
     ).spawn(3)
@@ -99,6 +109,10 @@ def gather_split(
             f" gathered in {episodes} episodes"
         )
     data = Transitions.concatenate(parts)
+    if split == "time":
+        n = len(data)
+        train, test = np.arange(n_train), np.arange(n - n_test, n)
+        return Split(data.take(train), data.take(test), data)
     order = np.random.default_rng(split_seed).permutation(len(data))
     return Split(
         data.take(order[:n_train]), data.take(order[n_train : n_train + n_test]), data

@@ -141,8 +141,8 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
     text = f"""# {title}
 
 {len(config.test_settings)} test settings × {config.n_train} train / {config.n_test}
-test transitions; HiP-MDP fitted {config.n_runs} times on {n_batch}
-batch transitions from {len(config.train_settings)} training settings.
+test transitions ({config.split} split); HiP-MDP fitted {config.n_runs} times on
+{n_batch} batch transitions from {len(config.train_settings)} training settings.
 
 ## MSE of Δs (mean over test settings [95% interval])
 

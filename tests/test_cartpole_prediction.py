@@ -97,6 +97,27 @@ def test_cli_bad_option(capsys):
     assert "--seed" in capsys.readouterr().err
 
 
+def test_time_split_trains_on_the_first_transitions_and_tests_on_the_last():
+    from tasks.agents import CARTPOLE
+    from tasks.cartpole import CartpoleParams
+    from tasks.prediction import gather_split
+
+    params = CartpoleParams(cart_mass=1.0, pole_mass=0.2, pole_half_length=0.5)
+    split = gather_split(
+        CARTPOLE, params, 30, 30, rng=np.random.default_rng(0), split="time"
+    )
+    n = len(split.episodes)
+    assert n > 60  # so there is a gap between the two
+    np.testing.assert_array_equal(split.train.states, split.episodes.states[:30])
+    np.testing.assert_array_equal(split.test.states, split.episodes.states[n - 30 :])
+    with pytest.raises(ValueError, match="split: expected one of"):
+        gather_split(CARTPOLE, params, 5, 5, rng=np.random.default_rng(0), split="x")
+    with pytest.raises(ValueError, match="split: expected one of"):
+        PredictionConfig(split="episodes")
+    config, _ = parse_args(["--split", "time"])
+    assert config.split == "time" and PredictionConfig().split == "random"
+
+
 def test_gather_split_keeps_learning_until_it_has_enough():
     from tasks.agents import CARTPOLE
     from tasks.cartpole import CartpoleParams
