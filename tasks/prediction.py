@@ -304,7 +304,7 @@ def unseen_section(metrics: dict[str, Any], mse_table) -> str:
     ratio_text = (
         "\n\nHiP-MDP MSE divided by the best baseline's there: "
         + ", ".join(
-            f"{d} {v:.2f}" if v is not None else f"{d} —" for d, v in ratios.items()
+            f"{d} {v:.2g}" if v is not None else f"{d} —" for d, v in ratios.items()
         )
         + "."
         if ratios

@@ -128,7 +128,7 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
     table = mse_table(mse)
     ratios = markdown_table(
         dims,
-        [[f"{v:.2f}" if v is not None else "—" for v in
+        [[f"{v:.2g}" if v is not None else "—" for v in
           metrics["mse_ratio_to_best_baseline"].values()]],
     )  # fmt: skip
     ll = markdown_table(
