@@ -337,10 +337,7 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
         mse_ratio_per_setting=mse["test"]["mse_ratio_per_setting"],
         test_settings_seen=mse["test"]["seen"],
         unseen=mse["test"]["unseen"],
-        per_setting_mse={  # as the cart-pole's: [setting][dimension]
-            m: np.array(list(dims.values())).T.tolist()
-            for m, dims in mse["test"]["per_instance"]["mse"].items()
-        },
+        per_setting_mse=mse["test"]["per_setting_mse"],
         approximation_floor=mse["floor"]["mse"] if mse["floor"] else None,
         n_latent_features=int(hip.n_features) - 1,
         z=hip.z.astype(int).tolist(),

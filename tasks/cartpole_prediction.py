@@ -50,7 +50,6 @@ from tasks.experiment import (
     write_json,
 )
 from tasks.prediction import (
-    PREDICTION_METHODS,
     SPLITS,
     best_baseline,
     gather_split,
@@ -234,9 +233,7 @@ def main(config: PredictionConfig, out: str | os.PathLike | None = None) -> Resu
         "test_settings_seen": table["seen"],
         "unseen": unseen
         and {**unseen, "mse_ratio_to_best_baseline": _ratios(unseen["mse"])},
-        "per_setting_mse": {
-            m: [s.mse[m].tolist() for s in scores] for m in PREDICTION_METHODS
-        },
+        "per_setting_mse": table["per_setting_mse"],
         "n_latent_features": [int(h.n_features) - 1 for h in hips],
         "z": [h.z.astype(int).tolist() for h in hips],
         "training_weights": [np.asarray(h.weights).tolist() for h in hips],

@@ -196,6 +196,9 @@ def summarise(
     }  # fmt: skip
     out = _intervals(per_instance, range(len(scores)))
     out["per_instance"] = per_instance
+    out["per_setting_mse"] = {  # [setting][dimension], as metrics.json stores it
+        m: [s.mse[m].tolist() for s in scores] for m in PREDICTION_METHODS
+    }
     out["mse_ratio_per_setting"] = mse_ratios(per_instance["mse"])
     if seen is not None:
         seen = [bool(x) for x in seen]
@@ -282,7 +285,15 @@ def score_settings(
     return scores
 
 
-def unseen_section(metrics: dict[str, Any], mse_table) -> str:
+def mse_table(mse: dict[str, Any]) -> str:
+    """``mse[method][dimension]`` intervals as a markdown table."""
+    dims = list(next(iter(mse.values())))
+    return markdown_table(
+        ["method", *dims], [[m] + [fmt_ci(mse[m][d]) for d in dims] for m in mse]
+    )
+
+
+def unseen_section(metrics: dict[str, Any]) -> str:
     """The MSE table and log-likelihood differences on the test settings whose
     parameters no training instance has (the test grids include the training
     settings, as in the paper)."""

@@ -17,7 +17,12 @@ from tasks.experiment import (
     weights_figure,
     write_text,
 )
-from tasks.prediction import PREDICTION_METHODS, ratio_text, unseen_section
+from tasks.prediction import (
+    PREDICTION_METHODS,
+    mse_table,
+    ratio_text,
+    unseen_section,
+)
 from tasks.recording import Recording
 
 ENTITY = {m: m.replace(" + ", "_").replace(" ", "_") for m in PREDICTION_METHODS}
@@ -119,12 +124,6 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
     """report.md: the MSE table, log-likelihood differences and latent structure."""
     mse = metrics["mse"]
     dims = list(next(iter(mse.values())))
-
-    def mse_table(mse: dict) -> str:
-        return markdown_table(
-            ["method", *dims], [[m] + [fmt_ci(mse[m][d]) for d in dims] for m in mse]
-        )
-
     table = mse_table(mse)
     ratios = markdown_table(
         dims,
@@ -161,7 +160,7 @@ Positive favours the HiP-MDP; mean [95% interval] over test settings.
 
 {ll}
 
-{unseen_section(metrics, mse_table)}
+{unseen_section(metrics)}
 
 ## Latent structure
 

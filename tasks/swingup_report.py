@@ -16,7 +16,7 @@ from tasks.experiment import (
     weights_figure,
     write_text,
 )
-from tasks.prediction import ratio_text, unseen_section
+from tasks.prediction import mse_table, ratio_text, unseen_section
 from tasks.recording import Recording
 from tasks.transfer import METHODS
 
@@ -154,29 +154,23 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
         rows,
     )
 
+    def at_episode(ci: dict, e: int) -> str:
+        """A per-episode interval's cell at episode index ``e``."""
+        return fmt_ci({k: ci[k][e] for k in ("mean", "low", "high")}, 4)
+
+    n_show = min(2, n_ep)
     margins = metrics["margin_to_target"]
     margin_table = markdown_table(
-        ["method"] + [f"episode {e + 1}" for e in range(min(2, n_ep))],
-        [
-            [m]
-            + [
-                fmt_ci({k: margins[m][k][e] for k in ("mean", "low", "high")}, 4)
-                for e in range(min(2, n_ep))
-            ]
-            for m in margins
-        ],
+        ["method"] + [f"episode {e + 1}" for e in range(n_show)],
+        [[m] + [at_episode(margins[m], e) for e in range(n_show)] for m in margins],
     )
     paired = metrics["paired_difference"]
-    n_show = min(2, n_ep)
     paired_table = markdown_table(
         ["difference", "all episodes", "setting as unit"]
         + [f"episode {e + 1}" for e in range(n_show)],
         [
             [pair, fmt_ci(d["all_episodes"], 4), fmt_ci(d["by_setting"], 4)]
-            + [
-                fmt_ci({k: d["per_episode"][k][e] for k in ("mean", "low", "high")}, 4)
-                for e in range(n_show)
-            ]
+            + [at_episode(d["per_episode"], e) for e in range(n_show)]
             for pair, d in paired.items()
         ],
     )
@@ -218,16 +212,9 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
         [[LABELS[m]] + [f"{x:.0%}" for x in limit[m]] for m in METHODS],
     )
 
-    def mse_table(mse: dict) -> str:
-        dims = list(next(iter(mse.values())))
-        return markdown_table(
-            ["method", *dims],
-            [[m] + [fmt_ci(mse[m][d]) for d in dims] for m in mse],
-        )
-
     ll = metrics["loglik_difference"]
     ll_rows = [[m, fmt_ci(v)] for m, v in ll.items()]
-    unseen_text = unseen_section(metrics, mse_table)
+    unseen_text = unseen_section(metrics)
     s = metrics["seconds"]
     inertia = (
         "Each link's moment of inertia stays at the book's 1 kg·m² as its mass "
