@@ -106,7 +106,7 @@ def _read_json(run: Path, name: str, required: bool = True) -> dict:
     return json.loads(path.read_text())
 
 
-def _read_run(run: Path) -> tuple[dict, dict, dict | None]:
+def read_run(run: Path) -> tuple[dict, dict, dict | None]:
     """``(config, metrics, environment)`` of a run folder. A refit folder
     (``tasks.acrobot_refit``) has no metrics.json and keeps its environment in
     ``config["refit"]``; timings and the environment are taken out of both."""
@@ -179,8 +179,8 @@ def _compare_files(fa: Path, fb: Path) -> dict[str, Any]:
 def main(run_a: str | Path, run_b: str | Path, out: str | Path | None = None):
     """Compare two run folders; see the module docstring."""
     a, b = Path(run_a), Path(run_b)
-    config_a, metrics_a, env_a = _read_run(a)
-    config_b, metrics_b, env_b = _read_run(b)
+    config_a, metrics_a, env_a = read_run(a)
+    config_b, metrics_b, env_b = read_run(b)
     config = _differences(config_a, config_b, PRESENTATION)
     environment = _differences(env_a, env_b) if env_a and env_b else "unrecorded"
     metrics = _differences(metrics_a, metrics_b)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -12,7 +13,7 @@ from threadpoolctl import threadpool_limits
 
 import hipmdp
 from tasks import acrobot_swingup as swingup
-from tasks import compare_runs
+from tasks import compare_runs, seed_spread
 from tasks.acrobot_swingup import (
     PRESETS,
     SwingupConfig,
@@ -22,6 +23,7 @@ from tasks.acrobot_swingup import (
     step_limit_split,
     transfer_metrics,
 )
+from tasks.experiment import write_json
 from tasks.prediction import score_settings
 from tasks.recording import rrd_contents
 from tasks.transfer import METHODS, TransferConfig, TrialResult, run_trial
@@ -367,3 +369,24 @@ def test_book_inertia_reaches_every_instance(run, tmp_path, monkeypatch):
     theirs = hipmdp.Transitions.load(book.out / "batch.npz")
     n = min(len(ours), len(theirs))
     assert not np.allclose(ours.next_states[:n], theirs.next_states[:n])
+
+
+def test_seed_spread_reads_the_run(run, tmp_path):
+    # another seed's folder: the same run under seed + 1
+    other = tmp_path / "other_seed"
+    shutil.copytree(run.out, other)
+    config = json.loads((other / "config.json").read_text())
+    write_json(other / "config.json", config | {"seed": config["seed"] + 1})
+    result = seed_spread.main([run.out, other])
+    assert result["experiment"] == "acrobot_swingup"
+    labels = {n["label"] for n in result["numbers"]}
+    assert len(labels) == len(result["numbers"])
+    assert "HiP-MDP margin to the 10% target, episode 2" in labels
+    for n in result["numbers"]:
+        first, second = n["per_seed"]
+        assert first == second, n["label"]
+        if n["scale"] != "count":
+            assert np.isfinite(first["value"]), n["label"]
+            assert n["across_seeds"]["sd"] == 0.0
+    # a header, a rule and a row per number
+    assert seed_spread.report(result).count("\n|") == len(labels) + 2

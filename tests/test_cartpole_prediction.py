@@ -4,13 +4,16 @@ config and writes every artefact with the documented schema."""
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
 from threadpoolctl import threadpool_limits
 
 import hipmdp
+from tasks import seed_spread
 from tasks.cartpole_prediction import DIM_NAMES, PredictionConfig, main, parse_args
+from tasks.experiment import write_json
 from tasks.prediction import PREDICTION_METHODS
 from tasks.recording import rrd_contents
 
@@ -180,3 +183,24 @@ def test_mse_ratios_are_paired_per_setting():
     assert r["geometric_mean"] == pytest.approx(np.exp(logs.mean()))
     assert r["n"] == 3 and r["hipmdp_lower"] == 3  # 1 < 10, 2 < 10, 0 < 1
     assert r["low"] < r["geometric_mean"] < r["high"]
+
+
+def test_seed_spread_reads_the_run(run, tmp_path):
+    # another seed's folder: the same run under seed + 1
+    other = tmp_path / "other_seed"
+    shutil.copytree(run.out, other)
+    config = json.loads((other / "config.json").read_text())
+    write_json(other / "config.json", config | {"seed": config["seed"] + 1})
+    result = seed_spread.main([run.out, other])
+    assert result["experiment"] == "cartpole_prediction"
+    labels = {n["label"] for n in result["numbers"]}
+    assert len(labels) == len(result["numbers"])
+    assert "HiP-MDP MSE / best baseline's, dx (ratio of means, the paper's)" in labels
+    for n in result["numbers"]:
+        first, second = n["per_seed"]
+        assert first == second, n["label"]
+        if n["scale"] != "count":
+            assert np.isfinite(first["value"]), n["label"]
+            assert n["across_seeds"]["sd"] == 0.0
+    # a header, a rule and a row per number
+    assert seed_spread.report(result).count("\n|") == len(labels) + 2

@@ -1,0 +1,355 @@
+"""How far do an experiment's headline numbers move when only the seed changes?
+
+    python -m tasks.seed_spread runs/paper_seed0 runs/paper_seed1 runs/paper_seed2
+    python -m tasks.seed_spread runs/cp_seed* --out spread.json
+
+Every interval a run reports is over its own trials or test settings, given one
+batch of data and one fit (README, "What the numbers answer for"). Another seed
+draws another batch, another fit and other trials. This reads finished folders of
+one experiment (``acrobot_swingup`` or ``cartpole_prediction``) whose configs
+differ only in ``seed`` (and in how the run was shown or scheduled) and gives, for
+each headline number:
+
+- per seed: the value with the run's own 95% interval, where it has one;
+- ``across seeds``: the mean of the per-seed values with a Student-t 95% interval
+  over seeds (the seed as the unit). Ratios are averaged on the log scale (a
+  geometric mean); episode counts get their median and range;
+- ``sd / SE``: the between-seed standard deviation over the median of the runs'
+  own standard errors (interval half-width over its t quantile), on the same
+  scale. Near 1, a run's interval already covers what a new seed changes; well
+  above 1, the batch and the fit move the number more than the run's interval
+  shows. With few seeds it is rough: from 3 seeds the sd is within a factor of
+  about 0.5-6 of the true one (95%).
+
+The table is printed as Markdown; ``--out FILE`` also writes every value as JSON.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+from scipy import stats
+
+from tasks.compare_runs import PRESENTATION, flatten, read_run
+from tasks.experiment import fmt_ci, markdown_table, mean_ci, write_json
+from tasks.prediction import best_baseline
+
+#: How a number is averaged across seeds: as it is, on the log scale, or (episode
+#: counts, None for "never") by median and range.
+SCALES = ("linear", "log", "count")
+#: Top-level config keys that may differ between the runs, besides PRESENTATION:
+#: the seed, and the run's label.
+LABELS = ("seed", "name")
+
+
+class Headline(NamedTuple):
+    """One number of a run: ``get(metrics)`` gives a point value, None (not
+    reached, for counts) or an interval ``{"mean", "low", "high", "n"}``."""
+
+    label: str
+    get: Callable[[dict], Any]
+    scale: str = "linear"
+
+
+def _ratio(metrics: dict, dim: str) -> tuple[str, dict | None]:
+    best = best_baseline(metrics["mse"], dim)
+    r = metrics["mse_ratio_per_setting"][best][dim]
+    if r is None:
+        return best, None
+    return best, {"mean": r["geometric_mean"], "low": r["low"], "high": r["high"],
+                  "n": r["n"]}  # fmt: skip
+
+
+def _prediction(metrics: dict) -> list[Headline]:
+    """The one-step prediction numbers both experiments report."""
+    out = [
+        Headline(
+            f"HiP-MDP MSE / best baseline's, {d} (per-setting geometric mean)",
+            lambda m, d=d: _ratio(m, d)[1],
+            "log",
+        )
+        for d in metrics["mse"]["hipmdp"]
+    ]
+    out += [
+        Headline(
+            f"log-likelihood, HiP-MDP - {b}",
+            lambda m, b=b: m["loglik_difference"][b],
+        )
+        for b in metrics["loglik_difference"]
+    ]
+    if metrics.get("unseen"):
+        out += [
+            Headline(
+                f"log-likelihood on unseen settings, HiP-MDP - {b}",
+                lambda m, b=b: m["unseen"]["loglik_difference"][b],
+            )
+            for b in metrics["unseen"]["loglik_difference"]
+        ]
+    return out
+
+
+def _acrobot(metrics: dict) -> list[Headline]:
+    methods = list(metrics["episodes_to_near_optimal"])
+    out = [
+        Headline(
+            f"episodes to near-optimal, {m}",
+            lambda x, m=m: x["episodes_to_near_optimal"][m],
+            "count",
+        )
+        for m in methods
+    ]
+    if len(metrics["margin_to_target"]["hipmdp"]["mean"]) >= 2:
+        out.append(
+            Headline(
+                "HiP-MDP margin to the 10% target, episode 2",
+                lambda x: {
+                    k: (v[1] if isinstance(v, list) else v)
+                    for k, v in x["margin_to_target"]["hipmdp"].items()
+                },
+            )  # fmt: skip
+        )
+    for pair in metrics["paired_difference"]:
+        out.append(
+            Headline(
+                f"return, {pair} (trials)",
+                lambda x, p=pair: x["paired_difference"][p]["all_episodes"],
+            )
+        )
+        out.append(
+            Headline(
+                f"return, {pair} (settings)",
+                lambda x, p=pair: x["paired_difference"][p]["by_setting"],
+            )
+        )
+    out += _prediction(metrics)
+    out.append(Headline("latent features", lambda x: x["n_latent_features"]))
+    return out
+
+
+def _cartpole(metrics: dict) -> list[Headline]:
+    out = [
+        Headline(
+            f"HiP-MDP MSE / best baseline's, {d} (ratio of means, the paper's)",
+            lambda m, d=d: m["mse_ratio_to_best_baseline"][d],
+            "log",
+        )
+        for d in metrics["mse_ratio_to_best_baseline"]
+    ]
+    out += _prediction(metrics)
+    out.append(
+        Headline(
+            "latent features (mean over fits)",
+            lambda m: float(np.mean(m["n_latent_features"])),
+        )  # fmt: skip
+    )
+    return out
+
+
+#: A metrics.json key that only each experiment writes.
+SIGNATURE = {
+    "acrobot_swingup": "episodes_to_near_optimal",
+    "cartpole_prediction": "mse_ratio_to_best_baseline",
+}
+#: The headline numbers of each experiment, from one run's metrics.
+HEADLINES: dict[str, Callable[[dict], list[Headline]]] = {
+    "acrobot_swingup": _acrobot,
+    "cartpole_prediction": _cartpole,
+}
+
+
+def experiment_of(metrics: dict) -> str | None:
+    """Which experiment wrote ``metrics`` (by a key only it writes; a run's
+    ``name`` is its folder's label and may be anything), or None."""
+    for name, key in SIGNATURE.items():
+        if key in metrics:
+            return name
+    return None
+
+
+def _settings(config: dict) -> dict[str, Any]:
+    """A config's flattened settings, without LABELS and PRESENTATION."""
+    return {
+        k: v
+        for k, v in flatten(
+            {k: v for k, v in config.items() if k not in LABELS}
+        ).items()
+        if k.split(".")[-1] not in PRESENTATION
+    }
+
+
+def read_runs(runs: Sequence[str | Path]) -> tuple[str, list[dict], list[dict]]:
+    """``(experiment, configs, metrics)`` of the run folders, checked to be seeds
+    of one experiment: the same experiment, configs equal but for LABELS and
+    PRESENTATION, distinct seeds. Raises ValueError naming what differs."""
+    if len(runs) < 2:
+        raise ValueError(f"runs: expected at least 2 run folders, got {len(runs)}")
+    read = [read_run(Path(r)) for r in runs]
+    configs = [c for c, _, _ in read]
+    metrics = [m for _, m, _ in read]
+    kinds = [experiment_of(m) for m in metrics]
+    if len(set(kinds)) != 1 or kinds[0] is None:
+        raise ValueError(
+            f"runs: expected runs of one of {sorted(HEADLINES)}, got "
+            + ", ".join(
+                f"{r}: {k or 'another'}" for r, k in zip(runs, kinds, strict=True)
+            )
+        )
+    seeds = [c.get("seed") for c in configs]
+    if len(set(seeds)) != len(seeds):
+        raise ValueError(f"runs: expected distinct seeds, got {seeds}")
+    base = _settings(configs[0])
+    for run, config in zip(runs[1:], configs[1:], strict=True):
+        other = _settings(config)
+        differ = sorted(k for k in base.keys() | other.keys()
+                        if base.get(k) != other.get(k))  # fmt: skip
+        if differ:
+            raise ValueError(
+                f"{run}: its config differs from {runs[0]}'s in more than the seed: "
+                + ", ".join(
+                    f"{k} ({base.get(k)!r} vs {other.get(k)!r})" for k in differ[:5]
+                )  # fmt: skip
+            )
+    return kinds[0], configs, metrics
+
+
+def _interval(value: Any, label: str, run: str) -> dict[str, Any]:
+    """``{"value", "low", "high", "n"}`` (None where the run gives no interval)."""
+    if isinstance(value, dict):
+        try:
+            return {"value": float(value["mean"]), "low": float(value["low"]),
+                    "high": float(value["high"]), "n": int(value["n"])}  # fmt: skip
+        except (KeyError, TypeError) as err:
+            raise ValueError(f"{run}: {label}: not an interval ({err})") from None
+    if value is None:
+        return {"value": None, "low": None, "high": None, "n": None}
+    return {"value": float(value), "low": None, "high": None, "n": None}
+
+
+def _across(per_seed: list[dict], scale: str) -> dict[str, Any]:
+    """The per-seed values summarised over seeds (module docstring)."""
+    values = [p["value"] for p in per_seed]
+    if scale == "count":
+        finite = sorted(v for v in values if v is not None)
+        never = len(values) - len(finite)
+        ordered = finite + [np.inf] * never
+        return {
+            "median": float(np.median(ordered)) if ordered else None,
+            "min": ordered[0] if ordered else None,
+            "max": ordered[-1] if ordered else None,
+            "never": never,
+        }
+    if any(v is None for v in values):
+        return {"mean": None, "low": None, "high": None, "n": len(values)}
+    f = np.log if scale == "log" else (lambda v: np.asarray(v, float))
+    x = f(np.asarray(values, float))
+    ci = {k: float(v) for k, v in mean_ci(x).items()}
+    ses = [
+        (f(p["high"]) - f(p["low"])) / 2 / stats.t.ppf(0.975, p["n"] - 1)
+        for p in per_seed
+        if p["low"] is not None and p["n"] is not None and p["n"] >= 2
+    ]
+    sd = float(np.std(x, ddof=1))
+    out = {"mean": ci["mean"], "low": ci["low"], "high": ci["high"], "n": len(x)}
+    if scale == "log":
+        out = {k: (float(np.exp(v)) if k != "n" else v) for k, v in out.items()}
+    out["sd"] = sd
+    out["sd_over_se"] = sd / float(np.median(ses)) if ses else None
+    return out
+
+
+def main(runs: Sequence[str | Path], out: str | Path | None = None) -> dict[str, Any]:
+    """Check the runs (:func:`read_runs`) and summarise their headline numbers;
+    ``{"experiment", "seeds", "runs", "numbers": [{"label", "scale", "per_seed",
+    "across_seeds"}]}``. Also written as JSON to ``out``."""
+    runs = [str(r) for r in runs]
+    name, configs, metrics = read_runs(runs)
+    numbers = []
+    for h in HEADLINES[name](metrics[0]):
+        if h.scale not in SCALES:
+            raise ValueError(f"{h.label}: scale {h.scale!r} not in {SCALES}")
+        per_seed = []
+        for run, m in zip(runs, metrics, strict=True):
+            try:
+                value = h.get(m)
+            except (KeyError, IndexError, TypeError) as err:
+                raise ValueError(
+                    f"{run}: metrics.json lacks {h.label!r} ({err!r}); a run from "
+                    f"an older hipmdp? Rerun it with this version"
+                ) from None
+            per_seed.append(_interval(value, h.label, run))
+        numbers.append({"label": h.label, "scale": h.scale, "per_seed": per_seed,
+                        "across_seeds": _across(per_seed, h.scale)})  # fmt: skip
+    result = {
+        "experiment": name,
+        "seeds": [c["seed"] for c in configs],
+        "runs": runs,
+        "numbers": numbers,
+    }
+    if out is not None:
+        write_json(out, result)
+    return result
+
+
+def _cell(p: dict[str, Any], scale: str) -> str:
+    if p["value"] is None:
+        return "never" if scale == "count" else "n/a"
+    if scale == "count":
+        return f"{p['value']:g}"
+    if p["low"] is None:
+        return fmt_ci({"mean": p["value"], "low": p["value"], "high": p["value"]}
+                      ).split(" [")[0]  # fmt: skip
+    return fmt_ci({"mean": p["value"], "low": p["low"], "high": p["high"]})
+
+
+def _across_cell(a: dict[str, Any], scale: str) -> tuple[str, str]:
+    if scale == "count":
+        if a["median"] is None or a["min"] == np.inf:
+            return "never", ""
+        top = "never" if a["max"] == np.inf else f"{a['max']:g}"
+        median = "never" if a["median"] == np.inf else f"{a['median']:g}"
+        return f"median {median} ({a['min']:g}-{top})", ""
+    if a["mean"] is None:
+        return "n/a", ""
+    ratio = "" if a["sd_over_se"] is None else f"{a['sd_over_se']:.2g}"
+    return fmt_ci(a), ratio
+
+
+def report(result: dict[str, Any]) -> str:
+    """The Markdown table of :func:`main`'s result."""
+    header = ["number"] + [f"seed {s}" for s in result["seeds"]]
+    header += ["across seeds", "sd / SE"]
+    rows = []
+    for n in result["numbers"]:
+        cells = [_cell(p, n["scale"]) for p in n["per_seed"]]
+        rows.append([n["label"], *cells, *_across_cell(n["across_seeds"], n["scale"])])
+    return (
+        f"{result['experiment']}: {len(result['seeds'])} seeds "
+        f"({', '.join(result['runs'])})\n\n" + markdown_table(header, rows)
+    )
+
+
+def cli(argv: list[str] | None = None) -> int:
+    import argparse
+
+    parser = argparse.ArgumentParser(
+        prog="python -m tasks.seed_spread",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("runs", nargs="+", help="finished run folders, one per seed")
+    parser.add_argument("--out", default=None, help="also write the result as JSON")
+    args = parser.parse_args(argv)
+    try:
+        result = main(args.runs, out=args.out)
+    except (ValueError, FileNotFoundError) as err:
+        parser.error(str(err))
+    print(report(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

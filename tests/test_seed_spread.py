@@ -1,0 +1,187 @@
+"""tasks.seed_spread: headline numbers across seeds, on hand-made run folders whose
+summaries are computed here by hand. That it reads real runs is tested beside each
+experiment's smoke test."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from tasks.experiment import write_json
+from tasks.seed_spread import cli, main, report
+
+DIMS = ("dtheta1", "dtheta2")
+BASELINES = ("batch only", "train only")
+
+
+def _ci(mean, half, n):
+    return {"mean": mean, "low": mean - half, "high": mean + half, "n": n}
+
+
+def _acrobot_metrics(k: float) -> dict:
+    """Metrics whose numbers move with ``k``; the HiP-MDP's MSE ratio against
+    batch only (its best baseline) is ``exp(k)`` with log half-width 0.5."""
+    mse = {
+        "hipmdp": {d: {"mean": 1.0} for d in DIMS},
+        "batch only": {d: {"mean": 2.0} for d in DIMS},
+        "train only": {d: {"mean": 3.0} for d in DIMS},
+    }
+    ratio = {"geometric_mean": float(np.exp(k)), "low": float(np.exp(k - 0.5)),
+             "high": float(np.exp(k + 0.5)), "n": 16, "hipmdp_lower": 16}  # fmt: skip
+    return {
+        "episodes_to_near_optimal": {
+            "true": None,
+            "average": None if k > 2 else 13,
+            "hipmdp": 2 + k,
+        },
+        "margin_to_target": {
+            "hipmdp": {
+                "mean": [-20.0, -8.0 + k],
+                "low": [-30.0, -18.0 + k],
+                "high": [-10.0, 2.0 + k],
+                "n": 480,
+            }
+        },  # fmt: skip
+        "paired_difference": {
+            "hipmdp - average": {
+                "all_episodes": _ci(0.5 + k, 4.0, 480),
+                "by_setting": _ci(0.5 + k, 10.0, 16),
+            }
+        },
+        "mse": mse,
+        "mse_ratio_per_setting": {b: {d: ratio for d in DIMS} for b in BASELINES},
+        "loglik_difference": {b: _ci(100.0 * k, 50.0, 16) for b in BASELINES},
+        "unseen": None,
+        "n_latent_features": 9 + k,
+        "seconds": {"total": 1.0},
+    }
+
+
+def _runs(tmp_path, ks=(0.0, 1.0, 3.0), configs=None):
+    out = []
+    for i, k in enumerate(ks):
+        path = tmp_path / f"seed{i}"
+        path.mkdir()
+        # the name is a label, and workers only schedule: both may differ
+        config = {"name": f"s{i}", "seed": i, "fit": {"n_sweeps": 60}, "workers": i}
+        write_json(path / "config.json", (configs or {}).get(i, config))
+        write_json(path / "metrics.json", _acrobot_metrics(k))
+        out.append(path)
+    return out
+
+
+def _number(result, label):
+    (n,) = [n for n in result["numbers"] if n["label"] == label]
+    return n
+
+
+def test_across_seeds_is_a_t_interval_over_the_seeds_values(tmp_path):
+    ks = np.array([0.0, 1.0, 3.0])
+    result = main(_runs(tmp_path, ks))
+    assert result["experiment"] == "acrobot_swingup" and result["seeds"] == [0, 1, 2]
+    n = _number(result, "return, hipmdp - average (trials)")
+    assert [p["value"] for p in n["per_seed"]] == list(0.5 + ks)
+    a = n["across_seeds"]
+    half = stats.t.ppf(0.975, 2) * np.std(0.5 + ks, ddof=1) / np.sqrt(3)
+    assert a["mean"] == pytest.approx(0.5 + ks.mean())
+    assert (a["low"], a["high"]) == pytest.approx((a["mean"] - half, a["mean"] + half))
+    # the runs' own SE: half-width 4 over t(479); the seeds' sd over it
+    se = 4.0 / stats.t.ppf(0.975, 479)
+    assert a["sd_over_se"] == pytest.approx(np.std(ks, ddof=1) / se)
+    margin = _number(result, "HiP-MDP margin to the 10% target, episode 2")
+    assert [p["value"] for p in margin["per_seed"]] == list(-8.0 + ks)
+    assert [p["low"] for p in margin["per_seed"]] == list(-18.0 + ks)
+
+
+def test_ratios_are_averaged_on_the_log_scale(tmp_path):
+    ks = np.array([0.0, 1.0, 3.0])
+    result = main(_runs(tmp_path, ks))
+    n = _number(result, "HiP-MDP MSE / best baseline's, dtheta1 (per-setting "
+                        "geometric mean)")  # fmt: skip
+    a = n["across_seeds"]
+    assert a["mean"] == pytest.approx(np.exp(ks.mean()))  # geometric, not arithmetic
+    half = stats.t.ppf(0.975, 2) * np.std(ks, ddof=1) / np.sqrt(3)
+    assert a["low"] == pytest.approx(np.exp(ks.mean() - half))
+    se = 0.5 / stats.t.ppf(0.975, 15)
+    assert a["sd_over_se"] == pytest.approx(np.std(ks, ddof=1) / se)
+
+
+def test_counts_get_median_and_range_with_never_last(tmp_path):
+    result = main(_runs(tmp_path, (0.0, 1.0, 3.0)))
+    hip = _number(result, "episodes to near-optimal, hipmdp")["across_seeds"]
+    assert hip == {"median": 3.0, "min": 2.0, "max": 5.0, "never": 0}
+    avg = _number(result, "episodes to near-optimal, average")["across_seeds"]
+    assert avg == {"median": 13.0, "min": 13.0, "max": np.inf, "never": 1}
+    text = report(result)
+    assert "| episodes to near-optimal, true | never | never | never | never |" in text
+    assert "| 13 | 13 | never | median 13 (13-never) |" in text
+    assert "median 3 (2-5)" in text
+
+
+def test_a_number_that_does_not_move_has_zero_spread(tmp_path):
+    result = main(_runs(tmp_path, (1.0, 1.0)))
+    for n in result["numbers"]:
+        if n["scale"] != "count":
+            assert n["across_seeds"]["sd"] == 0.0, n["label"]
+
+
+@pytest.mark.parametrize(
+    "configs, match",
+    [
+        ({1: {"name": "acrobot_swingup", "seed": 1, "fit": {"n_sweeps": 30}}},
+         r"differs .* in more than the seed: fit.n_sweeps \(60 vs 30\)"),
+        ({1: {"name": "acrobot_swingup", "seed": 0, "fit": {"n_sweeps": 60}}},
+         r"distinct seeds, got \[0, 0, 2\]"),
+    ],
+)  # fmt: skip
+def test_runs_that_are_not_seeds_of_one_experiment_are_refused(
+    tmp_path, configs, match
+):
+    with pytest.raises(ValueError, match=match):
+        main(_runs(tmp_path, configs=configs))
+
+
+def test_runs_of_other_experiments_are_refused(tmp_path):
+    runs = _runs(tmp_path)
+    m = json.loads((runs[1] / "metrics.json").read_text())
+    del m["episodes_to_near_optimal"]
+    write_json(runs[1] / "metrics.json", m | {"mse_ratio_to_best_baseline": {}})
+    with pytest.raises(ValueError, match=r"seed1: cartpole_prediction, .*seed2: acr"):
+        main(runs)
+    write_json(runs[1] / "metrics.json", {"rmse": 1.0})
+    with pytest.raises(ValueError, match=r"seed1: another"):
+        main(runs)
+
+
+def test_one_run_and_missing_folders_are_refused(tmp_path):
+    runs = _runs(tmp_path)
+    with pytest.raises(ValueError, match="at least 2 run folders, got 1"):
+        main(runs[:1])
+    with pytest.raises(FileNotFoundError, match="no config.json"):
+        main([runs[0], tmp_path / "nowhere"])
+
+
+def test_a_run_from_an_older_version_is_named(tmp_path):
+    runs = _runs(tmp_path)
+    m = json.loads((runs[2] / "metrics.json").read_text())
+    del m["margin_to_target"]
+    write_json(runs[2] / "metrics.json", m)
+    with pytest.raises(ValueError, match=r"seed2: metrics.json lacks .*older hipmdp"):
+        main(runs)
+
+
+def test_cli_prints_the_table_and_writes_json(tmp_path, capsys):
+    runs = _runs(tmp_path)
+    out = tmp_path / "spread.json"
+    assert cli([*map(str, runs), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert text.startswith("acrobot_swingup: 3 seeds")
+    assert "| number | seed 0 | seed 1 | seed 2 | across seeds | sd / SE |" in text
+    assert json.loads(out.read_text())["seeds"] == [0, 1, 2]
+    with pytest.raises(SystemExit) as err:
+        cli([str(runs[0])])
+    assert err.value.code == 2
+    assert "at least 2 run folders" in capsys.readouterr().err
