@@ -124,17 +124,33 @@ class FitConfig:
         return tuple(data.angle_dims) if self.periodic else ()
 
 
+#: The largest data magnitude :func:`fit` accepts: the fourth root of float64's
+#: largest value, so that products of up to four data values stay finite.
+#: Measured on a synthetic batch: data at 1e77 fit without a floating-point
+#: warning, data at 1e85 fail deep in the sampler ("Probabilities contain NaN").
+MAX_MAGNITUDE = float(np.finfo(float).max) ** 0.25
+
+
 def check_batch(data: Transitions, config: FitConfig) -> None:
     """Raise ValueError unless `data` can be fitted: a Transitions with at least two
-    instances, every action 0..A-1 observed in every instance, and enough distinct
-    states for the support points. (Shapes and finiteness are checked by Transitions
-    itself and again here, in case arrays were modified in place.)"""
+    instances, every action 0..A-1 observed in every instance, magnitudes up to
+    MAX_MAGNITUDE, and enough distinct states for the support points. (Shapes and
+    finiteness are checked by Transitions itself and again here, in case arrays
+    were modified in place.)"""
     if not isinstance(data, Transitions):
         raise ValueError(
             f"data: expected hipmdp.Transitions, got {type(data).__name__}"
         )
     if not (np.all(np.isfinite(data.states)) and np.all(np.isfinite(data.next_states))):
         raise ValueError("data: expected finite states and next_states")
+    for name in ("states", "next_states"):
+        largest = float(np.max(np.abs(getattr(data, name)), initial=0.0))
+        if largest > MAX_MAGNITUDE:
+            raise ValueError(
+                f"data.{name}: expected magnitudes <= {MAX_MAGNITUDE:.3g}, got "
+                f"{largest:.3g}; the fit multiplies data values and would overflow "
+                "float64; rescale the states (e.g. to SI units)"
+            )
     if config.periodic and not data.angle_dims:
         raise ValueError(
             "FitConfig.periodic: the data declare no angle_dims, so no kernel "

@@ -4,11 +4,14 @@ posterior weights."""
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
+from hipmdp import FitConfig, fit
 from hipmdp import gibbs_dense as dense
 from hipmdp.data import Transitions
-from hipmdp.fitting import posterior_weights, smooth_onto_support
+from hipmdp.fitting import MAX_MAGNITUDE, posterior_weights, smooth_onto_support
 from hipmdp.gp import HyperSet, subsample
 
 
@@ -82,3 +85,16 @@ def test_posterior_weights_match_the_dense_w_posterior_mean():
     ref = dense.w_posterior(z, f, Y, noise, mu_w, 0.7)
     np.testing.assert_array_equal(W[0], 1.0)
     np.testing.assert_allclose(W[1:], ref.mean, rtol=1e-10, atol=1e-12)
+
+
+def test_data_at_the_magnitude_limit_fit_without_overflow():
+    data = _batch(np.random.default_rng(0))
+    scale = MAX_MAGNITUDE / np.abs(np.r_[data.states, data.next_states]).max()
+    big = Transitions(
+        data.states * scale, data.actions, data.next_states * scale, data.instances
+    )
+    config = FitConfig(n_support=20, n_sweeps=2, n_chains=1, progress=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # an overflow warns before it shows
+        model = fit(big, config, rng=np.random.default_rng(1))
+    assert np.all(np.isfinite(model.f)) and np.all(np.isfinite(model.weights))

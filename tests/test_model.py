@@ -308,6 +308,15 @@ def test_bad_input_errors(no_work):
         hipmdp.Transitions(
             batch.states, batch.actions, batch.next_states[:-1], batch.instances
         )
+    huge = Transitions(
+        batch.states, batch.actions, batch.next_states.copy(), batch.instances
+    )
+    huge.next_states[7, 0] = -2e77  # finite, but its fourth power is not
+    with pytest.raises(
+        ValueError,
+        match=r"data.next_states: expected magnitudes <= 1.16e\+77, got 2e\+77",
+    ):
+        fit(huge, CONFIG, rng=rng)
 
 
 def test_public_api():
