@@ -58,7 +58,7 @@ from tasks.experiment import (
     trial_seeds,
     write_json,
 )
-from tasks.prediction import score_settings, summarise
+from tasks.prediction import SPLITS, add_split_argument, score_settings, summarise
 from tasks.transfer import METHODS, TransferConfig, TrialJob, run_trial, set_models
 
 # The paper's settings (m1, m2); the test grid is DESIGN's corrected one.
@@ -119,6 +119,8 @@ class SwingupConfig:
         n_trials: trials per test setting.
         transfer: sizes of the transfer protocol.
         mse_train, mse_test: transitions per instance for the prediction table.
+        split: ``"random"`` (the paper's) or ``"time"``: how a test setting's
+            transitions are split into train and test (``gather_split``).
         n_floor_settings: training settings scored for the approximation floor.
         final_window: the true model's "final" return is its mean over this many
             last episodes (an episode that fails at the step limit moves one
@@ -154,6 +156,7 @@ class SwingupConfig:
     )
     mse_train: int = 50
     mse_test: int = 50
+    split: str = "random"
     n_floor_settings: int = 2
     final_window: int = 3
     workers: int = 2
@@ -176,6 +179,8 @@ class SwingupConfig:
             "batch_repetitions", "batch_episodes", "batch_max_steps", "average_n_max",
             "n_trials", "mse_train", "mse_test", "workers", "final_window",
         ))  # fmt: skip
+        if self.split not in SPLITS:
+            raise ValueError(f"split: expected one of {SPLITS}, got {self.split!r}")
         if self.final_window > self.transfer.n_episodes:
             raise ValueError(
                 f"final_window: expected <= transfer.n_episodes "
@@ -278,7 +283,8 @@ def prediction_table(config, hip, average, batch, ss) -> dict[str, Any]:
         scores = score_settings(
             ACROBOT, [hip], average, batch, [config.params(*mm) for mm in masses],
             n_train=config.mse_train, n_test=config.mse_test, seed=seed,
-            desc=f"prediction ({label})", progress=config.progress,
+            split=config.split, desc=f"prediction ({label})",
+            progress=config.progress,
         )  # fmt: skip
         seen = [tuple(mm) in train for mm in masses]
         out[label] = summarise(scores, DIM_NAMES, seen) if scores else None
@@ -537,6 +543,7 @@ def parse_args(argv: list[str] | None = None) -> tuple[SwingupConfig, str | None
         help="keep each link's moment of inertia at the book's 1 kg m^2 as its "
         "mass changes (default: it follows the mass, I = m l^2)",
     )
+    add_split_argument(parser)
     args = parser.parse_args(argv)
     preset = PRESETS[args.preset]
     transfer = final_window = None
@@ -557,6 +564,7 @@ def parse_args(argv: list[str] | None = None) -> tuple[SwingupConfig, str | None
         artefacts=ARTEFACTS,
         final_window=final_window,
         book_inertia=args.book_inertia or None,
+        split=args.split,
     )
     return config, args.out
 

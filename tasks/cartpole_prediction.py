@@ -51,6 +51,7 @@ from tasks.experiment import (
 )
 from tasks.prediction import (
     SPLITS,
+    add_split_argument,
     best_baseline,
     gather_split,
     score_instance,
@@ -268,13 +269,7 @@ def parse_args(argv: list[str] | None = None) -> tuple[PredictionConfig, str | N
         "runs/cartpole_prediction",
     )  # fmt: skip
     parser.add_argument("--runs", type=int, default=None, help="HiP-MDP fits")
-    parser.add_argument(
-        "--split",
-        choices=SPLITS,
-        default=None,
-        help="train/test split of each test setting's transitions: random (the "
-        "paper's, default) or time (the first to train on, the last to test on)",
-    )
+    add_split_argument(parser)
     args = parser.parse_args(argv)
     config = apply_common(
         parser, args, PRESETS[args.preset], artefacts=ARTEFACTS, n_runs=args.runs,

@@ -41,6 +41,17 @@ PREDICTION_METHODS = ("hipmdp", "batch only", "train only", "batch + train")
 SPLITS = ("random", "time")
 
 
+def add_split_argument(parser) -> None:
+    """The experiments' ``--split`` flag (default None: the preset's, random)."""
+    parser.add_argument(
+        "--split",
+        choices=SPLITS,
+        default=None,
+        help="train/test split of each test setting's transitions: random (the "
+        "paper's, default) or time (the first to train on, the last to test on)",
+    )
+
+
 class InstanceScores(NamedTuple):
     """Scores on one instance: ``mse[method]`` shape (D,), ``loglik[method]`` (sum
     over held-out transitions)."""
@@ -265,11 +276,12 @@ def score_settings(
     n_train: int,
     n_test: int,
     seed: np.random.SeedSequence,
+    split: str = "random",
     desc: str = "prediction",
     progress: bool = False,
 ) -> list[InstanceScores]:
-    """:func:`gather_split` and :func:`score_instance` on each instance in turn,
-    each with its own stream spawned from ``seed``."""
+    """:func:`gather_split` (with ``split``) and :func:`score_instance` on each
+    instance in turn, each with its own stream spawned from ``seed``."""
     from tqdm.auto import tqdm
 
     scores = []
@@ -278,9 +290,9 @@ def score_settings(
         tqdm(instances, desc=desc, disable=not progress), streams, strict=True
     ):
         rng = np.random.default_rng(stream)
-        split = gather_split(domain, params, n_train, n_test, rng=rng)
+        parts = gather_split(domain, params, n_train, n_test, rng=rng, split=split)
         scores.append(
-            score_instance(hips, average, batch, split.train, split.test, rng=rng)
+            score_instance(hips, average, batch, parts.train, parts.test, rng=rng)
         )
     return scores
 

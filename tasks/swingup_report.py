@@ -275,7 +275,8 @@ is then within 10% of the true model's final median
 
 ## One-step prediction error on test settings (MSE of Δs)
 
-Mean over settings [95% interval over settings]:
+{config.mse_train} train and {config.mse_test} test transitions per setting
+({config.split} split). Mean over settings [95% interval over settings]:
 
 {mse_table(metrics["mse"])}
 

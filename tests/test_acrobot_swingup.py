@@ -13,7 +13,7 @@ from threadpoolctl import threadpool_limits
 
 import hipmdp
 from tasks import acrobot_swingup as swingup
-from tasks import compare_runs, seed_spread
+from tasks import compare_runs, prediction, seed_spread
 from tasks.acrobot_swingup import (
     PRESETS,
     SwingupConfig,
@@ -204,6 +204,40 @@ def test_cli_presets_and_bad_options(capsys):
         SwingupConfig(test_masses=((0.0, 1.0),))
     with pytest.raises(ValueError, match="final_window: expected <= "):
         SwingupConfig(final_window=50)
+    assert parse_args(["--split", "time"])[0].split == "time"
+    assert PRESETS["quick"].split == PRESETS["paper"].split == "random"
+    with pytest.raises(ValueError, match="split: expected one of"):
+        SwingupConfig(split="episodes")
+
+
+def test_time_split_reaches_the_prediction_table(run, monkeypatch):
+    splits, gather = [], prediction.gather_split
+
+    def gather_spy(*args, **kwargs):
+        splits.append(gather(*args, **kwargs))
+        return splits[-1]
+
+    def score_stub(hips, average, batch, train, test, rng):
+        return prediction.InstanceScores(
+            {m: np.ones(4) for m in prediction.PREDICTION_METHODS},
+            {m: 0.0 for m in prediction.PREDICTION_METHODS},
+        )
+
+    monkeypatch.setattr(prediction, "gather_split", gather_spy)
+    monkeypatch.setattr(prediction, "score_instance", score_stub)
+    config = dataclasses.replace(TINY, split="time")
+    swingup.prediction_table(config, None, None, None, np.random.SeedSequence(0))
+    assert len(splits) == len(config.test_masses) + config.n_floor_settings
+    for split in splits:  # the first transitions to train on, the last to test on
+        n = len(split.episodes)
+        assert n > config.mse_train + config.mse_test
+        np.testing.assert_array_equal(
+            split.train.states, split.episodes.states[: config.mse_train]
+        )
+        np.testing.assert_array_equal(
+            split.test.states, split.episodes.states[n - config.mse_test :]
+        )
+    assert "(random split)" in (run.out / "report.md").read_text()
 
 
 @pytest.mark.parametrize(
