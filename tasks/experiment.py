@@ -351,17 +351,22 @@ def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
     return "\n".join(lines)
 
 
-def fmt_ci(ci: dict, digits: int = 3, signed: bool = False) -> str:
-    """``mean [low, high]`` in scientific notation for small values; ``signed``
-    puts ``+`` before a positive mean (for differences)."""
-
-    def f(v: float, sign: str = "") -> str:
-        v = float(v)
-        if abs(v) >= 1e-3 or v == 0:
-            return f"{v:{sign}.{digits}g}"
+def fmt_value(v: float, digits: int = 3, sign: str = "") -> str:
+    """``v`` to ``digits`` significant digits, in scientific notation if small,
+    whole if large (1187, not 1.19e+03); ``sign="+"`` puts ``+`` before a
+    positive value."""
+    v = float(v)
+    if abs(v) < 1e-3 and v != 0:
         return f"{v:{sign}.{digits - 1}e}"
+    text = f"{v:{sign}.{digits}g}"
+    return f"{v:{sign}.0f}" if "e+" in text else text
 
-    return f"{f(ci['mean'], '+' if signed else '')} [{f(ci['low'])}, {f(ci['high'])}]"
+
+def fmt_ci(ci: dict, digits: int = 3, signed: bool = False) -> str:
+    """``mean [low, high]`` (:func:`fmt_value`); ``signed`` puts ``+`` before a
+    positive mean (for differences)."""
+    mean = fmt_value(ci["mean"], digits, "+" if signed else "")
+    return f"{mean} [{fmt_value(ci['low'], digits)}, {fmt_value(ci['high'], digits)}]"
 
 
 def seed_value(ss: np.random.SeedSequence) -> tuple[int, tuple[int, ...]]:

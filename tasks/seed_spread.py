@@ -35,7 +35,7 @@ import numpy as np
 from scipy import stats
 
 from tasks.compare_runs import PRESENTATION, flatten, read_run
-from tasks.experiment import fmt_ci, markdown_table, mean_ci, write_json
+from tasks.experiment import fmt_ci, fmt_value, markdown_table, mean_ci, write_json
 from tasks.prediction import best_baseline
 
 #: How a number is averaged across seeds: as it is, on the log scale, or (episode
@@ -300,8 +300,7 @@ def _cell(p: dict[str, Any], scale: str) -> str:
     if scale == "count":
         return f"{p['value']:g}"
     if p["low"] is None:
-        return fmt_ci({"mean": p["value"], "low": p["value"], "high": p["value"]}
-                      ).split(" [")[0]  # fmt: skip
+        return fmt_value(p["value"])
     return fmt_ci({"mean": p["value"], "low": p["low"], "high": p["high"]})
 
 

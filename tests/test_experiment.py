@@ -147,6 +147,9 @@ def test_fmt_ci_signs_a_positive_mean_only_when_asked():
     assert fmt_ci(ci, signed=True) == "+1.5 [-0.25, 3]"
     assert fmt_ci({**ci, "mean": -1.5}, signed=True) == "-1.5 [-0.25, 3]"
     assert fmt_ci({**ci, "mean": 2e-4}, signed=True) == "+2.00e-04 [-0.25, 3]"
+    # large values whole, not as 1.19e+03 (nor 999.6 as 1e+03)
+    big = {"mean": 1187.1, "low": -324.4, "high": 999.6}
+    assert fmt_ci(big, signed=True) == "+1187 [-324, 1000]"
 
 
 def test_check_counts_names_the_first_value_below_one():
