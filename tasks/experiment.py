@@ -352,9 +352,9 @@ def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
 
 
 def fmt_value(v: float, digits: int = 3, sign: str = "") -> str:
-    """``v`` to ``digits`` significant digits, in scientific notation if small,
-    whole if large (1187, not 1.19e+03); ``sign="+"`` puts ``+`` before a
-    positive value."""
+    """``v`` to ``digits`` significant digits, in scientific notation if small;
+    large values (those ``g`` would print with an exponent) whole: 1187, not
+    1.19e+03. ``sign="+"`` puts ``+`` before a positive value."""
     v = float(v)
     if abs(v) < 1e-3 and v != 0:
         return f"{v:{sign}.{digits - 1}e}"

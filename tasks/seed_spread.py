@@ -16,10 +16,17 @@ each headline number:
   geometric mean); episode counts get their median and range;
 - ``sd / SE``: the between-seed standard deviation over the median of the runs'
   own standard errors (interval half-width over its t quantile), on the same
-  scale. Near 1, a run's interval already covers what a new seed changes; well
-  above 1, the batch and the fit move the number more than the run's interval
-  shows. With few seeds it is rough: from 3 seeds the sd is within a factor of
-  about 0.5-6 of the true one (95%).
+  scale. Near 1, a run's standard error already accounts for what a new seed
+  changes; well above 1, the batch and the fit move the number more than the
+  run's interval shows. With few seeds it is rough: from 3 seeds the true sd is
+  0.5-6.3 times the estimate (95%, chi-square with 2 df), from 5 seeds 0.6-2.9
+  times. Where a run's interval is over test settings (``by_setting``, the
+  prediction numbers), its SE already holds the setting-to-setting variation,
+  and every seed has the same settings, so the ratio tends to be below 1 there.
+
+MSE ratios are against one baseline per dimension for every seed: the first
+run's best (lowest mean MSE), named in the row. The cart-pole's ratio of means is
+then the paper's measure on the first run and comparable across seeds.
 
 The table is printed as Markdown; ``--out FILE`` also writes every value as JSON.
 """
@@ -38,9 +45,6 @@ from tasks.compare_runs import PRESENTATION, flatten, read_run
 from tasks.experiment import fmt_ci, fmt_value, markdown_table, mean_ci, write_json
 from tasks.prediction import best_baseline
 
-#: How a number is averaged across seeds: as it is, on the log scale, or (episode
-#: counts, None for "never") by median and range.
-SCALES = ("linear", "log", "count")
 #: Top-level config keys that may differ between the runs, besides PRESENTATION:
 #: the seed, and the run's label.
 LABELS = ("seed", "name")
@@ -48,31 +52,42 @@ LABELS = ("seed", "name")
 
 class Headline(NamedTuple):
     """One number of a run: ``get(metrics)`` gives a point value, None (not
-    reached, for counts) or an interval ``{"mean", "low", "high", "n"}``."""
+    available; for counts, not reached) or an interval ``{"mean", "low", "high",
+    "n"}``. ``scale``: how it is averaged across seeds: ``"linear"``, ``"log"``
+    (ratios), or ``"count"`` (episode counts: median and range)."""
 
     label: str
     get: Callable[[dict], Any]
     scale: str = "linear"
 
 
-def _ratio(metrics: dict, dim: str) -> tuple[str, dict | None]:
-    best = best_baseline(metrics["mse"], dim)
-    r = metrics["mse_ratio_per_setting"][best][dim]
+def _ratio(metrics: dict, baseline: str, dim: str) -> dict | None:
+    r = metrics["mse_ratio_per_setting"][baseline][dim]
     if r is None:
-        return best, None
-    return best, {"mean": r["geometric_mean"], "low": r["low"], "high": r["high"],
-                  "n": r["n"]}  # fmt: skip
+        return None
+    return {"mean": r["geometric_mean"], "low": r["low"], "high": r["high"],
+            "n": r["n"]}  # fmt: skip
+
+
+def _ratio_of_means(metrics: dict, baseline: str, dim: str) -> float | None:
+    base = metrics["mse"][baseline][dim]["mean"]
+    return metrics["mse"]["hipmdp"][dim]["mean"] / base if base > 0 else None
+
+
+def _baselines(metrics: dict) -> dict[str, str]:
+    """Each dimension's best baseline in ``metrics`` (the first run's)."""
+    return {d: best_baseline(metrics["mse"], d) for d in metrics["mse"]["hipmdp"]}
 
 
 def _prediction(metrics: dict) -> list[Headline]:
     """The one-step prediction numbers both experiments report."""
     out = [
         Headline(
-            f"HiP-MDP MSE / best baseline's, {d} (per-setting geometric mean)",
-            lambda m, d=d: _ratio(m, d)[1],
+            f"HiP-MDP MSE / {b}'s, {d} (per-setting geometric mean)",
+            lambda m, b=b, d=d: _ratio(m, b, d),
             "log",
         )
-        for d in metrics["mse"]["hipmdp"]
+        for d, b in _baselines(metrics).items()
     ]
     out += [
         Headline(
@@ -133,11 +148,11 @@ def _acrobot(metrics: dict) -> list[Headline]:
 def _cartpole(metrics: dict) -> list[Headline]:
     out = [
         Headline(
-            f"HiP-MDP MSE / best baseline's, {d} (ratio of means, the paper's)",
-            lambda m, d=d: m["mse_ratio_to_best_baseline"][d],
+            f"HiP-MDP MSE / {b}'s, {d} (ratio of means)",
+            lambda m, b=b, d=d: _ratio_of_means(m, b, d),
             "log",
         )
-        for d in metrics["mse_ratio_to_best_baseline"]
+        for d, b in _baselines(metrics).items()
     ]
     out += _prediction(metrics)
     out.append(
@@ -199,6 +214,11 @@ def read_runs(runs: Sequence[str | Path]) -> tuple[str, list[dict], list[dict]]:
             )
         )
     seeds = [c.get("seed") for c in configs]
+    for run, seed in zip(runs, seeds, strict=True):
+        if not isinstance(seed, int) or isinstance(seed, bool):
+            raise ValueError(
+                f"{run}: config.json: expected an integer seed, got {seed!r}"
+            )
     if len(set(seeds)) != len(seeds):
         raise ValueError(f"runs: expected distinct seeds, got {seeds}")
     base = _settings(configs[0])
@@ -222,11 +242,17 @@ def _interval(value: Any, label: str, run: str) -> dict[str, Any]:
         try:
             return {"value": float(value["mean"]), "low": float(value["low"]),
                     "high": float(value["high"]), "n": int(value["n"])}  # fmt: skip
-        except (KeyError, TypeError) as err:
-            raise ValueError(f"{run}: {label}: not an interval ({err})") from None
+        except (KeyError, TypeError, ValueError) as err:
+            raise ValueError(
+                f"{run}: {label}: expected an interval of numbers "
+                f"{{mean, low, high, n}}, got {value!r} ({err})"
+            ) from None
     if value is None:
         return {"value": None, "low": None, "high": None, "n": None}
-    return {"value": float(value), "low": None, "high": None, "n": None}
+    try:
+        return {"value": float(value), "low": None, "high": None, "n": None}
+    except (TypeError, ValueError):
+        raise ValueError(f"{run}: {label}: expected a number, got {value!r}") from None
 
 
 def _across(per_seed: list[dict], scale: str) -> dict[str, Any]:
@@ -243,7 +269,8 @@ def _across(per_seed: list[dict], scale: str) -> dict[str, Any]:
             "never": never,
         }
     if any(v is None for v in values):
-        return {"mean": None, "low": None, "high": None, "n": len(values)}
+        return {"mean": None, "low": None, "high": None, "n": len(values),
+                "sd": None, "sd_over_se": None}  # fmt: skip
     f = np.log if scale == "log" else (lambda v: np.asarray(v, float))
     x = f(np.asarray(values, float))
     ci = {k: float(v) for k, v in mean_ci(x).items()}
@@ -256,9 +283,17 @@ def _across(per_seed: list[dict], scale: str) -> dict[str, Any]:
     out = {"mean": ci["mean"], "low": ci["low"], "high": ci["high"], "n": len(x)}
     if scale == "log":
         out = {k: (float(np.exp(v)) if k != "n" else v) for k, v in out.items()}
+    se = float(np.median(ses)) if ses else 0.0
     out["sd"] = sd
-    out["sd_over_se"] = sd / float(np.median(ses)) if ses else None
+    out["sd_over_se"] = sd / se if se > 0 else None
     return out
+
+
+def _older(run: str, err: Exception, label: str = "a headline number") -> str:
+    return (
+        f"{run}: metrics.json lacks {label} ({err!r}); a run from an older "
+        "hipmdp? Rerun it with this version"
+    )
 
 
 def main(runs: Sequence[str | Path], out: str | Path | None = None) -> dict[str, Any]:
@@ -267,19 +302,18 @@ def main(runs: Sequence[str | Path], out: str | Path | None = None) -> dict[str,
     "across_seeds"}]}``. Also written as JSON to ``out``."""
     runs = [str(r) for r in runs]
     name, configs, metrics = read_runs(runs)
+    try:
+        headlines = HEADLINES[name](metrics[0])
+    except (KeyError, IndexError, TypeError) as err:
+        raise ValueError(_older(runs[0], err)) from None
     numbers = []
-    for h in HEADLINES[name](metrics[0]):
-        if h.scale not in SCALES:
-            raise ValueError(f"{h.label}: scale {h.scale!r} not in {SCALES}")
+    for h in headlines:
         per_seed = []
         for run, m in zip(runs, metrics, strict=True):
             try:
                 value = h.get(m)
             except (KeyError, IndexError, TypeError) as err:
-                raise ValueError(
-                    f"{run}: metrics.json lacks {h.label!r} ({err!r}); a run from "
-                    f"an older hipmdp? Rerun it with this version"
-                ) from None
+                raise ValueError(_older(run, err, h.label)) from None
             per_seed.append(_interval(value, h.label, run))
         numbers.append({"label": h.label, "scale": h.scale, "per_seed": per_seed,
                         "across_seeds": _across(per_seed, h.scale)})  # fmt: skip

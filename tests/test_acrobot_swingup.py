@@ -406,11 +406,16 @@ def test_book_inertia_reaches_every_instance(run, tmp_path, monkeypatch):
 
 
 def test_seed_spread_reads_the_run(run, tmp_path):
-    # another seed's folder: the same run under seed + 1
+    # another seed's folder: the run under seed + 1, its log-likelihood leads 1 up
     other = tmp_path / "other_seed"
     shutil.copytree(run.out, other)
     config = json.loads((other / "config.json").read_text())
     write_json(other / "config.json", config | {"seed": config["seed"] + 1})
+    metrics = json.loads((run.out / "metrics.json").read_text())
+    shifted = json.loads((other / "metrics.json").read_text())
+    for ci in shifted["loglik_difference"].values():
+        ci.update({k: ci[k] + 1.0 for k in ("mean", "low", "high")})
+    write_json(other / "metrics.json", shifted)
     result = seed_spread.main([run.out, other])
     assert result["experiment"] == "acrobot_swingup"
     labels = {n["label"] for n in result["numbers"]}
@@ -418,6 +423,12 @@ def test_seed_spread_reads_the_run(run, tmp_path):
     assert "HiP-MDP margin to the 10% target, episode 2" in labels
     for n in result["numbers"]:
         first, second = n["per_seed"]
+        if n["label"].startswith("log-likelihood, HiP-MDP - "):
+            method = n["label"].removeprefix("log-likelihood, HiP-MDP - ")
+            assert first["value"] == metrics["loglik_difference"][method]["mean"]
+            assert second["value"] == pytest.approx(first["value"] + 1.0)
+            assert n["across_seeds"]["sd"] == pytest.approx(np.sqrt(0.5))
+            continue
         assert first == second, n["label"]
         if n["scale"] != "count":
             assert np.isfinite(first["value"]), n["label"]

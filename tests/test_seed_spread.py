@@ -21,16 +21,21 @@ def _ci(mean, half, n):
     return {"mean": mean, "low": mean - half, "high": mean + half, "n": n}
 
 
+def _ratio(log: float) -> dict:
+    return {"geometric_mean": float(np.exp(log)), "low": float(np.exp(log - 0.5)),
+            "high": float(np.exp(log + 0.5)), "n": 16, "hipmdp_lower": 16}  # fmt: skip
+
+
 def _acrobot_metrics(k: float) -> dict:
-    """Metrics whose numbers move with ``k``; the HiP-MDP's MSE ratio against
-    batch only (its best baseline) is ``exp(k)`` with log half-width 0.5."""
+    """Metrics whose numbers move with ``k``. The HiP-MDP's MSE ratio against
+    batch only is ``exp(k)`` with log half-width 0.5, against train only
+    ``exp(-k)``; batch only is the best baseline unless k > 2."""
     mse = {
         "hipmdp": {d: {"mean": 1.0} for d in DIMS},
         "batch only": {d: {"mean": 2.0} for d in DIMS},
-        "train only": {d: {"mean": 3.0} for d in DIMS},
+        "train only": {d: {"mean": 3.0 if k <= 2 else 1.5} for d in DIMS},
     }
-    ratio = {"geometric_mean": float(np.exp(k)), "low": float(np.exp(k - 0.5)),
-             "high": float(np.exp(k + 0.5)), "n": 16, "hipmdp_lower": 16}  # fmt: skip
+    ratios = {"batch only": _ratio(k), "train only": _ratio(-k)}
     return {
         "episodes_to_near_optimal": {
             "true": None,
@@ -52,7 +57,7 @@ def _acrobot_metrics(k: float) -> dict:
             }
         },
         "mse": mse,
-        "mse_ratio_per_setting": {b: {d: ratio for d in DIMS} for b in BASELINES},
+        "mse_ratio_per_setting": {b: {d: ratios[b] for d in DIMS} for b in BASELINES},
         "loglik_difference": {b: _ci(100.0 * k, 50.0, 16) for b in BASELINES},
         "unseen": None,
         "n_latent_features": 9 + k,
@@ -99,8 +104,11 @@ def test_across_seeds_is_a_t_interval_over_the_seeds_values(tmp_path):
 def test_ratios_are_averaged_on_the_log_scale(tmp_path):
     ks = np.array([0.0, 1.0, 3.0])
     result = main(_runs(tmp_path, ks))
-    n = _number(result, "HiP-MDP MSE / best baseline's, dtheta1 (per-setting "
+    # against the first run's best baseline, batch only, on every seed (the third
+    # seed's best is train only)
+    n = _number(result, "HiP-MDP MSE / batch only's, dtheta1 (per-setting "
                         "geometric mean)")  # fmt: skip
+    assert [p["value"] for p in n["per_seed"]] == pytest.approx(np.exp(ks))
     a = n["across_seeds"]
     assert a["mean"] == pytest.approx(np.exp(ks.mean()))  # geometric, not arithmetic
     half = stats.t.ppf(0.975, 2) * np.std(ks, ddof=1) / np.sqrt(3)
@@ -156,6 +164,56 @@ def test_runs_of_other_experiments_are_refused(tmp_path):
         main(runs)
 
 
+def _edit(run, edit):
+    m = json.loads((run / "metrics.json").read_text())
+    edit(m)
+    write_json(run / "metrics.json", m)
+
+
+def test_missing_values_read_as_not_available(tmp_path):
+    runs = _runs(tmp_path)
+    _edit(runs[1], lambda m: m["mse_ratio_per_setting"]["batch only"].update(
+        dtheta2=None))  # fmt: skip
+    result = main(runs)
+    n = _number(result, "HiP-MDP MSE / batch only's, dtheta2 (per-setting "
+                        "geometric mean)")  # fmt: skip
+    assert n["per_seed"][1]["value"] is None
+    assert n["across_seeds"]["mean"] is None and n["across_seeds"]["sd"] is None
+    assert "| 1 [0.607, 1.65] | n/a | 20.1 [12.2, 33.1] | n/a |  |" in report(result)
+
+
+def test_runs_whose_intervals_have_no_width_have_no_sd_over_se(tmp_path):
+    runs = _runs(tmp_path)
+    for run in runs:
+        _edit(run, lambda m: m["paired_difference"]["hipmdp - average"].update(
+            all_episodes=_ci(1.0, 0.0, 480)))  # fmt: skip
+    n = _number(main(runs), "return, hipmdp - average (trials)")
+    assert n["across_seeds"]["sd"] == 0.0 and n["across_seeds"]["sd_over_se"] is None
+
+
+@pytest.mark.parametrize(
+    ("edit", "match"),
+    [
+        (lambda m: m["loglik_difference"].update({"train only": {"mean": "nine"}}),
+         r"seed1: log-likelihood, HiP-MDP - train only: expected an interval of "
+         r"numbers \{mean, low, high, n\}, got \{'mean': 'nine'\}"),
+        (lambda m: m.update(n_latent_features="nine"),
+         r"seed1: latent features: expected a number, got 'nine'"),
+    ],
+)  # fmt: skip
+def test_values_that_are_not_numbers_are_named(tmp_path, edit, match):
+    runs = _runs(tmp_path)
+    _edit(runs[1], edit)
+    with pytest.raises(ValueError, match=match):
+        main(runs)
+
+
+def test_a_config_without_a_seed_is_refused(tmp_path):
+    configs = {0: {"name": "s0", "fit": {"n_sweeps": 60}}}
+    with pytest.raises(ValueError, match=r"seed0: config.json: expected an integer "):
+        main(_runs(tmp_path, configs=configs))
+
+
 def test_one_run_and_missing_folders_are_refused(tmp_path):
     runs = _runs(tmp_path)
     with pytest.raises(ValueError, match="at least 2 run folders, got 1"):
@@ -164,12 +222,13 @@ def test_one_run_and_missing_folders_are_refused(tmp_path):
         main([runs[0], tmp_path / "nowhere"])
 
 
-def test_a_run_from_an_older_version_is_named(tmp_path):
+@pytest.mark.parametrize("which", [0, 2])  # the first run sets the rows
+def test_a_run_from_an_older_version_is_named(tmp_path, which):
     runs = _runs(tmp_path)
-    m = json.loads((runs[2] / "metrics.json").read_text())
-    del m["margin_to_target"]
-    write_json(runs[2] / "metrics.json", m)
-    with pytest.raises(ValueError, match=r"seed2: metrics.json lacks .*older hipmdp"):
+    _edit(runs[which], lambda m: m.pop("margin_to_target"))
+    with pytest.raises(
+        ValueError, match=f"seed{which}: metrics.json lacks .*older hipmdp"
+    ):
         main(runs)
 
 
