@@ -74,21 +74,23 @@ def _ratio_of_means(metrics: dict, baseline: str, dim: str) -> float | None:
     return metrics["mse"]["hipmdp"][dim]["mean"] / base if base > 0 else None
 
 
-def _baselines(metrics: dict) -> dict[str, str]:
-    """Each dimension's best baseline in ``metrics`` (the first run's)."""
-    return {d: best_baseline(metrics["mse"], d) for d in metrics["mse"]["hipmdp"]}
+def _ratios(metrics: dict, what: str, get: Callable) -> list[Headline]:
+    """One row per dimension: ``get(m, baseline, dim)``, the HiP-MDP's MSE over
+    the dimension's best baseline in ``metrics`` (the first run's)."""
+    return [
+        Headline(
+            f"HiP-MDP MSE / {b}'s, {d} ({what})",
+            lambda m, b=b, d=d: get(m, b, d),
+            "log",
+        )
+        for d in metrics["mse"]["hipmdp"]
+        for b in [best_baseline(metrics["mse"], d)]
+    ]
 
 
 def _prediction(metrics: dict) -> list[Headline]:
     """The one-step prediction numbers both experiments report."""
-    out = [
-        Headline(
-            f"HiP-MDP MSE / {b}'s, {d} (per-setting geometric mean)",
-            lambda m, b=b, d=d: _ratio(m, b, d),
-            "log",
-        )
-        for d, b in _baselines(metrics).items()
-    ]
+    out = _ratios(metrics, "per-setting geometric mean", _ratio)
     out += [
         Headline(
             f"log-likelihood, HiP-MDP - {b}",
@@ -146,14 +148,7 @@ def _acrobot(metrics: dict) -> list[Headline]:
 
 
 def _cartpole(metrics: dict) -> list[Headline]:
-    out = [
-        Headline(
-            f"HiP-MDP MSE / {b}'s, {d} (ratio of means)",
-            lambda m, b=b, d=d: _ratio_of_means(m, b, d),
-            "log",
-        )
-        for d, b in _baselines(metrics).items()
-    ]
+    out = _ratios(metrics, "ratio of means", _ratio_of_means)
     out += _prediction(metrics)
     out.append(
         Headline(

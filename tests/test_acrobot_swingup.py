@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import shutil
 
 import numpy as np
 import pytest
@@ -13,7 +12,7 @@ from threadpoolctl import threadpool_limits
 
 import hipmdp
 from tasks import acrobot_swingup as swingup
-from tasks import compare_runs, prediction, seed_spread
+from tasks import compare_runs, prediction
 from tasks.acrobot_swingup import (
     PRESETS,
     SwingupConfig,
@@ -23,10 +22,10 @@ from tasks.acrobot_swingup import (
     step_limit_split,
     transfer_metrics,
 )
-from tasks.experiment import write_json
 from tasks.prediction import score_settings
 from tasks.recording import rrd_contents
 from tasks.transfer import METHODS, TransferConfig, TrialResult, run_trial
+from tests._seed_spread import assert_reads_the_run
 
 TINY = SwingupConfig(
     name="tiny",
@@ -406,32 +405,6 @@ def test_book_inertia_reaches_every_instance(run, tmp_path, monkeypatch):
 
 
 def test_seed_spread_reads_the_run(run, tmp_path):
-    # another seed's folder: the run under seed + 1, its log-likelihood leads 1 up
-    other = tmp_path / "other_seed"
-    shutil.copytree(run.out, other)
-    config = json.loads((other / "config.json").read_text())
-    write_json(other / "config.json", config | {"seed": config["seed"] + 1})
-    metrics = json.loads((run.out / "metrics.json").read_text())
-    shifted = json.loads((other / "metrics.json").read_text())
-    for ci in shifted["loglik_difference"].values():
-        ci.update({k: ci[k] + 1.0 for k in ("mean", "low", "high")})
-    write_json(other / "metrics.json", shifted)
-    result = seed_spread.main([run.out, other])
-    assert result["experiment"] == "acrobot_swingup"
-    labels = {n["label"] for n in result["numbers"]}
-    assert len(labels) == len(result["numbers"])
+    result = assert_reads_the_run(run.out, tmp_path, "acrobot_swingup")
+    labels = [n["label"] for n in result["numbers"]]
     assert "HiP-MDP margin to the 10% target, episode 2" in labels
-    for n in result["numbers"]:
-        first, second = n["per_seed"]
-        if n["label"].startswith("log-likelihood, HiP-MDP - "):
-            method = n["label"].removeprefix("log-likelihood, HiP-MDP - ")
-            assert first["value"] == metrics["loglik_difference"][method]["mean"]
-            assert second["value"] == pytest.approx(first["value"] + 1.0)
-            assert n["across_seeds"]["sd"] == pytest.approx(np.sqrt(0.5))
-            continue
-        assert first == second, n["label"]
-        if n["scale"] != "count":
-            assert np.isfinite(first["value"]), n["label"]
-            assert n["across_seeds"]["sd"] == 0.0
-    # a header, a rule and a row per number
-    assert seed_spread.report(result).count("\n|") == len(labels) + 2

@@ -4,18 +4,16 @@ config and writes every artefact with the documented schema."""
 from __future__ import annotations
 
 import json
-import shutil
 
 import numpy as np
 import pytest
 from threadpoolctl import threadpool_limits
 
 import hipmdp
-from tasks import seed_spread
 from tasks.cartpole_prediction import DIM_NAMES, PredictionConfig, main, parse_args
-from tasks.experiment import write_json
 from tasks.prediction import PREDICTION_METHODS, best_baseline
 from tasks.recording import rrd_contents
+from tests._seed_spread import assert_reads_the_run
 
 TINY = PredictionConfig(
     train_settings=((0.1, 0.4), (0.3, 0.6), (0.2, 0.5)),
@@ -186,36 +184,9 @@ def test_mse_ratios_are_paired_per_setting():
 
 
 def test_seed_spread_reads_the_run(run, tmp_path):
-    # another seed's folder: the run under seed + 1, its log-likelihood leads 1 up
-    other = tmp_path / "other_seed"
-    shutil.copytree(run.out, other)
-    config = json.loads((other / "config.json").read_text())
-    write_json(other / "config.json", config | {"seed": config["seed"] + 1})
+    result = assert_reads_the_run(run.out, tmp_path, "cartpole_prediction")
     metrics = json.loads((run.out / "metrics.json").read_text())
-    shifted = json.loads((other / "metrics.json").read_text())
-    for ci in shifted["loglik_difference"].values():
-        ci.update({k: ci[k] + 1.0 for k in ("mean", "low", "high")})
-    write_json(other / "metrics.json", shifted)
-    result = seed_spread.main([run.out, other])
-    assert result["experiment"] == "cartpole_prediction"
-    labels = {n["label"] for n in result["numbers"]}
-    assert len(labels) == len(result["numbers"])
-    best = result["numbers"][0]["label"]  # the first run's best baseline, named
+    best = best_baseline(metrics["mse"], "dx")  # the first run's, named
     assert (
-        best
-        == f"HiP-MDP MSE / {best_baseline(metrics['mse'], 'dx')}'s, dx (ratio of means)"
+        result["numbers"][0]["label"] == f"HiP-MDP MSE / {best}'s, dx (ratio of means)"
     )
-    for n in result["numbers"]:
-        first, second = n["per_seed"]
-        if n["label"].startswith("log-likelihood, HiP-MDP - "):
-            method = n["label"].removeprefix("log-likelihood, HiP-MDP - ")
-            assert first["value"] == metrics["loglik_difference"][method]["mean"]
-            assert second["value"] == pytest.approx(first["value"] + 1.0)
-            assert n["across_seeds"]["sd"] == pytest.approx(np.sqrt(0.5))
-            continue
-        assert first == second, n["label"]
-        if n["scale"] != "count":
-            assert np.isfinite(first["value"]), n["label"]
-            assert n["across_seeds"]["sd"] == 0.0
-    # a header, a rule and a row per number
-    assert seed_spread.report(result).count("\n|") == len(labels) + 2
