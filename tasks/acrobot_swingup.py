@@ -58,7 +58,12 @@ from tasks.experiment import (
     trial_seeds,
     write_json,
 )
-from tasks.prediction import SPLITS, add_split_argument, score_settings, summarise
+from tasks.prediction import (
+    add_split_argument,
+    check_split,
+    score_settings,
+    summarise,
+)
 from tasks.transfer import METHODS, TransferConfig, TrialJob, run_trial, set_models
 
 # The paper's settings (m1, m2); the test grid is DESIGN's corrected one.
@@ -179,8 +184,7 @@ class SwingupConfig:
             "batch_repetitions", "batch_episodes", "batch_max_steps", "average_n_max",
             "n_trials", "mse_train", "mse_test", "workers", "final_window",
         ))  # fmt: skip
-        if self.split not in SPLITS:
-            raise ValueError(f"split: expected one of {SPLITS}, got {self.split!r}")
+        check_split(self.split)
         if self.final_window > self.transfer.n_episodes:
             raise ValueError(
                 f"final_window: expected <= transfer.n_episodes "

@@ -50,9 +50,9 @@ from tasks.experiment import (
     write_json,
 )
 from tasks.prediction import (
-    SPLITS,
     add_split_argument,
     best_baseline,
+    check_split,
     gather_split,
     score_instance,
     summarise,
@@ -117,8 +117,7 @@ class PredictionConfig:
 
     def __post_init__(self) -> None:
         check_run_fields(self)
-        if self.split not in SPLITS:
-            raise ValueError(f"split: expected one of {SPLITS}, got {self.split!r}")
+        check_split(self.split)
         check_settings(
             self, "train_settings", "test_settings", _params, "(mass, half-length)"
         )

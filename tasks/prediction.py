@@ -41,6 +41,12 @@ PREDICTION_METHODS = ("hipmdp", "batch only", "train only", "batch + train")
 SPLITS = ("random", "time")
 
 
+def check_split(split: str) -> None:
+    """Raise ValueError unless ``split`` is one of SPLITS."""
+    if split not in SPLITS:
+        raise ValueError(f"split: expected one of {SPLITS}, got {split!r}")
+
+
 def add_split_argument(parser) -> None:
     """The experiments' ``--split`` flag (default None: the preset's, random)."""
     parser.add_argument(
@@ -97,8 +103,7 @@ def gather_split(
     Raises:
         ValueError: if ``max_episodes`` episodes are not enough.
     """
-    if split not in SPLITS:
-        raise ValueError(f"split: expected one of {SPLITS}, got {split!r}")
+    check_split(split)
     env_seed, agent_seed, split_seed = np.random.SeedSequence(
         int(rng.integers(2**63))
     ).spawn(3)
