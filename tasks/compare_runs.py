@@ -86,7 +86,7 @@ def flatten(x: Any, prefix: str = "") -> dict[str, Any]:
     return out
 
 
-def _differences(a: dict, b: dict, skip: tuple[str, ...] = ()) -> dict[str, list]:
+def differences(a: dict, b: dict, skip: tuple[str, ...] = ()) -> dict[str, list]:
     """Dotted keys whose leaves differ, ``[a's, b's]`` (None where absent);
     keys whose last part is in ``skip`` are left out."""
     fa, fb = flatten(a), flatten(b)
@@ -133,7 +133,7 @@ def compare_arrays(a: np.ndarray, b: np.ndarray) -> Any:
         except json.JSONDecodeError:
             ja, jb = str(a), str(b)
         if isinstance(ja, dict) and isinstance(jb, dict):
-            diff = _differences(ja, jb, PRESENTATION)
+            diff = differences(ja, jb, PRESENTATION)
             return "identical" if not diff else {"json": diff}
     numeric = a.dtype.kind in "iufcb" and b.dtype.kind in "iufcb"
     if not numeric and (
@@ -181,9 +181,9 @@ def main(run_a: str | Path, run_b: str | Path, out: str | Path | None = None):
     a, b = Path(run_a), Path(run_b)
     config_a, metrics_a, env_a = read_run(a)
     config_b, metrics_b, env_b = read_run(b)
-    config = _differences(config_a, config_b, PRESENTATION)
-    environment = _differences(env_a, env_b) if env_a and env_b else "unrecorded"
-    metrics = _differences(metrics_a, metrics_b)
+    config = differences(config_a, config_b, PRESENTATION)
+    environment = differences(env_a, env_b) if env_a and env_b else "unrecorded"
+    metrics = differences(metrics_a, metrics_b)
     names_a = {p.name for p in a.glob("*.npz")}
     names_b = {p.name for p in b.glob("*.npz")}
     arrays: dict[str, Any] = {}

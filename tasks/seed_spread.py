@@ -41,7 +41,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from scipy import stats
 
-from tasks.compare_runs import PRESENTATION, flatten, read_run
+from tasks.compare_runs import PRESENTATION, differences, read_run
 from tasks.experiment import fmt_ci, fmt_value, markdown_table, mean_ci, write_json
 from tasks.prediction import best_baseline
 
@@ -181,14 +181,8 @@ def experiment_of(metrics: dict) -> str | None:
 
 
 def _settings(config: dict) -> dict[str, Any]:
-    """A config's flattened settings, without LABELS and PRESENTATION."""
-    return {
-        k: v
-        for k, v in flatten(
-            {k: v for k, v in config.items() if k not in LABELS}
-        ).items()
-        if k.split(".")[-1] not in PRESENTATION
-    }
+    """A config without its LABELS."""
+    return {k: v for k, v in config.items() if k not in LABELS}
 
 
 def read_runs(runs: Sequence[str | Path]) -> tuple[str, list[dict], list[dict]]:
@@ -216,16 +210,13 @@ def read_runs(runs: Sequence[str | Path]) -> tuple[str, list[dict], list[dict]]:
             )
     if len(set(seeds)) != len(seeds):
         raise ValueError(f"runs: expected distinct seeds, got {seeds}")
-    base = _settings(configs[0])
     for run, config in zip(runs[1:], configs[1:], strict=True):
-        other = _settings(config)
-        differ = sorted(k for k in base.keys() | other.keys()
-                        if base.get(k) != other.get(k))  # fmt: skip
+        differ = differences(_settings(configs[0]), _settings(config), PRESENTATION)
         if differ:
             raise ValueError(
                 f"{run}: its config differs from {runs[0]}'s in more than the seed: "
                 + ", ".join(
-                    f"{k} ({base.get(k)!r} vs {other.get(k)!r})" for k in differ[:5]
+                    f"{k} ({a!r} vs {b!r})" for k, (a, b) in list(differ.items())[:5]
                 )  # fmt: skip
             )
     return kinds[0], configs, metrics
