@@ -159,22 +159,18 @@ def _cartpole(metrics: dict) -> list[Headline]:
     return out
 
 
-#: A metrics.json key that only each experiment writes.
-SIGNATURE = {
-    "acrobot_swingup": "episodes_to_near_optimal",
-    "cartpole_prediction": "mse_ratio_to_best_baseline",
-}
-#: The headline numbers of each experiment, from one run's metrics.
-HEADLINES: dict[str, Callable[[dict], list[Headline]]] = {
-    "acrobot_swingup": _acrobot,
-    "cartpole_prediction": _cartpole,
+#: Per experiment: a metrics.json key that only it writes, and its headline
+#: numbers from one run's metrics.
+EXPERIMENTS: dict[str, tuple[str, Callable[[dict], list[Headline]]]] = {
+    "acrobot_swingup": ("episodes_to_near_optimal", _acrobot),
+    "cartpole_prediction": ("mse_ratio_to_best_baseline", _cartpole),
 }
 
 
 def experiment_of(metrics: dict) -> str | None:
     """Which experiment wrote ``metrics`` (by a key only it writes; a run's
     ``name`` is its folder's label and may be anything), or None."""
-    for name, key in SIGNATURE.items():
+    for name, (key, _) in EXPERIMENTS.items():
         if key in metrics:
             return name
     return None
@@ -197,7 +193,7 @@ def read_runs(runs: Sequence[str | Path]) -> tuple[str, list[dict], list[dict]]:
     kinds = [experiment_of(m) for m in metrics]
     if len(set(kinds)) != 1 or kinds[0] is None:
         raise ValueError(
-            f"runs: expected runs of one of {sorted(HEADLINES)}, got "
+            f"runs: expected runs of one of {sorted(EXPERIMENTS)}, got "
             + ", ".join(
                 f"{r}: {k or 'another'}" for r, k in zip(runs, kinds, strict=True)
             )
@@ -289,7 +285,7 @@ def main(runs: Sequence[str | Path], out: str | Path | None = None) -> dict[str,
     runs = [str(r) for r in runs]
     name, configs, metrics = read_runs(runs)
     try:
-        headlines = HEADLINES[name](metrics[0])
+        headlines = EXPERIMENTS[name][1](metrics[0])
     except (KeyError, IndexError, TypeError) as err:
         raise ValueError(_older(runs[0], err)) from None
     numbers = []
