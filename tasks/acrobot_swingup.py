@@ -344,6 +344,7 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
     metrics.update(
         mse=mse["test"]["mse"],
         loglik_difference=mse["test"]["loglik_difference"],
+        coverage=mse["test"]["coverage"],
         mse_ratio_per_setting=mse["test"]["mse_ratio_per_setting"],
         test_settings_seen=mse["test"]["seen"],
         unseen=mse["test"]["unseen"],

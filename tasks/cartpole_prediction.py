@@ -228,6 +228,7 @@ def main(config: PredictionConfig, out: str | os.PathLike | None = None) -> Resu
     metrics: dict[str, Any] = {
         "mse": table["mse"],
         "loglik_difference": table["loglik_difference"],
+        "coverage": table["coverage"],
         "mse_ratio_to_best_baseline": _ratios(table["mse"]),
         "mse_ratio_per_setting": table["mse_ratio_per_setting"],
         "test_settings_seen": table["seen"],

@@ -17,7 +17,9 @@ held-out ones:
   hyperparameters; every train transition kept).
 
 Reported per output dimension: mean-squared error with a 95% interval over
-evaluation instances, and the test log-likelihood difference to the HiP-MDP. Run on
+evaluation instances, the test log-likelihood difference to the HiP-MDP, and the
+coverage of each method's central 50% and 95% predictive intervals (how far the
+predictive variance the log-likelihood rests on matches the errors). Run on
 training instances the same protocol gives the approximation floor (DESIGN §7): the
 error a method makes on instances it was fitted on.
 """
@@ -37,6 +39,8 @@ from tasks.experiment import fmt_ci, markdown_table, mean_ci
 Array = np.ndarray
 
 PREDICTION_METHODS = ("hipmdp", "batch only", "train only", "batch + train")
+#: Central predictive intervals whose coverage is reported (:func:`coverage`).
+COVERAGE_LEVELS = (0.5, 0.95)
 #: How a test setting's gathered transitions are split (:func:`gather_split`).
 SPLITS = ("random", "time")
 
@@ -60,10 +64,30 @@ def add_split_argument(parser) -> None:
 
 class InstanceScores(NamedTuple):
     """Scores on one instance: ``mse[method]`` shape (D,), ``loglik[method]`` (sum
-    over held-out transitions)."""
+    over held-out transitions), ``coverage[method]`` shape (len(COVERAGE_LEVELS),
+    D) (:func:`coverage`)."""
 
     mse: dict[str, Array]
     loglik: dict[str, float]
+    coverage: dict[str, Array]
+
+
+def coverage(
+    mean: Array, var: Array, observed: Array, levels: Sequence[float] = COVERAGE_LEVELS
+) -> Array:
+    """Share of ``observed`` (n, D) inside the central Gaussian predictive interval
+    ``mean ± z·sqrt(var)`` of each level (z the standard normal's quantile at
+    ``(1 + level) / 2``), per dimension: shape (len(levels), D). Above the level,
+    the variance is wider than the errors; a 95% share below 0.95 with a 50%
+    share above 0.5, errors more heavy-tailed than the Gaussian."""
+    from scipy.stats import norm
+
+    levels = np.asarray(levels, dtype=float)
+    if levels.ndim != 1 or not np.all((levels > 0) & (levels < 1)):
+        raise ValueError(f"levels: expected values in (0, 1), got {levels.tolist()}")
+    z = norm.ppf((1 + levels) / 2)
+    scaled = np.abs(np.asarray(observed) - mean) / np.sqrt(var)
+    return np.mean(scaled[None] <= z[:, None, None], axis=1)
 
 
 class Split(NamedTuple):
@@ -145,7 +169,8 @@ def score_instance(
     rng: np.random.Generator,
     n_max: int = 2000,
 ) -> InstanceScores:
-    """MSE per dimension and test log-likelihood of every method on ``test``.
+    """MSE per dimension, test log-likelihood and predictive-interval coverage
+    (:func:`coverage`) of every method on ``test``.
 
     ``hips``: one or more fitted HiP-MDPs; their scores are averaged.
     """
@@ -157,11 +182,15 @@ def score_instance(
         batch, train, rng=rng, hyper=average.hyper, n_max=n_max
     )
     beliefs = [hip.update(hip.prior(), train) for hip in hips]
-    predictions = {
-        "batch only": average.predict(test.states, test.actions)[0],
-        "train only": train_gp.predict(test.states, test.actions)[0],
-        "batch + train": both_gp.predict(test.states, test.actions)[0],
+    predictions = {  # (mean, variance) of Δs
+        "batch only": average.predict(test.states, test.actions),
+        "train only": train_gp.predict(test.states, test.actions),
+        "batch + train": both_gp.predict(test.states, test.actions),
     }
+    hip_predictions = [
+        h.predict(test.states, test.actions, b)
+        for h, b in zip(hips, beliefs, strict=True)
+    ]
     loglik = {
         "hipmdp": float(
             np.mean(
@@ -173,15 +202,15 @@ def score_instance(
         "batch + train": float(both_gp.log_likelihood(test)),
     }
     deltas = test.deltas
-    mse = {m: np.mean((p - deltas) ** 2, axis=0) for m, p in predictions.items()}
+    mse = {m: np.mean((p - deltas) ** 2, axis=0) for m, (p, _) in predictions.items()}
     mse["hipmdp"] = np.mean(
-        [
-            np.mean((h.predict(test.states, test.actions, b)[0] - deltas) ** 2, axis=0)
-            for h, b in zip(hips, beliefs, strict=True)
-        ],
-        axis=0,
+        [np.mean((p - deltas) ** 2, axis=0) for p, _ in hip_predictions], axis=0
     )
-    return InstanceScores(mse=mse, loglik=loglik)
+    covered = {m: coverage(p, v, deltas) for m, (p, v) in predictions.items()}
+    covered["hipmdp"] = np.mean(
+        [coverage(p, v, deltas) for p, v in hip_predictions], axis=0
+    )
+    return InstanceScores(mse=mse, loglik=loglik, coverage=covered)
 
 
 def summarise(
@@ -189,9 +218,11 @@ def summarise(
     dim_names: Sequence[str],
     seen: Sequence[bool] | None = None,
 ) -> dict[str, Any]:
-    """Intervals over instances (the unit is the test setting): ``mse[method][dim]``
-    and ``loglik_difference[method]`` (HiP-MDP minus method; > 0 favours the
-    HiP-MDP), and ``per_instance``, the same values setting by setting.
+    """Intervals over instances (the unit is the test setting): ``mse[method][dim]``,
+    ``loglik_difference[method]`` (HiP-MDP minus method; > 0 favours the HiP-MDP)
+    and ``coverage[method][level][dim]`` (level as ``"0.95"``; the share of
+    held-out Δ inside the central predictive interval), and ``per_instance``, the
+    same values setting by setting.
 
     ``seen[i]``: whether instance i has the parameters of a training instance (the
     test grids include the training settings, as in the paper). Given, the result
@@ -208,6 +239,12 @@ def summarise(
             m: [float(s.loglik["hipmdp"] - s.loglik[m]) for s in scores]
             for m in PREDICTION_METHODS
             if m != "hipmdp"
+        },
+        "coverage": {
+            m: {f"{level:g}": {name: [float(s.coverage[m][k, d]) for s in scores]
+                               for d, name in enumerate(dim_names)}
+                for k, level in enumerate(COVERAGE_LEVELS)}
+            for m in PREDICTION_METHODS
         },
     }  # fmt: skip
     out = _intervals(per_instance, range(len(scores)))
@@ -256,7 +293,8 @@ def mse_ratios(per_setting: dict[str, dict[str, list[float]]]) -> dict[str, Any]
 
 
 def _intervals(per_instance: dict[str, Any], rows: Sequence[int]) -> dict[str, Any]:
-    """``mse`` and ``loglik_difference`` intervals over the instances ``rows``."""
+    """``mse``, ``loglik_difference`` and ``coverage`` intervals over the
+    instances ``rows``."""
     rows = list(rows)
     return {
         "mse": {
@@ -266,6 +304,13 @@ def _intervals(per_instance: dict[str, Any], rows: Sequence[int]) -> dict[str, A
         "loglik_difference": {
             m: mean_ci(np.asarray(v)[rows])
             for m, v in per_instance["loglik_difference"].items()
+        },
+        "coverage": {
+            m: {
+                level: {name: mean_ci(np.asarray(v)[rows]) for name, v in dims.items()}
+                for level, dims in levels.items()
+            }
+            for m, levels in per_instance["coverage"].items()
         },
         "n_instances": len(rows),
     }
@@ -308,6 +353,37 @@ def mse_table(mse: dict[str, Any]) -> str:
     return markdown_table(
         ["method", *dims], [[m] + [fmt_ci(mse[m][d]) for d in dims] for m in mse]
     )
+
+
+def coverage_table(coverage: dict[str, Any]) -> str:
+    """``coverage[method][level][dimension]`` intervals as a markdown table: per
+    dimension, each level's mean share over settings, levels joined by " / "."""
+    levels = list(next(iter(coverage.values())))
+    dims = list(coverage[next(iter(coverage))][levels[0]])
+    return markdown_table(
+        ["method", *dims],
+        [
+            [m] + [" / ".join(f"{c[lv][d]['mean']:.2f}" for lv in levels) for d in dims]
+            for m, c in coverage.items()
+        ],
+    )
+
+
+def coverage_text(coverage: dict[str, Any] | None) -> str:
+    """The coverage table with what it measures, or "" for a run without it."""
+    if not coverage:
+        return ""
+    levels = list(next(iter(coverage.values())))
+    pct = " / ".join(f"{float(lv):.0%}" for lv in levels)
+    nominal = " / ".join(f"{float(lv):.2f}" for lv in levels)
+    return f"""Share of the held-out Δ inside each method's central {pct} Gaussian
+predictive interval (mean over settings; with 95% intervals over settings in
+`metrics.json`, `coverage`). A calibrated predictive gives {nominal}. Shares
+above these: the predictive variance is wider than the errors; the last below its
+level while the first is above its own: errors heavier-tailed than the Gaussian.
+The log-likelihoods rest on these variances.
+
+{coverage_table(coverage)}"""
 
 
 def unseen_section(metrics: dict[str, Any]) -> str:

@@ -19,6 +19,7 @@ from tasks.experiment import (
 )
 from tasks.prediction import (
     PREDICTION_METHODS,
+    coverage_text,
     mse_table,
     ratio_text,
     unseen_section,
@@ -159,6 +160,8 @@ paper reports 0.3 on Δẋ and 0.17 on Δθ̇):
 Positive favours the HiP-MDP; mean [95% interval] over test settings.
 
 {ll}
+
+{coverage_text(metrics.get("coverage"))}
 
 {unseen_section(metrics)}
 

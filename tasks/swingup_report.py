@@ -16,7 +16,7 @@ from tasks.experiment import (
     weights_figure,
     write_text,
 )
-from tasks.prediction import mse_table, ratio_text, unseen_section
+from tasks.prediction import coverage_text, mse_table, ratio_text, unseen_section
 from tasks.recording import Recording
 from tasks.transfer import METHODS
 
@@ -286,6 +286,8 @@ Test log-likelihood over {config.mse_test} test transitions, HiP-MDP minus metho
 (positive favours the HiP-MDP; interval over settings):
 
 {markdown_table(["method", "difference"], ll_rows)}
+
+{coverage_text(metrics.get("coverage"))}
 
 {unseen_text}
 

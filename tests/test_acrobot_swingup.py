@@ -25,6 +25,7 @@ from tasks.acrobot_swingup import (
 from tasks.prediction import score_settings
 from tasks.recording import rrd_contents
 from tasks.transfer import METHODS, TransferConfig, TrialResult, run_trial
+from tests._prediction import assert_coverage_schema
 from tests._seed_spread import assert_reads_the_run
 
 TINY = SwingupConfig(
@@ -118,6 +119,9 @@ def test_metrics_schema(run):
     # the run pinned BLAS to one thread, whatever the caller had (one_blas_thread)
     assert {b["num_threads"] for b in m["environment"]["blas"]} == {1}
     assert "Machine: " in (run.out / "report.md").read_text()
+    assert_coverage_schema(
+        m, list(m["mse"]["hipmdp"]), (run.out / "report.md").read_text()
+    )
 
 
 def test_paired_differences_and_step_limit_rates_agree_with_the_curves(run):
@@ -220,6 +224,7 @@ def test_time_split_reaches_the_prediction_table(run, monkeypatch):
         return prediction.InstanceScores(
             {m: np.ones(4) for m in prediction.PREDICTION_METHODS},
             {m: 0.0 for m in prediction.PREDICTION_METHODS},
+            {m: np.ones((2, 4)) for m in prediction.PREDICTION_METHODS},
         )
 
     monkeypatch.setattr(prediction, "gather_split", gather_spy)

@@ -13,6 +13,7 @@ import hipmdp
 from tasks.cartpole_prediction import DIM_NAMES, PredictionConfig, main, parse_args
 from tasks.prediction import PREDICTION_METHODS, best_baseline
 from tasks.recording import rrd_contents
+from tests._prediction import assert_coverage_schema
 from tests._seed_spread import assert_reads_the_run
 
 TINY = PredictionConfig(
@@ -70,6 +71,7 @@ def test_artefacts_and_schema(run):
     assert set(m["mse_ratio_to_best_baseline"]) == set(DIM_NAMES)
     assert m["environment"]["packages"]["numpy"] == np.__version__
     assert "Machine: " in (run.out / "report.md").read_text()
+    assert_coverage_schema(m, DIM_NAMES, (run.out / "report.md").read_text())
 
 
 def test_same_seed_same_metrics_whatever_the_callers_blas_threads(run, tmp_path):
@@ -157,16 +159,64 @@ def test_summarise_separates_the_settings_seen_in_training():
 
     def scores(x):
         mse = {m: np.full(4, x) for m in PREDICTION_METHODS}
-        return InstanceScores(mse=mse, loglik={m: x for m in PREDICTION_METHODS})
+        # levels (0.5, 0.95) x dimensions: distinct values, so a swap shows
+        cover = {m: np.array([[0.1, 0.2, 0.3, 0.4], [0.5, 0.6, 0.7, 0.8]]) * x / 4
+                 for m in PREDICTION_METHODS}  # fmt: skip
+        loglik = {m: x for m in PREDICTION_METHODS}
+        return InstanceScores(mse=mse, loglik=loglik, coverage=cover)
 
     table = summarise([scores(1.0), scores(2.0), scores(4.0)], DIM_NAMES, [1, 0, 0])
     assert table["seen"] == [True, False, False]
     assert table["mse"]["hipmdp"]["dx"]["mean"] == pytest.approx(7 / 3)
     assert table["unseen"]["mse"]["hipmdp"]["dx"]["mean"] == pytest.approx(3.0)
+    coverage = table["coverage"]["train only"]
+    assert list(coverage) == ["0.5", "0.95"]
+    assert coverage["0.5"]["dtheta"]["mean"] == pytest.approx(0.2 * 7 / 12)
+    assert coverage["0.95"]["dx"]["mean"] == pytest.approx(0.5 * 7 / 12)
+    unseen = table["unseen"]["coverage"]["hipmdp"]["0.95"]["dtheta_dot"]
+    assert unseen["mean"] == pytest.approx(0.8 * 3 / 4)
     assert table["unseen"]["n_instances"] == 2
     assert summarise([scores(1.0)], DIM_NAMES, [True])["unseen"] is None
     with pytest.raises(ValueError, match="seen: expected 1 flags"):
         summarise([scores(1.0)], DIM_NAMES, [True, False])
+
+
+def test_coverage_counts_as_the_dense_interval_check_does():
+    from scipy.stats import norm
+
+    from tasks.prediction import coverage
+
+    rng = np.random.default_rng(3)
+    mean, var = rng.normal(size=(200, 3)), rng.uniform(0.1, 4.0, size=(200, 3))
+    observed = mean + rng.standard_t(3, size=(200, 3)) * np.sqrt(var)
+    levels = (0.2, 0.5, 0.95)
+    expected = np.zeros((3, 3))
+    for k, level in enumerate(levels):
+        for i in range(200):
+            for d in range(3):
+                low, high = norm.interval(level, mean[i, d], np.sqrt(var[i, d]))
+                expected[k, d] += (low <= observed[i, d] <= high) / 200
+    np.testing.assert_allclose(coverage(mean, var, observed, levels), expected)
+    with pytest.raises(ValueError, match="levels: expected values in"):
+        coverage(mean, var, observed, (0.5, 1.0))
+
+
+@pytest.mark.parametrize("scale, side", [(1.0, 0), (4.0, 1), (0.25, -1)])
+def test_coverage_is_nominal_only_for_the_true_variance(scale, side):
+    """Gaussian errors of variance 1 under predictive variance ``scale``: nominal
+    within 4 binomial sds at scale 1, above it for a wider variance, below for a
+    narrower one."""
+    from tasks.prediction import COVERAGE_LEVELS, coverage
+
+    n = 20_000
+    observed = np.random.default_rng(4).normal(size=(n, 2))
+    shares = coverage(np.zeros((n, 2)), np.full((n, 2), scale), observed)
+    for level, share in zip(COVERAGE_LEVELS, shares, strict=True):
+        sd = np.sqrt(level * (1 - level) / n)
+        if side == 0:
+            assert np.all(np.abs(share - level) < 4 * sd)
+        else:
+            assert np.all(side * (share - level) > 4 * sd)
 
 
 def test_mse_ratios_are_paired_per_setting():
