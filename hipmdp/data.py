@@ -99,17 +99,10 @@ def check_queries(
     actions (a continuous action would be truncated to its index) and bools are
     refused. Returns the states as floats and the actions as integers.
     """
-    states = np.asarray(states)
-    if states.dtype == object or not (
-        np.issubdtype(states.dtype, np.floating)
-        or np.issubdtype(states.dtype, np.integer)
-    ):
-        raise ValueError(f"states: expected a numeric array, got dtype {states.dtype}")
-    states = states.astype(float)
-    if states.ndim != 2 or states.shape[1] != state_dim:
-        raise ValueError(f"states: expected shape (n, {state_dim}), got {states.shape}")
-    if not np.all(np.isfinite(states)):
-        raise ValueError("states: expected finite values")
+    shape = f"(n, {state_dim})"
+    states = _finite_float("states", states, shape, 2)
+    if states.shape[1] != state_dim:
+        raise ValueError(f"states: expected shape {shape}, got {states.shape}")
     actions = _int_array("actions", actions, len(states))
     if len(actions) and (actions.min() < 0 or actions.max() >= n_actions):
         raise ValueError(f"actions: expected integers in [0, {n_actions})")

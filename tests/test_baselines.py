@@ -151,7 +151,12 @@ def test_missing_action_needs_hyperparameters():
     [
         (np.zeros((3, D + 1)), np.zeros(3, int), "states: expected shape"),
         (np.zeros((3, D)), np.zeros(2, int), "actions: expected shape"),
-        (np.full((3, D), np.nan), np.zeros(3, int), "states: expected finite"),
+        (
+            np.full((3, D), np.nan),
+            np.zeros(3, int),
+            r"states: non-finite value at index \(0, 0\)",
+        ),
+        ([[0.0] * D, [0.0]], [0, 0], r"states: expected an array of shape \(n, 2\)"),
         (np.zeros((3, D)), np.full(3, 7), r"actions: expected integers in \[0, 2\)"),
         # a continuous action is refused, not truncated to an index
         (np.zeros((2, D)), [0.7, 1.2], "actions: expected integers, got non-integer"),
