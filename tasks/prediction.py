@@ -78,8 +78,7 @@ def coverage(
     """Share of ``observed`` (n, D) inside the central Gaussian predictive interval
     ``mean ± z·sqrt(var)`` of each level (z the standard normal's quantile at
     ``(1 + level) / 2``), per dimension: shape (len(levels), D). Above the level,
-    the variance is wider than the errors; a 95% share below 0.95 with a 50%
-    share above 0.5, errors more heavy-tailed than the Gaussian."""
+    the predictive variance is wider than the errors; below it, narrower."""
     from scipy.stats import norm
 
     levels = np.asarray(levels, dtype=float)
@@ -377,11 +376,10 @@ def coverage_text(coverage: dict[str, Any] | None) -> str:
     pct = " / ".join(f"{float(lv):.0%}" for lv in levels)
     nominal = " / ".join(f"{float(lv):.2f}" for lv in levels)
     return f"""Share of the held-out Δ inside each method's central {pct} Gaussian
-predictive interval (mean over settings; with 95% intervals over settings in
-`metrics.json`, `coverage`). A calibrated predictive gives {nominal}. Shares
-above these: the predictive variance is wider than the errors; the last below its
-level while the first is above its own: errors heavier-tailed than the Gaussian.
-The log-likelihoods rest on these variances.
+predictive intervals (mean over settings; with 95% intervals over settings in
+`metrics.json`, `coverage`). A calibrated predictive gives {nominal}; above:
+the predictive variance is wider than the errors; below: narrower. The
+log-likelihoods rest on these variances.
 
 {coverage_table(coverage)}"""
 
