@@ -78,14 +78,27 @@ def coverage(
     """Share of ``observed`` (n, D) inside the central Gaussian predictive interval
     ``mean ± z·sqrt(var)`` of each level (z the standard normal's quantile at
     ``(1 + level) / 2``), per dimension: shape (len(levels), D). Above the level,
-    the predictive variance is wider than the errors; below it, narrower."""
+    the predictive variance is wider than the errors; below it, narrower.
+
+    Raises:
+        ValueError: unless ``mean``, ``var`` and ``observed`` have one shape
+            (n, D), ``var > 0`` and every level is in (0, 1).
+    """
     from scipy.stats import norm
 
     levels = np.asarray(levels, dtype=float)
     if levels.ndim != 1 or not np.all((levels > 0) & (levels < 1)):
         raise ValueError(f"levels: expected values in (0, 1), got {levels.tolist()}")
+    mean, var, observed = (np.asarray(x, dtype=float) for x in (mean, var, observed))
+    if mean.ndim != 2 or not mean.shape == var.shape == observed.shape:
+        raise ValueError(
+            "mean, var, observed: expected one shape (n, D), got "
+            f"{mean.shape}, {var.shape}, {observed.shape}"
+        )
+    if not np.all(var > 0):
+        raise ValueError("var: expected values > 0")
     z = norm.ppf((1 + levels) / 2)
-    scaled = np.abs(np.asarray(observed) - mean) / np.sqrt(var)
+    scaled = np.abs(observed - mean) / np.sqrt(var)
     return np.mean(scaled[None] <= z[:, None, None], axis=1)
 
 
@@ -171,7 +184,8 @@ def score_instance(
     """MSE per dimension, test log-likelihood and predictive-interval coverage
     (:func:`coverage`) of every method on ``test``.
 
-    ``hips``: one or more fitted HiP-MDPs; their scores are averaged.
+    ``hips``: one or more fitted HiP-MDPs; their scores are averaged (its
+    coverage is the mean of each fit's, not that of their mixture).
     """
     # every GP measures angles as the average model does (FitConfig.periodic)
     train_gp = baselines.train_only(
@@ -354,10 +368,9 @@ def mse_table(mse: dict[str, Any]) -> str:
     )
 
 
-def coverage_table(coverage: dict[str, Any]) -> str:
+def coverage_table(coverage: dict[str, Any], levels: list[str]) -> str:
     """``coverage[method][level][dimension]`` intervals as a markdown table: per
     dimension, each level's mean share over settings, levels joined by " / "."""
-    levels = list(next(iter(coverage.values())))
     dims = list(coverage[next(iter(coverage))][levels[0]])
     return markdown_table(
         ["method", *dims],
@@ -376,12 +389,12 @@ def coverage_text(coverage: dict[str, Any] | None) -> str:
     pct = " / ".join(f"{float(lv):.0%}" for lv in levels)
     nominal = " / ".join(f"{float(lv):.2f}" for lv in levels)
     return f"""Share of the held-out Δ inside each method's central {pct} Gaussian
-predictive intervals (mean over settings; with 95% intervals over settings in
-`metrics.json`, `coverage`). A calibrated predictive gives {nominal}; above:
-the predictive variance is wider than the errors; below: narrower. The
-log-likelihoods rest on these variances.
+predictive intervals (mean over settings, and over fits for the HiP-MDP; with
+95% t-intervals over settings in `metrics.json`, `coverage`). A calibrated
+predictive gives {nominal}; above: the predictive variance is wider than the
+errors; below: narrower. The log-likelihoods rest on these variances.
 
-{coverage_table(coverage)}"""
+{coverage_table(coverage, levels)}"""
 
 
 def unseen_section(metrics: dict[str, Any]) -> str:

@@ -224,7 +224,10 @@ def test_time_split_reaches_the_prediction_table(run, monkeypatch):
         return prediction.InstanceScores(
             {m: np.ones(4) for m in prediction.PREDICTION_METHODS},
             {m: 0.0 for m in prediction.PREDICTION_METHODS},
-            {m: np.ones((2, 4)) for m in prediction.PREDICTION_METHODS},
+            {
+                m: np.ones((len(prediction.COVERAGE_LEVELS), 4))
+                for m in prediction.PREDICTION_METHODS
+            },
         )
 
     monkeypatch.setattr(prediction, "gather_split", gather_spy)

@@ -4,6 +4,7 @@ config and writes every artefact with the documented schema."""
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -159,9 +160,11 @@ def test_summarise_separates_the_settings_seen_in_training():
 
     def scores(x):
         mse = {m: np.full(4, x) for m in PREDICTION_METHODS}
-        # levels (0.5, 0.95) x dimensions: distinct values, so a swap shows
-        cover = {m: np.array([[0.1, 0.2, 0.3, 0.4], [0.5, 0.6, 0.7, 0.8]]) * x / 4
-                 for m in PREDICTION_METHODS}  # fmt: skip
+        # levels (0.5, 0.95) x dimensions, offset per method: distinct values,
+        # so a swapped level, dimension or method shows
+        base = np.array([[0.1, 0.2, 0.3, 0.4], [0.5, 0.6, 0.7, 0.8]])
+        cover = {m: base * x / 4 + 0.01 * i
+                 for i, m in enumerate(PREDICTION_METHODS)}  # fmt: skip
         loglik = {m: x for m in PREDICTION_METHODS}
         return InstanceScores(mse=mse, loglik=loglik, coverage=cover)
 
@@ -169,10 +172,10 @@ def test_summarise_separates_the_settings_seen_in_training():
     assert table["seen"] == [True, False, False]
     assert table["mse"]["hipmdp"]["dx"]["mean"] == pytest.approx(7 / 3)
     assert table["unseen"]["mse"]["hipmdp"]["dx"]["mean"] == pytest.approx(3.0)
-    coverage = table["coverage"]["train only"]
+    coverage = table["coverage"]["train only"]  # method 2
     assert list(coverage) == ["0.5", "0.95"]
-    assert coverage["0.5"]["dtheta"]["mean"] == pytest.approx(0.2 * 7 / 12)
-    assert coverage["0.95"]["dx"]["mean"] == pytest.approx(0.5 * 7 / 12)
+    assert coverage["0.5"]["dtheta"]["mean"] == pytest.approx(0.2 * 7 / 12 + 0.02)
+    assert coverage["0.95"]["dx"]["mean"] == pytest.approx(0.5 * 7 / 12 + 0.02)
     unseen = table["unseen"]["coverage"]["hipmdp"]["0.95"]["dtheta_dot"]
     assert unseen["mean"] == pytest.approx(0.8 * 3 / 4)
     assert table["unseen"]["n_instances"] == 2
@@ -199,6 +202,64 @@ def test_coverage_counts_as_the_dense_interval_check_does():
     np.testing.assert_allclose(coverage(mean, var, observed, levels), expected)
     with pytest.raises(ValueError, match="levels: expected values in"):
         coverage(mean, var, observed, (0.5, 1.0))
+
+
+@pytest.mark.parametrize(
+    "mean, var, observed, match",
+    [
+        (np.zeros((3, 2)), np.ones((3, 1)), np.zeros((3, 2)), "expected one shape"),
+        (np.zeros(3), np.ones(3), np.zeros(3), "expected one shape"),
+        (np.zeros((3, 2)), np.zeros((3, 2)), np.zeros((3, 2)), "var: expected"),
+    ],
+)
+def test_coverage_refuses_mismatched_or_zero_variances(mean, var, observed, match):
+    from tasks.prediction import coverage
+
+    with pytest.raises(ValueError, match=match):
+        coverage(mean, var, observed)
+
+
+def test_score_instance_averages_the_fits_scores(monkeypatch):
+    """With several HiP-MDP fits, its MSE and coverage are the means of each fit's
+    (stub models: each predicts a constant mean and variance)."""
+    from tasks import prediction
+
+    class Stub:
+        def __init__(self, mean, var):
+            self.mean, self.var, self.n_actions = mean, var, 2
+            self.hyper = SimpleNamespace(periodic=())
+
+        def prior(self):
+            return None
+
+        def update(self, belief, data):
+            return None
+
+        def predict(self, states, actions, belief=None):
+            shape = (len(states), 4)
+            return np.full(shape, self.mean), np.full(shape, self.var)
+
+        def log_likelihood(self, data, belief=None):
+            return 0.0
+
+    for name in ("train_only", "batch_plus_train"):
+        monkeypatch.setattr(prediction.baselines, name, lambda *a, **k: Stub(0, 1))
+    rng = np.random.default_rng(5)
+    states = rng.normal(size=(400, 4))
+    test = hipmdp.Transitions(
+        states, rng.integers(0, 2, 400), states + rng.normal(size=(400, 4)),
+        np.zeros(400, int),
+    )  # fmt: skip
+    fits = [Stub(0.0, 0.25), Stub(1.0, 4.0)]
+    scores = prediction.score_instance(fits, Stub(0, 1), test, test, test, rng=rng)
+    d = test.deltas
+    np.testing.assert_allclose(
+        scores.mse["hipmdp"], np.mean([np.mean((d - f.mean) ** 2, 0) for f in fits], 0)
+    )
+    each = [prediction.coverage(np.full_like(d, f.mean), np.full_like(d, f.var), d)
+            for f in fits]  # fmt: skip
+    np.testing.assert_allclose(scores.coverage["hipmdp"], np.mean(each, axis=0))
+    assert not np.allclose(each[0], each[1])  # so one fit alone would not pass
 
 
 @pytest.mark.parametrize("scale, side", [(1.0, 0), (4.0, 1), (0.25, -1)])
