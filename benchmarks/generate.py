@@ -109,7 +109,9 @@ def shard_rate(batch, submit) -> Rate:
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.generate", description=__doc__.splitlines()[0]
+    )
     parser.add_argument("--domain", default="acrobot", choices=sorted(MODULES))
     parser.add_argument("--instances", type=int, default=16, help="per shard")
     parser.add_argument("--episodes", type=int, default=2, help="per instance")

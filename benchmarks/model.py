@@ -67,7 +67,9 @@ def timed(fn):
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.model", description=__doc__.splitlines()[0]
+    )
     parser.add_argument("--sweeps", type=int, default=250)
     parser.add_argument("--chains", type=int, default=FitConfig.n_chains)
     args = parser.parse_args()

@@ -195,6 +195,8 @@ def main(quick: bool = False) -> None:
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.sampler", description=__doc__.splitlines()[0]
+    )
     parser.add_argument("--quick", action="store_true", help="m = 250, no m sweep")
     main(parser.parse_args().quick)

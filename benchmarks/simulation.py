@@ -55,7 +55,9 @@ def env_steps_per_second(env, n_actions, n_steps, rng):
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.simulation", description=__doc__.splitlines()[0]
+    )
     parser.add_argument("--steps", type=int, default=5000, help="control steps")
     args = parser.parse_args(argv)
     if args.steps < 1:

@@ -33,6 +33,7 @@ import numpy as np
 import hipmdp
 from tasks.acrobot_identified import check_run, load_run
 from tasks.experiment import (
+    check_out_file,
     environment,
     one_blas_thread,
     run_or_exit,
@@ -65,7 +66,7 @@ def main(run: str | Path, *, fast: float = 10.0, out: str | Path | None = None):
     check_run(run)
     if not (np.isfinite(fast) and fast > 0):
         raise ValueError(f"fast: expected a finite number > 0 (rad/s), got {fast}")
-    out_path = run / "batch_errors.json" if out is None else Path(out)
+    out_path = run / "batch_errors.json" if out is None else check_out_file(out)
     _, hip, average, batch = load_run(run)
     K = hip.n_features - 1
     rmse: dict[str, dict[str, list]] = {m: {"fast": [], "slow": []} for m in MODELS}

@@ -79,6 +79,8 @@ from tasks.acrobot_swingup import run_test_instances
 from tasks.agents import ACROBOT, SimulatorModel, run_episode
 from tasks.experiment import (
     check_counts,
+    check_integer,
+    check_out_file,
     environment,
     fmt_ci,
     mean_ci,
@@ -478,8 +480,15 @@ def main(
     check_run(run)
     # the names are the command line's
     check_counts(
-        trials=trials, identify=identify, states=n_states, last=last, real=real
+        trials=trials,
+        identify=identify,
+        states=n_states,
+        last=last,
+        real=real,
+        workers=workers,
     )
+    check_integer("seed", seed, 0)
+    path = run / "energy.json" if out is None else check_out_file(out)
     if noise is not None and not (np.isfinite(noise) and noise > 0):
         raise ValueError(f"noise: expected a positive finite σ in rad/s, got {noise}")
     if not (np.isfinite(fast) and fast > 0):
@@ -603,7 +612,6 @@ def main(
         },
         "environment": machine,
     }
-    path = run / "energy.json" if out is None else Path(out)
     return Results(write_json(path, summary), summary)
 
 

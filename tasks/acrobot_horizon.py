@@ -43,6 +43,8 @@ from tasks.acrobot_swingup import run_test_instances
 from tasks.agents import ACROBOT
 from tasks.experiment import (
     check_counts,
+    check_integer,
+    check_out_file,
     environment,
     one_blas_thread,
     run_or_exit,
@@ -84,6 +86,8 @@ def main(
     if not horizons or min(horizons) < 1:
         raise ValueError(f"horizons: expected integers >= 1, got {horizons}")
     check_counts(identify=identify, evaluate=evaluate)
+    check_integer("seed", seed, 0)
+    path = run / "horizon.json" if out is None else check_out_file(out)
     config, hip, average, _ = load_run(run)
     masses = [tuple(m) for m in config["test_masses"]]
     instances = run_test_instances(config)
@@ -133,7 +137,6 @@ def main(
         },
         "environment": machine,
     }
-    path = run / "horizon.json" if out is None else Path(out)
     return Results(write_json(path, summary), summary)
 
 

@@ -75,6 +75,8 @@ from tasks.acrobot_swingup import run_streams, run_test_instances
 from tasks.agents import ACROBOT, EnergyConserving, SimulatorModel
 from tasks.experiment import (
     check_counts,
+    check_integer,
+    check_out_file,
     environment,
     mean_ci,
     one_blas_thread,
@@ -266,12 +268,13 @@ def main(
     after the first real one and before it (None: the run's)."""
     machine = environment()  # the code and machine as the check starts
     run = Path(run)
-    out_path = run / "identified.json" if out is None else Path(out)
+    out_path = run / "identified.json" if out is None else check_out_file(out)
     check_run(run)
     unknown = set(variants) - set(VARIANTS)
     if unknown or not variants:
         raise ValueError(f"variants: expected some of {VARIANTS}, got {variants}")
-    check_counts(trials=trials, episodes=episodes, identify=identify)
+    check_counts(trials=trials, episodes=episodes, identify=identify, workers=workers)
+    check_integer("seed", seed, 0)
     for name, value in (
         ("first_planning", first_planning),
         ("initial_planning", initial_planning),

@@ -38,7 +38,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from tasks.experiment import write_json
+from tasks.experiment import check_out_file, write_json
 
 #: Metrics that say how long a run took, never what it found.
 IGNORED_METRICS = ("seconds",)
@@ -178,6 +178,8 @@ def _compare_files(fa: Path, fb: Path) -> dict[str, Any]:
 
 def main(run_a: str | Path, run_b: str | Path, out: str | Path | None = None):
     """Compare two run folders; see the module docstring."""
+    if out is not None:
+        check_out_file(out)
     a, b = Path(run_a), Path(run_b)
     config_a, metrics_a, env_a = read_run(a)
     config_b, metrics_b, env_b = read_run(b)

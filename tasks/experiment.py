@@ -234,9 +234,12 @@ def check_out(
     """:func:`run_dir`'s checks, with no side effect: the folder and the previous
     run's files in it that a run would delete. Raises ``ValueError`` as
     :func:`run_dir`."""
+    if out is not None and not os.fspath(out).strip():
+        raise ValueError(f"out: expected a folder path, got {os.fspath(out)!r}")
     path = Path(out) if out is not None else Path("runs") / name
     if path.exists() and not path.is_dir():
         raise ValueError(f"out: {path} exists and is not a folder")
+    check_makeable(path)
     stale = sorted({f for pattern in artefacts for f in path.glob(pattern)})
     if stale and _run_name(path / "config.json") != name:
         raise ValueError(
@@ -244,6 +247,30 @@ def check_out(
             f"config.json of a {name} run; choose a new or empty folder"
         )
     return path, stale
+
+
+def check_makeable(path: Path, name: str = "out") -> None:
+    """Raise ``ValueError`` naming ``name`` unless ``path`` can be made: its
+    nearest existing ancestor is a folder (the missing ones are made on
+    writing), not a file."""
+    ancestor = next(p for p in Path(path).absolute().parents if p.exists())
+    if not ancestor.is_dir():
+        raise ValueError(
+            f"{name}: {ancestor} is not a folder, so {path} cannot be made"
+        )
+
+
+def check_out_file(out: str | os.PathLike) -> Path:
+    """The file ``out`` a command will write, checked before any work: a
+    non-empty path that is not a folder and can be made (:func:`check_makeable`).
+    Raises ``ValueError`` naming ``out``."""
+    if not os.fspath(out).strip():
+        raise ValueError(f"out: expected a file path, got {os.fspath(out)!r}")
+    path = Path(out)
+    if path.is_dir():
+        raise ValueError(f"out: {path} is a folder; expected a file path")
+    check_makeable(path)
+    return path
 
 
 def _run_name(config_file: Path) -> str | None:
@@ -496,6 +523,14 @@ def seed_argument(text: str) -> int:
     return value
 
 
+def path_argument(text: str) -> Path:
+    """argparse type of a path to write (``--out``): not empty (``Path("")`` would
+    be the working directory)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"expected a path, got {text!r}")
+    return Path(text)
+
+
 def run_parser(prog: str, doc: str):
     """The argument parser of a check on a finished run: ``prog``, the module
     docstring ``doc`` as its description, and the positional ``run`` folder."""
@@ -531,7 +566,9 @@ def common_parser(prog: str, doc: str, presets: Sequence[str], out_default: str)
     parser.add_argument(
         "--seed", type=seed_argument, default=0, help="the one seed (default 0)"
     )
-    parser.add_argument("--out", default=None, help=f"output folder ({out_default})")
+    parser.add_argument(
+        "--out", type=path_argument, default=None, help=f"output folder ({out_default})"
+    )
     parser.add_argument(
         "--workers",
         type=int,

@@ -57,7 +57,12 @@ from hipmdp import shards
 from tasks.acrobot import AcrobotParams, book_inertia_range, with_book_inertia
 from tasks.collect import DOMAINS, collect, collect_sarsa, get_domain
 from tasks.distributions import KINDS, SPLITS, Distribution, draw
-from tasks.experiment import one_blas_thread, seed_argument
+from tasks.experiment import (
+    check_makeable,
+    one_blas_thread,
+    path_argument,
+    seed_argument,
+)
 from tasks.rollout import collect_open_loop
 
 #: Parameters varied when no `--vary` is given: name -> (low, high).
@@ -154,9 +159,14 @@ def build_parser() -> argparse.ArgumentParser:
     add = parser.add_argument
     add("--domain", required=True, choices=sorted(DOMAINS))
     add("--instances", type=int, default=None, help="instances drawn (default 4)")
-    add("--episodes-per-instance", type=int, default=2)
+    add("--episodes-per-instance", type=int, default=2, help="episodes (default 2)")
     add("--seed", type=seed_argument, default=0, help="the one seed of every stream")
-    add("--out", type=Path, default=Path("runs/data"), help="run directory")
+    add(
+        "--out",
+        type=path_argument,
+        default=Path("runs/data"),
+        help="run directory (default runs/data)",
+    )
     add("--vary", action="append", metavar="NAME=LOW:HIGH", help="repeatable")
     add("--distribution", choices=KINDS, default=None, help="default: uniform")
     add("--grid", type=int, metavar="K", help="K points per parameter (grid)")
@@ -341,6 +351,7 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
     """
     if config.out.exists() and not config.out.is_dir():
         raise ValueError(f"--out {config.out} exists and is not a folder")
+    check_makeable(config.out, "--out")
     fresh = plan(config)
     old = shards.read_manifest(config.out)
     if old is None:

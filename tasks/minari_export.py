@@ -39,6 +39,7 @@ import numpy as np
 from hipmdp import shards
 from tasks import agents
 from tasks.collect import get_domain
+from tasks.experiment import path_argument
 
 Array = np.ndarray
 
@@ -167,12 +168,12 @@ def main(argv: Sequence[str] | None = None) -> Path:
         prog="python -m tasks.minari_export", description=__doc__.splitlines()[0]
     )
     parser.add_argument("run", type=Path, help="run directory of tasks.generate")
-    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--out", type=path_argument, required=True)
     parser.add_argument("--dataset-id", default=None)
     args = parser.parse_args(argv)
     try:
         path = export(args.run, args.out, dataset_id=args.dataset_id)
-    except (ValueError, ImportError) as error:
+    except (ValueError, FileNotFoundError, ImportError) as error:
         parser.error(str(error))
     print(f"wrote {path}")
     return path

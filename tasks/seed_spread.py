@@ -42,7 +42,14 @@ import numpy as np
 from scipy import stats
 
 from tasks.compare_runs import PRESENTATION, differences, read_run
-from tasks.experiment import fmt_ci, fmt_value, markdown_table, mean_ci, write_json
+from tasks.experiment import (
+    check_out_file,
+    fmt_ci,
+    fmt_value,
+    markdown_table,
+    mean_ci,
+    write_json,
+)
 from tasks.prediction import best_baseline
 
 #: Top-level config keys that may differ between the runs, besides PRESENTATION:
@@ -282,6 +289,8 @@ def main(runs: Sequence[str | Path], out: str | Path | None = None) -> dict[str,
     """Check the runs (:func:`read_runs`) and summarise their headline numbers;
     ``{"experiment", "seeds", "runs", "numbers": [{"label", "scale", "per_seed",
     "across_seeds"}]}``. Also written as JSON to ``out``."""
+    if out is not None:
+        check_out_file(out)
     runs = [str(r) for r in runs]
     name, configs, metrics = read_runs(runs)
     try:

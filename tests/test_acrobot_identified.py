@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import json
 import shutil
 
@@ -66,6 +67,40 @@ def test_identified_model_starts_from_the_given_belief_and_filters_as_asked():
     paper = acrobot_identified._Identified(Hip(), None, model_error=False)
     assert paper.prior() == "prior"
     assert paper.update("b", "d") == ("b", "d", False)
+
+
+_BAD_OPTIONS = [
+    ({"seed": -1}, "seed: expected >= 0"),
+    ({"workers": 0}, "workers: expected >= 1"),
+    ({"out": "."}, "out: . is a folder"),
+]
+
+
+@pytest.mark.parametrize(
+    "check, bad, match",
+    [
+        (check, bad, match)
+        for check, options in (
+            ("identified", {"seed", "workers", "out"}),
+            ("energy", {"seed", "workers", "out"}),
+            ("horizon", {"seed", "out"}),
+            ("batch_errors", {"out"}),
+        )
+        for bad, match in _BAD_OPTIONS
+        if set(bad) <= options
+    ],
+)
+def test_checks_refuse_bad_options_before_any_work(run, monkeypatch, check, bad, match):
+    """Each check on a run refuses a bad seed, worker count or --out before it
+    loads the run (which refits the average model: seconds of work)."""
+    module = importlib.import_module(f"tasks.acrobot_{check}")
+
+    def load_run(*args, **kwargs):
+        raise AssertionError("the run was loaded before the options were checked")
+
+    monkeypatch.setattr(module, "load_run", load_run)
+    with pytest.raises(ValueError, match=match):
+        module.main(run[0], **bad)
 
 
 def test_rejects_a_folder_that_is_not_a_run_and_unknown_variants(tmp_path, run):

@@ -78,6 +78,12 @@ def test_bad_folders_and_values_fail_before_any_file_is_written(run, tmp_path):
         acrobot_refit.main(run, full, {})
     with pytest.raises(FileNotFoundError, match="config.json"):
         acrobot_refit.main(tmp_path / "none", tmp_path / "o", {})
+    file = tmp_path / "file"
+    file.write_text("mine")
+    with pytest.raises(ValueError, match="exists and is not a folder"):
+        acrobot_refit.main(run, file, {})
+    with pytest.raises(ValueError, match="is not a folder, so"):
+        acrobot_refit.main(run, file / "sub", {})
     with pytest.raises(ValueError, match="FitConfig.n_support"):
         acrobot_refit.main(run, tmp_path / "bad", {"n_support": 0})
     assert not (tmp_path / "bad").exists()

@@ -135,3 +135,7 @@ def test_cli_reports_and_rejects_a_folder_that_is_not_a_run(tmp_path, capsys):
         cli([str(a), str(tmp_path)])
     assert exit_info.value.code == 2
     assert "no config.json" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:  # before the runs are read
+        cli(["no_run", "no_run_either", "--out", str(out / "sub")])
+    assert exit_info.value.code == 2
+    assert f"out: {out} is not a folder, so" in capsys.readouterr().err

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import json
 import re
@@ -15,6 +16,7 @@ from threadpoolctl import threadpool_info, threadpool_limits
 import tasks
 from tasks.experiment import (
     check_counts,
+    check_out_file,
     describe_environment,
     environment,
     first_episode_within,
@@ -23,6 +25,7 @@ from tasks.experiment import (
     mean_ci,
     one_blas_thread,
     paired_difference,
+    path_argument,
     pool_map,
     run_dir,
     to_jsonable,
@@ -264,3 +267,25 @@ def test_run_dir_refuses_a_folder_that_is_not_its_run(tmp_path, config):
     file = tmp_path / "report.md"
     with pytest.raises(ValueError, match="exists and is not a folder"):
         run_dir(file, "exp")
+
+
+@pytest.mark.parametrize("make", [run_dir, lambda out, *a: check_out_file(out)])
+def test_outputs_that_cannot_be_written_are_refused_before_any_work(tmp_path, make):
+    """An empty path (the working directory, as a Path) and a path through a
+    file; nothing is made. A missing parent folder is fine: it is made."""
+    file = tmp_path / "file"
+    file.write_text("mine")
+    with pytest.raises(ValueError, match="^out: expected a (folder|file) path, got ''"):
+        make("", "exp")
+    with pytest.raises(ValueError, match=f"^out: {file} is not a folder, so"):
+        make(file / "sub" / "deeper", "exp")
+    assert file.read_text() == "mine" and sorted(tmp_path.iterdir()) == [file]
+    make(tmp_path / "new" / "out.json", "exp")
+
+
+def test_a_file_output_is_not_a_folder():
+    with pytest.raises(ValueError, match="is a folder; expected a file path"):
+        check_out_file(Path(__file__).parent)
+    with pytest.raises(argparse.ArgumentTypeError, match="expected a path, got ' '"):
+        path_argument(" ")
+    assert path_argument("runs/x") == Path("runs/x")

@@ -227,11 +227,16 @@ def test_bad_options_stop_with_a_message_and_write_nothing(
 def test_an_out_that_is_a_file_is_refused(tmp_path, capsys):
     out = tmp_path / "file"
     out.write_text("mine")
-    with pytest.raises(SystemExit) as stopped:
-        generate.main(["--domain", "acrobot", "--out", str(out)])
-    assert stopped.value.code == 2
-    assert "exists and is not a folder" in capsys.readouterr().err
-    assert out.read_text() == "mine"
+    for argv, match in (
+        (["--out", str(out)], "exists and is not a folder"),
+        (["--out", str(out / "sub")], f"--out: {out} is not a folder, so"),
+        (["--out", ""], "argument --out: expected a path, got ''"),
+    ):
+        with pytest.raises(SystemExit) as stopped:
+            generate.main(["--domain", "acrobot", *argv])
+        assert stopped.value.code == 2
+        assert match in capsys.readouterr().err
+    assert out.read_text() == "mine" and sorted(tmp_path.iterdir()) == [out]
 
 
 def test_help_describes_the_options(capsys):

@@ -93,3 +93,14 @@ def test_an_existing_export_is_not_overwritten(run, tmp_path):
         minari_export.export(run, tmp_path, dataset_id="cartpole-mine-v1")
     after = (tmp_path / "cartpole-mine-v1" / "data" / "metadata.json").read_bytes()
     assert after == before
+
+
+def test_a_missing_run_is_a_usage_error(tmp_path, capsys):
+    with pytest.raises(SystemExit) as stopped:
+        minari_export.main([str(tmp_path / "nope"), "--out", str(tmp_path / "x")])
+    assert stopped.value.code == 2
+    assert "nope" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as stopped:
+        minari_export.main([str(tmp_path), "--out", ""])
+    assert stopped.value.code == 2
+    assert "argument --out: expected a path" in capsys.readouterr().err

@@ -244,3 +244,7 @@ def test_cli_prints_the_table_and_writes_json(tmp_path, capsys):
         cli([str(runs[0])])
     assert err.value.code == 2
     assert "at least 2 run folders" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as err:  # before the runs are read
+        cli(["no_run", "no_run_either", "--out", str(tmp_path)])
+    assert err.value.code == 2
+    assert f"out: {tmp_path} is a folder" in capsys.readouterr().err
