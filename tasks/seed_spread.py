@@ -55,6 +55,10 @@ from tasks.prediction import best_baseline
 #: Top-level config keys that may differ between the runs, besides PRESENTATION:
 #: the seed, and the run's label.
 LABELS = ("seed", "name")
+#: Top-level config fields added after runs were made, with the value an older
+#: run's missing field stands for (how it ran: before ``--split``, every split
+#: was random).
+ADDED = {"split": "random"}
 
 
 class Headline(NamedTuple):
@@ -184,14 +188,15 @@ def experiment_of(metrics: dict) -> str | None:
 
 
 def _settings(config: dict) -> dict[str, Any]:
-    """A config without its LABELS."""
-    return {k: v for k, v in config.items() if k not in LABELS}
+    """A config without its LABELS, with the ADDED fields it lacks."""
+    return {k: v for k, v in {**ADDED, **config}.items() if k not in LABELS}
 
 
 def read_runs(runs: Sequence[str | Path]) -> tuple[str, list[dict], list[dict]]:
     """``(experiment, configs, metrics)`` of the run folders, checked to be seeds
     of one experiment: the same experiment, configs equal but for LABELS and
-    PRESENTATION, distinct seeds. Raises ValueError naming what differs."""
+    PRESENTATION (an ADDED field an older run lacks counts as its old value),
+    distinct seeds. Raises ValueError naming what differs."""
     if len(runs) < 2:
         raise ValueError(f"runs: expected at least 2 run folders, got {len(runs)}")
     read = [read_run(Path(r)) for r in runs]

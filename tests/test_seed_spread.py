@@ -143,6 +143,9 @@ def test_a_number_that_does_not_move_has_zero_spread(tmp_path):
          r"differs .* in more than the seed: fit.n_sweeps \(60 vs 30\)"),
         ({1: {"name": "acrobot_swingup", "seed": 0, "fit": {"n_sweeps": 60}}},
          r"distinct seeds, got \[0, 0, 2\]"),
+        # a run older than --split ran the random split, not the time split
+        ({1: {"name": "s1", "seed": 1, "fit": {"n_sweeps": 60}, "split": "time"}},
+         r"in more than the seed: split \('random' vs 'time'\)"),
     ],
 )  # fmt: skip
 def test_runs_that_are_not_seeds_of_one_experiment_are_refused(
@@ -150,6 +153,13 @@ def test_runs_that_are_not_seeds_of_one_experiment_are_refused(
 ):
     with pytest.raises(ValueError, match=match):
         main(_runs(tmp_path, configs=configs))
+
+
+def test_a_run_older_than_a_field_counts_as_its_old_behaviour(tmp_path):
+    """Runs made before ``split`` existed ran the random split: they are seeds
+    of the same experiment as newer runs with ``split: random``."""
+    newer = {"name": "s1", "seed": 1, "fit": {"n_sweeps": 60}, "split": "random"}
+    assert main(_runs(tmp_path, configs={1: newer}))["seeds"] == [0, 1, 2]
 
 
 def test_runs_of_other_experiments_are_refused(tmp_path):
