@@ -405,6 +405,8 @@ def transfer_metrics(config: SwingupConfig, trials: list) -> dict[str, Any]:
         settings = np.array([r.setting for r in runs])  # the same for every method
         curves[method] = mean_ci(per_method[method], axis=0)
         all_steps[method] = np.array([r.steps for r in runs])
+        # by step count, as dm_control ends it: an episode that reaches the goal
+        # on its last allowed step is a step-limit end there too (discount 1)
         at_limit[method] = np.mean(
             all_steps[method] >= config.transfer.max_steps, axis=0
         )
