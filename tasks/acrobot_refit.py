@@ -36,7 +36,7 @@ from hipmdp.data import atomic_write
 from tasks.acrobot_identified import check_run
 from tasks.acrobot_swingup import run_streams
 from tasks.experiment import (
-    check_makeable,
+    check_folder_out,
     environment,
     one_blas_thread,
     run_or_exit,
@@ -99,9 +99,7 @@ def main(
     check_run(run)
     if out.resolve() == run.resolve():
         raise ValueError(f"out: expected a folder other than the run ({run})")
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"out: {out} exists and is not a folder")
-    check_makeable(out)
+    check_folder_out(out)
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"out: {out} exists and is not empty")
     config = json.loads((run / "config.json").read_text())

@@ -237,9 +237,7 @@ def check_out(
     if out is not None and not os.fspath(out).strip():
         raise ValueError(f"out: expected a folder path, got {os.fspath(out)!r}")
     path = Path(out) if out is not None else Path("runs") / name
-    if path.exists() and not path.is_dir():
-        raise ValueError(f"out: {path} exists and is not a folder")
-    check_makeable(path)
+    check_folder_out(path)
     stale = sorted({f for pattern in artefacts for f in path.glob(pattern)})
     if stale and _run_name(path / "config.json") != name:
         raise ValueError(
@@ -258,6 +256,14 @@ def check_makeable(path: Path, name: str = "out") -> None:
         raise ValueError(
             f"{name}: {ancestor} is not a folder, so {path} cannot be made"
         )
+
+
+def check_folder_out(path: Path, name: str = "out") -> None:
+    """Raise ``ValueError`` naming ``name`` unless ``path`` is a folder or can be
+    made one."""
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"{name}: {path} exists and is not a folder")
+    check_makeable(path, name)
 
 
 def check_out_file(out: str | os.PathLike) -> Path:

@@ -58,7 +58,7 @@ from tasks.acrobot import AcrobotParams, book_inertia_range, with_book_inertia
 from tasks.collect import DOMAINS, collect, collect_sarsa, get_domain
 from tasks.distributions import KINDS, SPLITS, Distribution, draw
 from tasks.experiment import (
-    check_makeable,
+    check_folder_out,
     one_blas_thread,
     path_argument,
     seed_argument,
@@ -349,9 +349,7 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
             differences), or of this run unfinished without `config.resume`, or
             shard files without a manifest. (This run finished: nothing to do.)
     """
-    if config.out.exists() and not config.out.is_dir():
-        raise ValueError(f"--out {config.out} exists and is not a folder")
-    check_makeable(config.out, "--out")
+    check_folder_out(config.out, "--out")
     fresh = plan(config)
     old = shards.read_manifest(config.out)
     if old is None:
