@@ -234,9 +234,7 @@ def check_out(
     """:func:`run_dir`'s checks, with no side effect: the folder and the previous
     run's files in it that a run would delete. Raises ``ValueError`` as
     :func:`run_dir`."""
-    if out is not None and not os.fspath(out).strip():
-        raise ValueError(f"out: expected a folder path, got {os.fspath(out)!r}")
-    path = Path(out) if out is not None else Path("runs") / name
+    path = _out_path(out, "folder") if out is not None else Path("runs") / name
     check_folder_out(path)
     stale = sorted({f for pattern in artefacts for f in path.glob(pattern)})
     if stale and _run_name(path / "config.json") != name:
@@ -245,6 +243,14 @@ def check_out(
             f"config.json of a {name} run; choose a new or empty folder"
         )
     return path, stale
+
+
+def _out_path(out: str | os.PathLike, kind: str) -> Path:
+    """``out`` as a Path, refused if empty (``Path("")`` is the working
+    directory)."""
+    if not os.fspath(out).strip():
+        raise ValueError(f"out: expected a {kind} path, got {os.fspath(out)!r}")
+    return Path(out)
 
 
 def check_makeable(path: Path, name: str = "out") -> None:
@@ -270,9 +276,7 @@ def check_out_file(out: str | os.PathLike) -> Path:
     """The file ``out`` a command will write, checked before any work: a
     non-empty path that is not a folder and can be made (:func:`check_makeable`).
     Raises ``ValueError`` naming ``out``."""
-    if not os.fspath(out).strip():
-        raise ValueError(f"out: expected a file path, got {os.fspath(out)!r}")
-    path = Path(out)
+    path = _out_path(out, "file")
     if path.is_dir():
         raise ValueError(f"out: {path} is a folder; expected a file path")
     check_makeable(path)
