@@ -58,6 +58,7 @@ from tasks.experiment import (
     trial_seeds,
     write_json,
 )
+from tasks.methods import add_method_argument, check_specs, fit_all, load_all
 from tasks.prediction import (
     add_split_argument,
     check_split,
@@ -126,6 +127,8 @@ class SwingupConfig:
         mse_train, mse_test: transitions per instance for the prediction table.
         split: ``"random"`` (the paper's) or ``"time"``: how a test setting's
             transitions are split into train and test (``gather_split``).
+        methods: your own methods, scored in the prediction tables beside the
+            others, as ``"NAME=module:attribute"`` (``tasks.methods``).
         n_floor_settings: training settings scored for the approximation floor.
         final_window: the true model's "final" return is its mean over this many
             last episodes (an episode that fails at the step limit moves one
@@ -162,6 +165,7 @@ class SwingupConfig:
     mse_train: int = 50
     mse_test: int = 50
     split: str = "random"
+    methods: tuple[str, ...] = ()
     n_floor_settings: int = 2
     final_window: int = 3
     workers: int = 2
@@ -185,6 +189,7 @@ class SwingupConfig:
             "n_trials", "mse_train", "mse_test", "workers", "final_window",
         ))  # fmt: skip
         check_split(self.split)
+        check_specs(self.methods)
         if self.final_window > self.transfer.n_episodes:
             raise ValueError(
                 f"final_window: expected <= transfer.n_episodes "
@@ -276,19 +281,22 @@ def run_transfer(config, hip, average, ss: np.random.SeedSequence) -> list:
     )  # fmt: skip
 
 
-def prediction_table(config, hip, average, batch, ss) -> dict[str, Any]:
-    """The one-step MSE table on test settings, and the floor on training ones."""
+def prediction_table(config, hip, average, batch, ss, added=()) -> dict[str, Any]:
+    """The one-step MSE table on test settings (table 0 of the ``added``
+    methods' keys), and the floor on training ones (table 1)."""
     groups = {
         "test": config.test_masses,
         "floor": config.train_masses[: config.n_floor_settings],
     }
     out, train = {}, set(config.train_masses)
-    for (label, masses), seed in zip(groups.items(), ss.spawn(2), strict=True):
+    for table, ((label, masses), seed) in enumerate(
+        zip(groups.items(), ss.spawn(2), strict=True)
+    ):
         scores = score_settings(
             ACROBOT, [hip], average, batch, [config.params(*mm) for mm in masses],
             n_train=config.mse_train, n_test=config.mse_test, seed=seed,
             split=config.split, desc=f"prediction ({label})",
-            progress=config.progress,
+            progress=config.progress, added=added, table=table,
         )  # fmt: skip
         seen = [tuple(mm) in train for mm in masses]
         out[label] = summarise(scores, DIM_NAMES, seen) if scores else None
@@ -302,6 +310,7 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
 
     started = time.perf_counter()
     machine = environment()  # the code and machine as the run starts
+    loaded = load_all(config.methods)  # a bad one fails here, before any work
     path = run_dir(out, config.name, ARTEFACTS)
     write_json(path / "config.json", config)
     ss_batch, ss_fit, ss_avg, ss_trials, ss_mse = run_streams(config.seed)
@@ -335,7 +344,11 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
     timings["transfer"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    mse = prediction_table(config, hip, average, batch, ss_mse)
+    added = fit_all(loaded, batch, config.seed)
+    timings["added_methods"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    mse = prediction_table(config, hip, average, batch, ss_mse, added)
     timings["prediction"] = time.perf_counter() - t0
 
     arrays = trial_arrays(config, trials)
@@ -551,6 +564,7 @@ def parse_args(argv: list[str] | None = None) -> tuple[SwingupConfig, str | None
         "mass changes (default: it follows the mass, I = m l^2)",
     )
     add_split_argument(parser)
+    add_method_argument(parser)
     args = parser.parse_args(argv)
     preset = PRESETS[args.preset]
     transfer = final_window = None
@@ -572,6 +586,7 @@ def parse_args(argv: list[str] | None = None) -> tuple[SwingupConfig, str | None
         final_window=final_window,
         book_inertia=args.book_inertia or None,
         split=args.split,
+        methods=args.method and tuple(args.method),
     )
     return config, args.out
 

@@ -49,6 +49,7 @@ from tasks.experiment import (
     to_jsonable,
     write_json,
 )
+from tasks.methods import add_method_argument, check_specs, fit_all, load_all
 from tasks.prediction import (
     add_split_argument,
     best_baseline,
@@ -91,6 +92,8 @@ class PredictionConfig:
         gather_episodes: Sarsa episodes gathered per test setting.
         split: ``"random"`` (the paper's) or ``"time"``: how a test setting's
             transitions are split into train and test (``gather_split``).
+        methods: your own methods, scored beside the others, as
+            ``"NAME=module:attribute"`` (``tasks.methods``).
         workers: processes for the batch data.
     """
 
@@ -111,6 +114,7 @@ class PredictionConfig:
     n_test: int = 50
     gather_episodes: int = 3
     split: str = "random"
+    methods: tuple[str, ...] = ()
     workers: int = 2
     record: bool = True
     progress: bool = True
@@ -118,6 +122,7 @@ class PredictionConfig:
     def __post_init__(self) -> None:
         check_run_fields(self)
         check_split(self.split)
+        check_specs(self.methods)
         check_settings(
             self, "train_settings", "test_settings", _params, "(mass, half-length)"
         )
@@ -162,6 +167,7 @@ def main(config: PredictionConfig, out: str | os.PathLike | None = None) -> Resu
 
     started = time.perf_counter()
     machine = environment()  # the code and machine as the run starts
+    loaded = load_all(config.methods)  # a bad one fails here, before any work
     path = run_dir(out, config.name, ARTEFACTS)
     write_json(path / "config.json", config)
     ss_batch, ss_fit, ss_avg, ss_test = np.random.SeedSequence(config.seed).spawn(4)
@@ -192,14 +198,22 @@ def main(config: PredictionConfig, out: str | os.PathLike | None = None) -> Resu
     seconds["average_model"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
+    added = fit_all(loaded, batch, config.seed)
+    seconds["added_methods"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
     splits, scores = [], []
     from tqdm.auto import tqdm
 
     streams = ss_test.spawn(len(config.test_settings))
-    for p, stream in zip(
-        tqdm(config.test_settings, desc="test settings", disable=not config.progress),
-        streams,
-        strict=True,
+    for i, (p, stream) in enumerate(
+        zip(
+            tqdm(
+                config.test_settings, desc="test settings", disable=not config.progress
+            ),
+            streams,
+            strict=True,
+        )
     ):
         rng = np.random.default_rng(stream)
         split = gather_split(
@@ -216,6 +230,8 @@ def main(config: PredictionConfig, out: str | os.PathLike | None = None) -> Resu
                 split.test,
                 rng=rng,
                 n_max=config.average_n_max,
+                added=added,
+                key=(0, i),
             )  # fmt: skip
         )
     seconds["prediction"] = time.perf_counter() - t0
@@ -270,10 +286,11 @@ def parse_args(argv: list[str] | None = None) -> tuple[PredictionConfig, str | N
     )  # fmt: skip
     parser.add_argument("--runs", type=int, default=None, help="HiP-MDP fits")
     add_split_argument(parser)
+    add_method_argument(parser)
     args = parser.parse_args(argv)
     config = apply_common(
         parser, args, PRESETS[args.preset], artefacts=ARTEFACTS, n_runs=args.runs,
-        split=args.split,
+        split=args.split, methods=args.method and tuple(args.method),
     )  # fmt: skip
     return config, args.out
 

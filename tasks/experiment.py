@@ -598,6 +598,7 @@ FLAGS = {
     "n_trials": "--trials",
     "n_episodes": "--episodes",
     "n_runs": "--runs",
+    "methods": "--method",
 }
 
 
@@ -618,6 +619,10 @@ def apply_common(
         changes["progress"] = False
     try:
         config = dataclasses.replace(preset, **changes)
+        if getattr(config, "methods", ()):
+            from tasks.methods import load_all  # tasks.methods imports this module
+
+            load_all(config.methods)  # import and build each, before any work
         check_out(args.out, config.name, artefacts)
     except ValueError as err:
         parser.error(flag_error(err))

@@ -180,12 +180,17 @@ def score_instance(
     *,
     rng: np.random.Generator,
     n_max: int = 2000,
+    added: Sequence[Any] = (),
+    key: tuple[int, ...] = (0, 0),
 ) -> InstanceScores:
     """MSE per dimension, test log-likelihood and predictive-interval coverage
     (:func:`coverage`) of every method on ``test``.
 
     ``hips``: one or more fitted HiP-MDPs; their scores are averaged (its
-    coverage is the mean of each fit's, not that of their mixture).
+    coverage is the mean of each fit's, not that of their mixture). ``added``:
+    fitted methods added with ``--method`` (``tasks.methods.Added``), scored after
+    the built-in ones with their own streams (``key``: (table, setting)), so
+    ``rng`` and the built-in scores do not depend on them.
     """
     # every GP measures angles as the average model does (FitConfig.periodic)
     train_gp = baselines.train_only(
@@ -214,6 +219,10 @@ def score_instance(
         "train only": float(train_gp.log_likelihood(test)),
         "batch + train": float(both_gp.log_likelihood(test)),
     }
+    for method in added:
+        mean, var = method.predict(train, test, key)
+        predictions[method.name] = mean, var
+        loglik[method.name] = gaussian_loglik(test.deltas, mean, var)
     deltas = test.deltas
     mse = {m: np.mean((p - deltas) ** 2, axis=0) for m, (p, _) in predictions.items()}
     mse["hipmdp"] = np.mean(
@@ -224,6 +233,13 @@ def score_instance(
         [coverage(p, v, deltas) for p, v in hip_predictions], axis=0
     )
     return InstanceScores(mse=mse, loglik=loglik, coverage=covered)
+
+
+def gaussian_loglik(observed: Array, mean: Array, var: Array) -> float:
+    """Σ_i Σ_d log N(observed[i,d]; mean[i,d], var[i,d]), as the GP baselines'
+    ``log_likelihood``."""
+    r = observed - mean
+    return float(-0.5 * np.sum(r * r / var + np.log(2 * np.pi * var)))
 
 
 def summarise(
@@ -241,29 +257,42 @@ def summarise(
     test grids include the training settings, as in the paper). Given, the result
     also has ``seen`` and ``unseen``: the intervals on the other settings alone
     (None if there are none), the claim about parameters never seen in training.
+
+    The methods are the built-in ones and those added with ``--method``, as
+    every score has them.
     """
+    added = [
+        m for m in (scores[0].mse if scores else ()) if m not in PREDICTION_METHODS
+    ]
+    methods = [*PREDICTION_METHODS, *added]
+    for s in scores:
+        if set(s.mse) != set(methods):
+            raise ValueError(
+                f"scores: expected the methods {methods} on every instance, "
+                f"got {list(s.mse)}"
+            )
     per_instance = {
         "mse": {
             m: {name: [float(s.mse[m][d]) for s in scores]
                 for d, name in enumerate(dim_names)}
-            for m in PREDICTION_METHODS
+            for m in methods
         },
         "loglik_difference": {
             m: [float(s.loglik["hipmdp"] - s.loglik[m]) for s in scores]
-            for m in PREDICTION_METHODS
+            for m in methods
             if m != "hipmdp"
         },
         "coverage": {
             m: {f"{level:g}": {name: [float(s.coverage[m][k, d]) for s in scores]
                                for d, name in enumerate(dim_names)}
                 for k, level in enumerate(COVERAGE_LEVELS)}
-            for m in PREDICTION_METHODS
+            for m in methods
         },
     }  # fmt: skip
     out = _intervals(per_instance, range(len(scores)))
     out["per_instance"] = per_instance
     out["per_setting_mse"] = {  # [setting][dimension], as metrics.json stores it
-        m: [s.mse[m].tolist() for s in scores] for m in PREDICTION_METHODS
+        m: [s.mse[m].tolist() for s in scores] for m in methods
     }
     out["mse_ratio_per_setting"] = mse_ratios(per_instance["mse"])
     if seen is not None:
@@ -342,20 +371,32 @@ def score_settings(
     split: str = "random",
     desc: str = "prediction",
     progress: bool = False,
+    added: Sequence[Any] = (),
+    table: int = 0,
 ) -> list[InstanceScores]:
     """:func:`gather_split` (with ``split``) and :func:`score_instance` on each
-    instance in turn, each with its own stream spawned from ``seed``."""
+    instance in turn, each with its own stream spawned from ``seed``; ``added``
+    methods are scored with keys ``(table, i)`` for instance ``i``."""
     from tqdm.auto import tqdm
 
     scores = []
     streams = seed.spawn(len(instances))
-    for params, stream in zip(
-        tqdm(instances, desc=desc, disable=not progress), streams, strict=True
+    for i, (params, stream) in enumerate(
+        zip(tqdm(instances, desc=desc, disable=not progress), streams, strict=True)
     ):
         rng = np.random.default_rng(stream)
         parts = gather_split(domain, params, n_train, n_test, rng=rng, split=split)
         scores.append(
-            score_instance(hips, average, batch, parts.train, parts.test, rng=rng)
+            score_instance(
+                hips,
+                average,
+                batch,
+                parts.train,
+                parts.test,
+                rng=rng,
+                added=added,
+                key=(table, i),
+            )  # fmt: skip
         )
     return scores
 
@@ -433,11 +474,28 @@ test log-likelihood, HiP-MDP minus method):
 {ll}{ratio_text}"""
 
 
+def added_text(methods: Sequence[str]) -> str:
+    """A sentence naming the methods added with ``--method`` ("" if none)."""
+    if not methods:
+        return ""
+    named = ", ".join(
+        f"{name} (`{target}`)"
+        for name, _, target in (m.partition("=") for m in methods)
+    )
+    return (
+        f"Added with `--method` (see `tasks/methods.py`): {named}. The best "
+        "baseline below is the best of the paper's three."
+    )
+
+
 def best_baseline(mse: dict[str, Any], dimension: str) -> str:
-    """The baseline with the lowest mean MSE on ``dimension`` (``mse[method][dim]``
-    intervals, as :func:`summarise` gives them)."""
+    """The paper's baseline (one of ``PREDICTION_METHODS`` other than the HiP-MDP)
+    with the lowest mean MSE on ``dimension`` (``mse[method][dim]`` intervals, as
+    :func:`summarise` gives them). Methods added with ``--method`` are not
+    candidates, so the headline ratio means the same in every run."""
     return min(
-        (m for m in mse if m != "hipmdp"), key=lambda m: mse[m][dimension]["mean"]
+        (m for m in PREDICTION_METHODS[1:] if m in mse),
+        key=lambda m: mse[m][dimension]["mean"],
     )
 
 

@@ -18,7 +18,7 @@ from tasks.experiment import (
     write_text,
 )
 from tasks.prediction import (
-    PREDICTION_METHODS,
+    added_text,
     coverage_text,
     mse_table,
     ratio_text,
@@ -26,7 +26,10 @@ from tasks.prediction import (
 )
 from tasks.recording import Recording
 
-ENTITY = {m: m.replace(" + ", "_").replace(" ", "_") for m in PREDICTION_METHODS}
+
+def entity(method: str) -> str:
+    """The recording's entity name of a method ("batch + train" -> batch_train)."""
+    return method.replace(" + ", "_").replace(" ", "_")
 
 
 def write_artefacts(path: Path, config, metrics: dict, hip, splits) -> None:
@@ -72,10 +75,10 @@ def record(file: Path, config, metrics: dict, hip, splits) -> None:
         rec.text("/notes", _NOTES)
         setting = np.arange(len(splits))
         per_setting = metrics["per_setting_mse"]
-        for m in PREDICTION_METHODS:
+        for m in per_setting:
             mse = np.asarray(per_setting[m])
             for d in (2, 3):  # Δẋ and Δθ̇, the dimensions the parameters act on
-                rec.scalars(f"/mse/{d}/{ENTITY[m]}", mse[:, d], episode=setting)
+                rec.scalars(f"/mse/{d}/{entity(m)}", mse[:, d], episode=setting)
         for e, (p, split) in enumerate(zip(config.test_settings, splits, strict=True)):
             params = cartpole.CartpoleParams(
                 cart_mass=1.0, pole_mass=p[0], pole_half_length=p[1]
@@ -145,6 +148,8 @@ test transitions ({config.split} split); HiP-MDP fitted {config.n_runs} times on
 {n_batch} batch transitions from {len(config.train_settings)} training settings.
 
 ## MSE of Δs (mean over test settings [95% interval])
+
+{added_text(config.methods)}
 
 {table}
 

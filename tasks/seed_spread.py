@@ -57,8 +57,8 @@ from tasks.prediction import best_baseline
 LABELS = ("seed", "name")
 #: Top-level config fields added after runs were made, with the value an older
 #: run's missing field stands for (how it ran: before ``--split``, every split
-#: was random).
-ADDED = {"split": "random"}
+#: was random; before ``--method``, no method was added).
+ADDED = {"split": "random", "methods": []}
 
 
 class Headline(NamedTuple):

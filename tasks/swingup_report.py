@@ -16,7 +16,13 @@ from tasks.experiment import (
     weights_figure,
     write_text,
 )
-from tasks.prediction import coverage_text, mse_table, ratio_text, unseen_section
+from tasks.prediction import (
+    added_text,
+    coverage_text,
+    mse_table,
+    ratio_text,
+    unseen_section,
+)
 from tasks.recording import Recording
 from tasks.transfer import METHODS
 
@@ -274,6 +280,8 @@ is then within 10% of the true model's final median
 {median_table}
 
 ## One-step prediction error on test settings (MSE of Δs)
+
+{added_text(config.methods)}
 
 {config.mse_train} train and {config.mse_test} test transitions per setting
 ({config.split} split). Mean over settings [95% interval over settings]:
