@@ -107,7 +107,13 @@ def load(spec: MethodSpec) -> Any:
         raise ValueError(
             f"{where}: {spec.module!r} has no class or function {spec.attribute!r}"
         )
-    method = factory()
+    try:
+        method = factory()
+    except Exception as err:  # the user's code: say which call failed, keep the cause
+        raise ValueError(
+            f"{where}: calling {spec.attribute}() with no arguments raised "
+            f"{type(err).__name__}: {err}"
+        ) from err
     missing = [m for m in ("fit", "predict") if not callable(getattr(method, m, None))]
     if missing:
         raise ValueError(

@@ -145,6 +145,10 @@ class NoPredict:
         ("x=tasks.no_such_module:A", "cannot import 'tasks.no_such_module'"),
         ("x=tasks.methods:NoSuchClass", "has no class or function 'NoSuchClass'"),
         ("x=tests.test_methods:NoPredict", "NoPredict has no predict"),
+        (
+            "x=tasks.methods:load",
+            "calling load\\(\\) with no arguments raised TypeError",
+        ),
     ],
 )
 def test_methods_that_cannot_be_loaded_are_refused(spec, match):
