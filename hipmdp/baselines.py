@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hipmdp.data import Transitions, check_queries
+from hipmdp.data import Transitions, check_queries, gaussian_loglik
 from hipmdp.gp import GPPosterior, HyperSet, condition, fit_hyperparameters, subsample
 from hipmdp.kernels import KernelMeans, check_periodic
 
@@ -111,8 +111,7 @@ class GPBaseline:
     def log_likelihood(self, data: Transitions) -> float:
         """Σ_i Σ_d log N(Δ[i,d]; mean[i,d], var[i,d]) under `predict`."""
         mean, var = self.predict(data.states, data.actions)
-        r = data.deltas - mean
-        return float(-0.5 * np.sum(r * r / var + np.log(2 * np.pi * var)))
+        return gaussian_loglik(data.deltas, mean, var)
 
 
 def fit_gp_baseline(

@@ -46,6 +46,13 @@ def wrap_angle(x: Array | float) -> Array:
     return np.where(y == -np.pi, np.pi, y)
 
 
+def gaussian_loglik(observed: Array, mean: Array, var: Array) -> float:
+    """Σ_i Σ_d log N(observed[i,d]; mean[i,d], var[i,d]): the log-likelihood of
+    observed Δs under Gaussian predictions scored one (i, d) at a time."""
+    r = observed - mean
+    return float(-0.5 * np.sum(r * r / var + np.log(2 * np.pi * var)))
+
+
 def atomic_write(path: str | os.PathLike, write) -> Path:
     """Call ``write(file_object)`` on a temporary file beside ``path``, then rename.
 

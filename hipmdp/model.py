@@ -63,7 +63,13 @@ from pathlib import Path
 import numpy as np
 from scipy import linalg
 
-from hipmdp.data import Transitions, atomic_write, check_queries, npz_bytes
+from hipmdp.data import (
+    Transitions,
+    atomic_write,
+    check_queries,
+    gaussian_loglik,
+    npz_bytes,
+)
 from hipmdp.filter import Belief, predictive, prior_belief, update_belief
 from hipmdp.gp import HyperSet
 from hipmdp.kernels import KernelMeans, se_kernel
@@ -344,8 +350,7 @@ class HipMDP:
         (each transition and dimension scored on its own marginal)."""
         self._check_data(data)
         mean, var = self.predict(data.states, data.actions, belief)
-        r = data.deltas - mean
-        return float(-0.5 * np.sum(r * r / var + np.log(2 * np.pi * var)))
+        return gaussian_loglik(data.deltas, mean, var)
 
     def _check_data(self, data: Transitions) -> None:
         if not isinstance(data, Transitions):

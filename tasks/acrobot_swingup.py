@@ -324,6 +324,10 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
     )  # fmt: skip
     timings["batch_data"] = time.perf_counter() - t0
 
+    t0 = time.perf_counter()  # first, so that a method that breaks does so early
+    added = fit_all(loaded, batch, config.seed)
+    timings["added_methods"] = time.perf_counter() - t0
+
     t0 = time.perf_counter()
     fit_config = dataclasses.replace(config.fit, progress=config.progress)
     hip = hipmdp.fit(batch, fit_config, rng=np.random.default_rng(ss_fit))
@@ -342,10 +346,6 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
     t0 = time.perf_counter()
     trials = run_transfer(config, hip, average, ss_trials)
     timings["transfer"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    added = fit_all(loaded, batch, config.seed)
-    timings["added_methods"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     mse = prediction_table(config, hip, average, batch, ss_mse, added)

@@ -180,6 +180,10 @@ def main(config: PredictionConfig, out: str | os.PathLike | None = None) -> Resu
     )  # fmt: skip
     seconds["batch_data"] = time.perf_counter() - t0
 
+    t0 = time.perf_counter()  # first, so that a method that breaks does so early
+    added = fit_all(loaded, batch, config.seed)
+    seconds["added_methods"] = time.perf_counter() - t0
+
     t0 = time.perf_counter()
     fit_config = dataclasses.replace(config.fit, progress=config.progress)
     hips = []
@@ -196,10 +200,6 @@ def main(config: PredictionConfig, out: str | os.PathLike | None = None) -> Resu
         periodic=config.fit.periodic_dims(batch),
     )
     seconds["average_model"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    added = fit_all(loaded, batch, config.seed)
-    seconds["added_methods"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     splits, scores = [], []

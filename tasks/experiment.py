@@ -622,7 +622,7 @@ def apply_common(
         if getattr(config, "methods", ()):
             from tasks.methods import load_all  # tasks.methods imports this module
 
-            load_all(config.methods)  # import and build each, before any work
+            load_all(config.methods, build=False)  # import each, before any work
         check_out(args.out, config.name, artefacts)
     except ValueError as err:
         parser.error(flag_error(err))

@@ -36,8 +36,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from hipmdp.data import Transitions
-from tasks.prediction import PREDICTION_METHODS
+from hipmdp.data import Transitions, gaussian_loglik
+from tasks.prediction import PREDICTION_METHODS, entity
 
 Array = np.ndarray
 
@@ -84,29 +84,49 @@ def check_specs(specs: Any) -> tuple[MethodSpec, ...]:
         )
     parsed = tuple(parse_spec(s) for s in specs)
     names = [p.name for p in parsed]
+    reserved = {*BUILT_IN, *map(entity, BUILT_IN)}  # names, and as recordings say them
     for p in parsed:
-        if p.name in BUILT_IN:
+        if p.name in reserved:
             raise ValueError(
-                f"methods: {p.name!r} is a built-in method; choose another name"
+                f"methods: {p.name!r} is (or is recorded as) a built-in method; "
+                "choose another name"
             )
         if names.count(p.name) > 1:
             raise ValueError(f"methods: the name {p.name!r} is given twice")
+        twins = [n for n in names if n != p.name and _crc(n) == _crc(p.name)]
+        if twins:  # their streams would coincide (method_seed)
+            raise ValueError(
+                f"methods: the names {p.name!r} and {twins[0]!r} would share a "
+                "random stream; rename one"
+            )
     return parsed
 
 
-def load(spec: MethodSpec) -> Any:
-    """Import ``spec.module``, call ``spec.attribute`` with no arguments, and check
-    that the result has ``fit`` and ``predict``; raise ValueError if not."""
+def _crc(name: str) -> int:
+    return zlib.crc32(name.encode())
+
+
+def load(spec: MethodSpec, build: bool = True) -> Any:
+    """Import ``spec.module`` and find ``spec.attribute``; with ``build``, call it
+    with no arguments and check that the result has ``fit`` and ``predict``.
+    Raise ValueError, naming the spec, if any step fails. Returns the object
+    (with ``build``) or the class or function."""
     where = f"methods: {spec.name}={spec.module}:{spec.attribute}"
     try:
         module = importlib.import_module(spec.module)
     except ImportError as err:
         raise ValueError(f"{where}: cannot import {spec.module!r} ({err})") from None
+    except Exception as err:  # the user's module failed as it ran
+        raise ValueError(
+            f"{where}: importing {spec.module!r} raised {type(err).__name__}: {err}"
+        ) from err
     factory = getattr(module, spec.attribute, None)
     if not callable(factory):
         raise ValueError(
             f"{where}: {spec.module!r} has no class or function {spec.attribute!r}"
         )
+    if not build:
+        return factory
     try:
         method = factory()
     except Exception as err:  # the user's code: say which call failed, keep the cause
@@ -127,9 +147,14 @@ def method_seed(seed: int, name: str, *key: int) -> np.random.SeedSequence:
     """The stream of method ``name`` in a run with seed ``seed``: the seed's
     descendant with spawn key ``(METHOD_STREAM, crc32(name), *key)``. ``fit`` gets
     key ``(0,)``; ``predict`` on setting ``i`` of prediction table ``g`` gets
-    ``(1, g, i)``."""
-    crc = zlib.crc32(name.encode())
-    return np.random.SeedSequence(seed, spawn_key=(METHOD_STREAM, crc, *key))
+    ``(1, g, i)``; the trial prediction of :func:`fit_all` ``(1, 2)``."""
+    return np.random.SeedSequence(seed, spawn_key=(METHOD_STREAM, _crc(name), *key))
+
+
+def _copy(data: Transitions) -> Transitions:
+    """An independent copy of ``data``: what a method does to its arguments cannot
+    reach the run's own arrays."""
+    return data.take(np.arange(len(data)))
 
 
 class Added(NamedTuple):
@@ -146,47 +171,89 @@ class Added(NamedTuple):
     def predict(
         self, train: Transitions, test: Transitions, key: tuple[int, ...]
     ) -> tuple[Array, Array]:
-        """The method's (mean, var) of Δs on ``test``, checked: shapes (n, D),
-        finite, var > 0. ``key``: (table, setting), as :func:`method_seed` says."""
+        """The method's (mean, var) of Δs on ``test``, given copies of the inputs
+        and checked: real and finite, shapes (n, D), var > 0, and a finite
+        log-likelihood of ``test``. ``key``: as :func:`method_seed` says."""
         rng = np.random.default_rng(method_seed(self.seed, self.name, 1, *key))
-        out = self.method.predict(train, test.states, test.actions, rng=rng)
-        if not (isinstance(out, tuple) and len(out) == 2):
+        where = f"method {self.name}: predict"
+        states, actions = test.states.copy(), test.actions.copy()
+        try:
+            out = self.method.predict(_copy(train), states, actions, rng=rng)
+        except Exception as err:
+            err.add_note(f"(in {where}, added with --method)")
+            raise
+        if not (isinstance(out, tuple | list) and len(out) == 2):
             raise ValueError(
-                f"method {self.name}: predict must return (mean, var), got "
-                f"{type(out).__name__}"
+                f"{where} must return (mean, var), got {type(out).__name__}"
             )
         shape = test.states.shape
-        mean, var = (np.asarray(x, dtype=float) for x in out)
-        for label, x in (("mean", mean), ("var", var)):
+        checked = []
+        for label, x in zip(("mean", "var"), out, strict=True):
+            if np.iscomplexobj(x):
+                raise ValueError(f"{where}'s {label} is complex, expected real")
+            try:
+                x = np.asarray(x, dtype=float)
+            except (TypeError, ValueError) as err:
+                raise ValueError(
+                    f"{where}'s {label} is not an array of numbers ({err})"
+                ) from None
             if x.shape != shape:
                 raise ValueError(
-                    f"method {self.name}: predict's {label} has shape {x.shape}, "
-                    f"expected {shape}"
+                    f"{where}'s {label} has shape {x.shape}, expected {shape}"
                 )
             if not np.all(np.isfinite(x)):
-                raise ValueError(f"method {self.name}: predict's {label} is not finite")
+                raise ValueError(f"{where}'s {label} is not finite")
+            checked.append(x)
+        mean, var = checked
         if not np.all(var > 0):
-            raise ValueError(f"method {self.name}: predict's var must be > 0")
+            raise ValueError(f"{where}'s var must be > 0")
+        with np.errstate(over="ignore", divide="ignore"):
+            loglik = gaussian_loglik(test.deltas, mean, var)
+        if not np.isfinite(loglik):
+            raise ValueError(
+                f"{where}'s var is so small that the log-likelihood of the test "
+                "transitions is not finite"
+            )
         return mean, var
 
 
-def load_all(specs: Sequence[str]) -> tuple[tuple[MethodSpec, Any], ...]:
-    """``(spec, object)`` of every ``NAME=module:attribute`` of ``specs``; raise
-    ValueError if any is malformed or cannot be loaded (:func:`load`). Experiments
-    call it before any work."""
-    return tuple((spec, load(spec)) for spec in check_specs(specs))
+def load_all(
+    specs: Sequence[str], build: bool = True
+) -> tuple[tuple[MethodSpec, Any], ...]:
+    """``(spec, load(spec, build))`` for every ``NAME=module:attribute`` of
+    ``specs``; raise ValueError if any is malformed or cannot be loaded
+    (:func:`load`). Experiments call it before any work."""
+    return tuple((spec, load(spec, build)) for spec in check_specs(specs))
+
+
+#: Transitions of the batch that :func:`fit_all`'s trial prediction trains and
+#: tests on (each).
+TRIAL_SIZE = 10
 
 
 def fit_all(
     loaded: Sequence[tuple[MethodSpec, Any]], batch: Transitions, seed: int
 ) -> tuple[Added, ...]:
-    """Fit every loaded method (:func:`load_all`) on ``batch``, each with its own
-    stream (:func:`method_seed`)."""
+    """Fit every loaded method (:func:`load_all`) on a copy of ``batch``, each with
+    its own stream (:func:`method_seed`), then try one prediction: the first
+    ``TRIAL_SIZE`` batch transitions as train, the next ``TRIAL_SIZE`` as test
+    (key ``(2,)``), so that a method that breaks does so before the run's long
+    stages. The experiments call it as soon as the batch data are gathered."""
     out = []
+    trial_train = batch.take(np.arange(min(TRIAL_SIZE, len(batch))))
+    trial_test = batch.take(
+        np.arange(len(trial_train), min(2 * TRIAL_SIZE, len(batch)))
+    )
     for spec, method in loaded:
         rng = np.random.default_rng(method_seed(seed, spec.name, 0))
-        method.fit(batch, rng=rng)
-        out.append(Added(spec, method, seed))
+        try:
+            method.fit(_copy(batch), rng=rng)
+        except Exception as err:
+            err.add_note(f"(in method {spec.name}: fit, added with --method)")
+            raise
+        added = Added(spec, method, seed)
+        added.predict(trial_train, trial_test, (2,))
+        out.append(added)
     return tuple(out)
 
 
@@ -208,18 +275,25 @@ class BayesianLinear:
     stay in ``s``).
 
     ``fit``: per action, least squares on the batch data gives the weights ``W_a``
-    (shape (p, D)) and the residual variance ``σ²[a,d]``.
+    (shape (p, D)) and the residual variance ``σ²[a,d]`` (plus 1e-12, so that a
+    noise-free batch still gives a variance > 0). The residuals are pooled over
+    the training instances, so ``σ²`` holds their spread as well as the noise
+    within one: the intervals stay wide however many train transitions a
+    setting has.
     ``predict``: per action, the prior ``W ~ N(W_a, σ²/λ)`` column by column is
     updated on the setting's train transitions ``(X, Y)``:
 
         Ŵ = (XᵀX + λI)⁻¹ (XᵀY + λ W_a),
         mean = x Ŵ,   var[d] = σ²[a,d] (1 + x (XᵀX + λI)⁻¹ xᵀ).
 
-    An action without train transitions predicts with its prior; one without
-    batch transitions has ``W_a = 0`` and the batch's variance of Δs.
+    An action without train transitions predicts with its prior. An action with
+    no more batch transitions than features (p) has ``W_a = 0`` and the
+    variance of Δs over the whole batch.
 
     Attributes:
-        prior_strength: ``λ``, in transitions' worth (default 10).
+        prior_strength: ``λ``: the prior counts as ``λ`` transitions whose
+            features have unit size in every direction (the features are not
+            rescaled; default 10).
     """
 
     def __init__(self, prior_strength: float = 10.0) -> None:
@@ -261,9 +335,11 @@ class BayesianLinear:
         rng: np.random.Generator,
     ) -> tuple[Array, Array]:
         del rng  # deterministic
+        if not hasattr(self, "weights"):
+            raise ValueError("BayesianLinear: call fit before predict")
         x_train, y_train = self.features(train.states), train.deltas
         x = self.features(states)
-        mean = np.zeros((len(states), y_train.shape[1]))
+        mean = np.zeros((len(states), self.weights.shape[2]))
         var = np.zeros_like(mean)
         lam = self.prior_strength
         for a in np.unique(actions):

@@ -32,7 +32,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from hipmdp import baselines
-from hipmdp.data import Transitions
+from hipmdp.data import Transitions, gaussian_loglik
 from tasks.agents import Domain, learn
 from tasks.experiment import fmt_ci, markdown_table, mean_ci
 
@@ -43,6 +43,12 @@ PREDICTION_METHODS = ("hipmdp", "batch only", "train only", "batch + train")
 COVERAGE_LEVELS = (0.5, 0.95)
 #: How a test setting's gathered transitions are split (:func:`gather_split`).
 SPLITS = ("random", "time")
+
+
+def entity(method: str) -> str:
+    """A method's name in recordings' entity paths ("batch + train" ->
+    "batch_train"); no two methods of a run share one (``tasks.methods``)."""
+    return method.replace(" + ", "_").replace(" ", "_")
 
 
 def check_split(split: str) -> None:
@@ -219,11 +225,11 @@ def score_instance(
         "train only": float(train_gp.log_likelihood(test)),
         "batch + train": float(both_gp.log_likelihood(test)),
     }
+    deltas = test.deltas
     for method in added:
         mean, var = method.predict(train, test, key)
         predictions[method.name] = mean, var
-        loglik[method.name] = gaussian_loglik(test.deltas, mean, var)
-    deltas = test.deltas
+        loglik[method.name] = gaussian_loglik(deltas, mean, var)
     mse = {m: np.mean((p - deltas) ** 2, axis=0) for m, (p, _) in predictions.items()}
     mse["hipmdp"] = np.mean(
         [np.mean((p - deltas) ** 2, axis=0) for p, _ in hip_predictions], axis=0
@@ -233,13 +239,6 @@ def score_instance(
         [coverage(p, v, deltas) for p, v in hip_predictions], axis=0
     )
     return InstanceScores(mse=mse, loglik=loglik, coverage=covered)
-
-
-def gaussian_loglik(observed: Array, mean: Array, var: Array) -> float:
-    """Σ_i Σ_d log N(observed[i,d]; mean[i,d], var[i,d]), as the GP baselines'
-    ``log_likelihood``."""
-    r = observed - mean
-    return float(-0.5 * np.sum(r * r / var + np.log(2 * np.pi * var)))
 
 
 def summarise(
@@ -475,7 +474,8 @@ test log-likelihood, HiP-MDP minus method):
 
 
 def added_text(methods: Sequence[str]) -> str:
-    """A sentence naming the methods added with ``--method`` ("" if none)."""
+    """A paragraph naming the methods added with ``--method`` ("" if none), to
+    put before a table."""
     if not methods:
         return ""
     named = ", ".join(
@@ -484,7 +484,7 @@ def added_text(methods: Sequence[str]) -> str:
     )
     return (
         f"Added with `--method` (see `tasks/methods.py`): {named}. The best "
-        "baseline below is the best of the paper's three."
+        "baseline below is the best of the paper's three.\n\n"
     )
 
 

@@ -20,16 +20,12 @@ from tasks.experiment import (
 from tasks.prediction import (
     added_text,
     coverage_text,
+    entity,
     mse_table,
     ratio_text,
     unseen_section,
 )
 from tasks.recording import Recording
-
-
-def entity(method: str) -> str:
-    """The recording's entity name of a method ("batch + train" -> batch_train)."""
-    return method.replace(" + ", "_").replace(" ", "_")
 
 
 def write_artefacts(path: Path, config, metrics: dict, hip, splits) -> None:
@@ -149,9 +145,7 @@ test transitions ({config.split} split); HiP-MDP fitted {config.n_runs} times on
 
 ## MSE of Δs (mean over test settings [95% interval])
 
-{added_text(config.methods)}
-
-{table}
+{added_text(config.methods)}{table}
 
 HiP-MDP MSE divided by the best baseline's (below 1: the HiP-MDP is better; the
 paper reports 0.3 on Δẋ and 0.17 on Δθ̇):

@@ -221,6 +221,7 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
     ll = metrics["loglik_difference"]
     ll_rows = [[m, fmt_ci(v)] for m, v in ll.items()]
     unseen_text = unseen_section(metrics)
+    pre = added_text(config.methods)  # a paragraph before the MSE table, or ""
     s = metrics["seconds"]
     inertia = (
         "Each link's moment of inertia stays at the book's 1 kg·m² as its mass "
@@ -281,9 +282,7 @@ is then within 10% of the true model's final median
 
 ## One-step prediction error on test settings (MSE of Δs)
 
-{added_text(config.methods)}
-
-{config.mse_train} train and {config.mse_test} test transitions per setting
+{pre}{config.mse_train} train and {config.mse_test} test transitions per setting
 ({config.split} split). Mean over settings [95% interval over settings]:
 
 {mse_table(metrics["mse"])}
