@@ -43,6 +43,7 @@ from scipy import stats
 
 from tasks.compare_runs import PRESENTATION, differences, read_run
 from tasks.experiment import (
+    ADDED_FIELDS,
     check_out_file,
     fmt_ci,
     fmt_value,
@@ -55,10 +56,8 @@ from tasks.prediction import best_baseline
 #: Top-level config keys that may differ between the runs, besides PRESENTATION:
 #: the seed, and the run's label.
 LABELS = ("seed", "name")
-#: Top-level config fields added after runs were made, with the value an older
-#: run's missing field stands for (how it ran: before ``--split``, every split
-#: was random; before ``--method``, no method was added).
-ADDED = {"split": "random", "methods": []}
+#: Config fields an older run lacks, and what they stood for.
+ADDED = ADDED_FIELDS
 
 
 class Headline(NamedTuple):

@@ -42,6 +42,22 @@ def test_a_copy_is_identical_whatever_its_timings(tmp_path):
     assert "verdict: identical results" in report(result)
 
 
+def test_an_experiment_older_than_a_field_counts_as_its_old_behaviour(tmp_path):
+    """A run made before ``split`` and ``methods`` existed ran the random split
+    with no added method: its config equals a newer run's with those values,
+    and not one with others."""
+    old = {"seed": 0, "fit": {"n_sweeps": 60}}
+    a = _run(tmp_path / "a", config=old)
+    b = _run(tmp_path / "b", config=old | {"split": "random", "methods": []})
+    assert main(a, b).config == {}
+    c = _run(tmp_path / "c", config=old | {"split": "time", "methods": ["x=m:A"]})
+    assert main(a, c).config == {
+        "methods": [[], None],  # flattened: an empty list is a leaf
+        "methods.0": [None, "x=m:A"],
+        "split": ["random", "time"],
+    }
+
+
 def test_differences_are_located_and_counted(tmp_path):
     a = _run(tmp_path / "a")
     returns = np.arange(12.0).reshape(3, 4)

@@ -159,6 +159,7 @@ def test_a_run_older_than_a_field_counts_as_its_old_behaviour(tmp_path):
     """Runs made before ``split`` existed ran the random split: they are seeds
     of the same experiment as newer runs with ``split: random``."""
     newer = {"name": "s1", "seed": 1, "fit": {"n_sweeps": 60}, "split": "random"}
+    newer["methods"] = []  # and before --method, none was added
     assert main(_runs(tmp_path, configs={1: newer}))["seeds"] == [0, 1, 2]
 
 
