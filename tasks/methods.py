@@ -11,17 +11,19 @@ that takes no arguments and returns one):
 
 - ``fit(batch, *, rng)``: called once, on the batch data of the training
   instances (a ``hipmdp.Transitions`` whose ``instances`` tell them apart).
-- ``predict(train, states, actions, *, rng) -> (mean, var)``: called once per
-  test setting. ``train`` holds the setting's train transitions (the ones the
-  HiP-MDP filters its belief on); ``states`` (n, D) and ``actions`` (n,) are the
-  held-out test transitions' inputs. It returns the Gaussian predictive mean
-  and variance of ``Δs = s' - s``, each shape (n, D), the variance > 0. Angle
-  changes are measured as ``Transitions.deltas`` measures them.
+- ``adapt(train, *, rng) -> predictor``: called once per test setting, with the
+  setting's train transitions (the ones the HiP-MDP filters its belief on). The
+  predictor's ``predict(states, actions) -> (mean, var)`` gives the Gaussian
+  predictive mean and variance of ``Δs = s' - s`` at states (n, D) and actions
+  (n,), each shape (n, D), the variance > 0; it is called on the held-out test
+  transitions' inputs. Angle changes are measured as ``Transitions.deltas``
+  measures them. (The GP baselines have this shape: ``batch only`` adapts to
+  nothing and returns itself; ``train only`` returns a GP fitted on ``train``.)
 
-Each call gets its own ``rng``, spawned from the run's seed and the method's name
-only (:func:`method_seed`): adding or removing a method changes no other
-method's numbers, and the same seed gives the same scores. :class:`BayesianLinear`
-is a complete example.
+Each ``fit`` and ``adapt`` gets its own ``rng``, spawned from the run's seed and
+the method's name only (:func:`method_seed`), and copies of the data: adding or
+removing a method changes no other method's numbers, and the same seed gives the
+same scores. :class:`BayesianLinear` is a complete example.
 
 Symbols: ``a`` action, ``d`` state dimension, ``x`` features of a state.
 """
@@ -32,6 +34,7 @@ import importlib
 import re
 import zlib
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -108,7 +111,7 @@ def _crc(name: str) -> int:
 
 def load(spec: MethodSpec, build: bool = True) -> Any:
     """Import ``spec.module`` and find ``spec.attribute``; with ``build``, call it
-    with no arguments and check that the result has ``fit`` and ``predict``.
+    with no arguments and check that the result has ``fit`` and ``adapt``.
     Raise ValueError, naming the spec, if any step fails. Returns the object
     (with ``build``) or the class or function."""
     where = f"methods: {spec.name}={spec.module}:{spec.attribute}"
@@ -134,10 +137,10 @@ def load(spec: MethodSpec, build: bool = True) -> Any:
             f"{where}: calling {spec.attribute}() with no arguments raised "
             f"{type(err).__name__}: {err}"
         ) from err
-    missing = [m for m in ("fit", "predict") if not callable(getattr(method, m, None))]
+    missing = [m for m in ("fit", "adapt") if not callable(getattr(method, m, None))]
     if missing:
         raise ValueError(
-            f"{where}: expected an object with fit and predict methods, "
+            f"{where}: expected an object with fit and adapt methods, "
             f"{type(method).__name__} has no {' or '.join(missing)}"
         )
     return method
@@ -146,7 +149,7 @@ def load(spec: MethodSpec, build: bool = True) -> Any:
 def method_seed(seed: int, name: str, *key: int) -> np.random.SeedSequence:
     """The stream of method ``name`` in a run with seed ``seed``: the seed's
     descendant with spawn key ``(METHOD_STREAM, crc32(name), *key)``. ``fit`` gets
-    key ``(0,)``; ``predict`` on setting ``i`` of prediction table ``g`` gets
+    key ``(0,)``; ``adapt`` on setting ``i`` of prediction table ``g`` gets
     ``(1, g, i)``; the trial prediction of :func:`fit_all` ``(1, 2)``."""
     return np.random.SeedSequence(seed, spawn_key=(METHOD_STREAM, _crc(name), *key))
 
@@ -168,17 +171,34 @@ class Added(NamedTuple):
     def name(self) -> str:
         return self.spec.name
 
+    def adapt(self, train: Transitions, key: tuple[int, ...]) -> Any:
+        """The method's predictor for an instance with transitions ``train`` (a
+        copy is passed), checked to have ``predict``. ``key``: as
+        :func:`method_seed` says."""
+        rng = np.random.default_rng(method_seed(self.seed, self.name, 1, *key))
+        where = f"method {self.name}: adapt"
+        try:
+            predictor = self.method.adapt(_copy(train), rng=rng)
+        except Exception as err:
+            err.add_note(f"(in {where}, added with --method)")
+            raise
+        if not callable(getattr(predictor, "predict", None)):
+            raise ValueError(
+                f"{where} must return an object with predict(states, actions), "
+                f"got {type(predictor).__name__}"
+            )
+        return predictor
+
     def predict(
         self, train: Transitions, test: Transitions, key: tuple[int, ...]
     ) -> tuple[Array, Array]:
-        """The method's (mean, var) of Δs on ``test``, given copies of the inputs
-        and checked: real and finite, shapes (n, D), var > 0, and a finite
-        log-likelihood of ``test``. ``key``: as :func:`method_seed` says."""
-        rng = np.random.default_rng(method_seed(self.seed, self.name, 1, *key))
+        """The (mean, var) of Δs on ``test`` of the method adapted to ``train``
+        (:meth:`adapt`), given copies of the inputs and checked: real and finite,
+        shapes (n, D), var > 0, and a finite log-likelihood of ``test``."""
+        predictor = self.adapt(train, key)
         where = f"method {self.name}: predict"
-        states, actions = test.states.copy(), test.actions.copy()
         try:
-            out = self.method.predict(_copy(train), states, actions, rng=rng)
+            out = predictor.predict(test.states.copy(), test.actions.copy())
         except Exception as err:
             err.add_note(f"(in {where}, added with --method)")
             raise
@@ -264,7 +284,7 @@ def add_method_argument(parser) -> None:
         action="append",
         metavar="NAME=module:attribute",
         help="also score your own method under NAME (repeatable); module:attribute "
-        "is a class or function giving an object with fit and predict, see "
+        "is a class or function giving an object with fit and adapt, see "
         "tasks/methods.py (example: linear=tasks.methods:BayesianLinear)",
     )
 
@@ -280,8 +300,9 @@ class BayesianLinear:
     the training instances, so ``σ²`` holds their spread as well as the noise
     within one: the intervals stay wide however many train transitions a
     setting has.
-    ``predict``: per action, the prior ``W ~ N(W_a, σ²/λ)`` column by column is
-    updated on the setting's train transitions ``(X, Y)``:
+    ``adapt``: per action, the prior ``W ~ N(W_a, σ²/λ)`` column by column is
+    updated on the setting's train transitions ``(X, Y)``, and the predictor
+    (:class:`LinearPredictor`) gives
 
         Ŵ = (XᵀX + λI)⁻¹ (XᵀY + λ W_a),
         mean = x Ŵ,   var[d] = σ²[a,d] (1 + x (XᵀX + λI)⁻¹ xᵀ).
@@ -305,11 +326,7 @@ class BayesianLinear:
 
     def features(self, states: Array) -> Array:
         """``x`` for each state, shape (n, p)."""
-        states = np.asarray(states, dtype=float)
-        angles = states[:, list(self.angle_dims)]
-        return np.hstack(
-            [np.ones((len(states), 1)), states, np.sin(angles), np.cos(angles)]
-        )
+        return _features(states, self.angle_dims)
 
     def fit(self, batch: Transitions, *, rng: np.random.Generator) -> None:
         del rng  # deterministic
@@ -326,42 +343,65 @@ class BayesianLinear:
                 self.weights[a] = w
                 self.noise[a] = np.mean((y[rows] - x[rows] @ w) ** 2, axis=0) + 1e-12
 
-    def predict(
-        self,
-        train: Transitions,
-        states: Array,
-        actions: Array,
-        *,
-        rng: np.random.Generator,
-    ) -> tuple[Array, Array]:
+    def adapt(self, train: Transitions, *, rng: np.random.Generator) -> LinearPredictor:
+        """The posterior given ``train``, per action (the prior for an action
+        ``train`` lacks)."""
         del rng  # deterministic
         if not hasattr(self, "weights"):
-            raise ValueError("BayesianLinear: call fit before predict")
-        x_train, y_train = self.features(train.states), train.deltas
-        x = self.features(states)
-        mean = np.zeros((len(states), self.weights.shape[2]))
-        var = np.zeros_like(mean)
-        lam = self.prior_strength
-        for a in np.unique(actions):
-            rows, own = actions == a, train.actions == a
-            if a >= self.n_actions:
-                raise ValueError(f"actions: {a} is not an action of the batch data")
-            X, Y = x_train[own], y_train[own]
-            precision = X.T @ X + lam * np.eye(x.shape[1])
-            w = np.linalg.solve(precision, X.T @ Y + lam * self.weights[a])
-            mean[rows] = x[rows] @ w
-            # x P⁻¹ xᵀ per row, with P⁻¹ applied by a solve
-            lever = np.einsum(
-                "np,pn->n", x[rows], np.linalg.solve(precision, x[rows].T)
+            raise ValueError("BayesianLinear: call fit before adapt")
+        x, y = self.features(train.states), train.deltas
+        lam, p = self.prior_strength, self.weights.shape[1]
+        weights, covariance = np.empty_like(self.weights), []
+        for a in range(self.n_actions):
+            own = train.actions == a
+            X, Y = x[own], y[own]
+            precision = X.T @ X + lam * np.eye(p)  # P, per unit of σ²
+            weights[a] = np.linalg.solve(precision, X.T @ Y + lam * self.weights[a])
+            covariance.append(np.linalg.inv(precision))
+        return LinearPredictor(
+            self.angle_dims, weights, np.array(covariance), self.noise
+        )
+
+
+@dataclass(frozen=True)
+class LinearPredictor:
+    """:class:`BayesianLinear` adapted to an instance: per action ``a``, the
+    posterior mean ``Ŵ[a]`` (p, D), ``P⁻¹[a] = (XᵀX + λI)⁻¹`` (p, p) and ``σ²[a]``
+    (D,)."""
+
+    angle_dims: tuple[int, ...]
+    weights: Array
+    covariance: Array
+    noise: Array
+
+    def predict(self, states: Array, actions: Array) -> tuple[Array, Array]:
+        """``mean = x Ŵ[a]``, ``var[d] = σ²[a,d] (1 + x P⁻¹[a] xᵀ)``, each (n, D)."""
+        x = _features(states, self.angle_dims)
+        actions = np.asarray(actions)
+        if actions.size and (actions.min() < 0 or actions.max() >= len(self.weights)):
+            raise ValueError(
+                f"actions: expected 0..{len(self.weights) - 1} (the batch data's), "
+                f"got {actions.min()}..{actions.max()}"
             )
-            var[rows] = self.noise[a] * (1.0 + lever[:, None])
-        return mean, var
+        mean = np.einsum("np,npd->nd", x, self.weights[actions])
+        lever = np.einsum("np,npq,nq->n", x, self.covariance[actions], x)
+        return mean, self.noise[actions] * (1.0 + lever[:, None])
+
+
+def _features(states: Array, angle_dims: tuple[int, ...]) -> Array:
+    """``x = (1, s, sin θ, cos θ)`` for each state, shape (n, p)."""
+    states = np.asarray(states, dtype=float)
+    angles = states[:, list(angle_dims)]
+    return np.hstack(
+        [np.ones((len(states), 1)), states, np.sin(angles), np.cos(angles)]
+    )
 
 
 __all__ = [
     "BUILT_IN",
     "Added",
     "BayesianLinear",
+    "LinearPredictor",
     "MethodSpec",
     "add_method_argument",
     "check_specs",

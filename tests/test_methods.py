@@ -62,7 +62,7 @@ def test_bayesian_linear_equals_its_function_space_form():
     lam = 3.0
     method = BayesianLinear(prior_strength=lam)
     method.fit(batch, rng=rng)
-    mean, var = method.predict(train, test.states, test.actions, rng=rng)
+    mean, var = method.adapt(train, rng=rng).predict(test.states, test.actions)
 
     for a in (0, 1):
         b, t, q = batch.actions == a, train.actions == a, test.actions == a
@@ -99,7 +99,7 @@ def test_bayesian_linear_falls_back_for_actions_with_too_few_batch_transitions()
     method.fit(batch, rng=rng)
     test = transitions(weights(rng), 20, rng)
     empty = batch.take(np.arange(0))
-    mean, var = method.predict(empty, test.states, test.actions, rng=rng)
+    mean, var = method.adapt(empty, rng=rng).predict(test.states, test.actions)
     one = test.actions == 1
     np.testing.assert_array_equal(mean[one], 0.0)
     # σ² (1 + x (λI)⁻¹ xᵀ) with no train transitions, λ = 10
@@ -108,10 +108,10 @@ def test_bayesian_linear_falls_back_for_actions_with_too_few_batch_transitions()
         var[one], (np.var(batch.deltas, axis=0) + 1e-12) * (1 + lever)
     )
     assert np.all(mean[~one] != 0.0)
-    with pytest.raises(ValueError, match="actions: 2 is not an action"):
-        method.predict(empty, test.states, np.full(20, 2), rng=rng)
-    with pytest.raises(ValueError, match="call fit before predict"):
-        BayesianLinear().predict(empty, test.states, test.actions, rng=rng)
+    with pytest.raises(ValueError, match="actions: expected 0..1 .*, got 2..2"):
+        method.adapt(empty, rng=rng).predict(test.states, np.full(20, 2))
+    with pytest.raises(ValueError, match="call fit before adapt"):
+        BayesianLinear().adapt(empty, rng=rng)
     with pytest.raises(ValueError, match="prior_strength: expected a finite"):
         BayesianLinear(prior_strength=0.0)
 
@@ -126,13 +126,13 @@ def test_bayesian_linear_moves_from_the_batch_fit_to_the_instance():
     method = BayesianLinear(prior_strength=1e-8)
     method.fit(batch, rng=rng)
     none = batch.take(np.arange(0))
-    mean, var = method.predict(none, test.states, test.actions, rng=rng)
+    mean, var = method.adapt(none, rng=rng).predict(test.states, test.actions)
     x = features(test.states)
     batch_model = np.einsum("np,npd->nd", x, w_batch[test.actions])
     np.testing.assert_allclose(mean, batch_model, atol=1e-10)
     assert np.all(var > 0)
     train = transitions(w_instance, 200, rng)
-    mean, _ = method.predict(train, test.states, test.actions, rng=rng)
+    mean, _ = method.adapt(train, rng=rng).predict(test.states, test.actions)
     np.testing.assert_allclose(mean, test.deltas, atol=1e-6)
     assert np.abs(test.deltas - batch_model).max() > 1e-3  # the two differ
 
@@ -181,21 +181,29 @@ class Constant:
         batch.states[:] = 0.0
         batch.next_states[:] = 1.0
 
-    def predict(self, train, states, actions, *, rng):
-        shape = self.shape or states.shape
+    def adapt(self, train, *, rng):
         train.states[:] = 0.0
+        return self
+
+    def predict(self, states, actions):
+        shape = self.shape or states.shape
         states -= 1.0
         actions[:] = 0
         return self.out((np.full(shape, self.mean), np.full(shape, self.var)))
 
 
-class NoPredict:
+class NoAdapt:
     def fit(self, batch, *, rng):
         pass
 
 
+class AdaptsToNothing(NoAdapt):
+    def adapt(self, train, *, rng):
+        return None
+
+
 class Failing:
-    """Its fit or predict raises, as the user's code might."""
+    """Its fit, adapt or predictor raises, as the user's code might."""
 
     def __init__(self, where="predict"):
         self.where = where
@@ -204,7 +212,12 @@ class Failing:
         if self.where == "fit":
             raise RuntimeError("fit failed")
 
-    def predict(self, train, states, actions, *, rng):
+    def adapt(self, train, *, rng):
+        if self.where == "adapt":
+            raise RuntimeError("adapt failed")
+        return self
+
+    def predict(self, states, actions):
         raise RuntimeError("predict failed")
 
 
@@ -215,7 +228,7 @@ def test_methods_that_cannot_be_loaded_are_refused(tmp_path, monkeypatch):
         ("x=tasks.no_such_module:A", "cannot import 'tasks.no_such_module'"),
         ("x=broken_method:A", "importing 'broken_method' raised RuntimeError: boom"),
         ("x=tasks.methods:NoSuchClass", "has no class or function 'NoSuchClass'"),
-        ("x=tests.test_methods:NoPredict", "NoPredict has no predict"),
+        ("x=tests.test_methods:NoAdapt", "NoAdapt has no adapt"),
         ("x=tasks.methods:load", "calling load\\(\\) with no arguments raised"),
     ]:
         with pytest.raises(ValueError, match=match):
@@ -248,6 +261,14 @@ def test_bad_predictions_are_refused_naming_the_method(kw, match):
         added.predict(test, test, (0, 0))
 
 
+def test_an_adapt_without_a_predictor_is_refused():
+    s = np.random.default_rng(2).normal(size=(5, 4))
+    test = hipmdp.Transitions(s, np.zeros(5, int), s + 0.1, np.zeros(5, int))
+    added = Added(MethodSpec("mine", "m", "A"), AdaptsToNothing(), 0)
+    with pytest.raises(ValueError, match="mine: adapt must return an object with"):
+        added.predict(test, test, (0, 0))
+
+
 def test_a_list_is_taken_as_mean_and_variance():
     s = np.random.default_rng(2).normal(size=(5, 4))
     test = hipmdp.Transitions(s, np.zeros(5, int), s + 0.1, np.zeros(5, int))
@@ -259,7 +280,7 @@ def test_a_list_is_taken_as_mean_and_variance():
 
 def test_errors_in_the_users_code_keep_their_type_and_name_the_method():
     batch = transitions(weights(np.random.default_rng(0)), 40, np.random.default_rng(1))
-    for where in ("fit", "predict"):
+    for where in ("fit", "adapt", "predict"):
         loaded = [(MethodSpec("mine", "m", "A"), Failing(where))]
         with pytest.raises(RuntimeError, match=f"{where} failed") as err:
             methods.fit_all(loaded, batch, 0)  # fit, then the trial prediction
@@ -267,13 +288,13 @@ def test_errors_in_the_users_code_keep_their_type_and_name_the_method():
 
 
 def test_each_call_gets_its_own_stream_from_the_seed_and_the_name():
-    """The rng a method's predict is given: the same for the same (seed, name,
+    """The rng a method's adapt is given: the same for the same (seed, name,
     key), different for another setting, table, name or seed."""
 
     class Draws(Constant):
-        def predict(self, train, states, actions, *, rng):
+        def adapt(self, train, *, rng):
             self.drawn = rng.random()
-            return super().predict(train, states, actions, rng=rng)
+            return super().adapt(train, rng=rng)
 
     s = np.random.default_rng(2).normal(size=(5, 4))
     test = hipmdp.Transitions(s, np.zeros(5, int), s + 0.1, np.zeros(5, int))
@@ -322,7 +343,7 @@ def test_an_added_method_is_scored_like_the_others_and_changes_nothing_else():
         np.testing.assert_array_equal(alone.mse[m], both.mse[m])
         np.testing.assert_array_equal(alone.coverage[m], both.coverage[m])
         assert alone.loglik[m] == both.loglik[m]
-    mean, var = linear.predict(train, test.states, test.actions, rng=rng)
+    mean, var = linear.adapt(train, rng=rng).predict(test.states, test.actions)
     np.testing.assert_allclose(
         both.mse["linear"], np.mean((test.deltas - mean) ** 2, 0)
     )
