@@ -79,6 +79,21 @@ TEST_MASSES = tuple(
 QUICK_TEST_MASSES = ((0.7, 0.9), (0.9, 1.3), (1.1, 0.7), (1.3, 1.1))
 # paired comparisons in metrics.json: "clearly ahead" is a paired interval above 0
 PAIRS = (("hipmdp", "average"), ("hipmdp", "true"), ("average", "true"))
+
+
+def run_methods(config: SwingupConfig) -> tuple[str, ...]:
+    """The transfer's methods: the three of METHODS, then those added with
+    ``--method`` (``config.methods``), by name."""
+    return METHODS + tuple(spec.name for spec in check_specs(config.methods))
+
+
+def run_pairs(config: SwingupConfig) -> tuple[tuple[str, str], ...]:
+    """PAIRS, then for each added method: the HiP-MDP against it, and it against
+    the true model."""
+    added = run_methods(config)[len(METHODS) :]
+    return PAIRS + tuple(p for m in added for p in (("hipmdp", m), (m, "true")))
+
+
 DIM_NAMES = ("dtheta1", "dtheta2", "dtheta1_dot", "dtheta2_dot")
 
 
@@ -257,9 +272,12 @@ class Results(NamedTuple):
     metrics: dict[str, Any]
 
 
-def run_transfer(config, hip, average, ss: np.random.SeedSequence) -> list:
-    """Every (method, test setting, trial) trial; the seeds depend on (setting,
-    trial) only. Setting 0, trial 0 is traced for the recording."""
+def run_transfer(
+    config, hip, average, ss: np.random.SeedSequence, added: tuple = ()
+) -> list:
+    """Every (method, test setting, trial) trial, the ``added`` methods'
+    (``tasks.methods.Added``) too; the seeds depend on (setting, trial) only.
+    Setting 0, trial 0 is traced for the recording."""
     seeds = trial_seeds(ss, len(config.test_masses), config.n_trials)
     jobs = [
         TrialJob(
@@ -272,12 +290,12 @@ def run_transfer(config, hip, average, ss: np.random.SeedSequence) -> list:
         )
         for i, masses in enumerate(config.test_masses)
         for t in range(config.n_trials)
-        for method in METHODS
+        for method in run_methods(config)
     ]
     return pool_map(
         run_trial, jobs, workers=config.workers, desc="transfer trials",
         progress=config.progress, initializer=set_models,
-        initargs=(ACROBOT, config.transfer, hip, average),
+        initargs=(ACROBOT, config.transfer, hip, average, None, added),
     )  # fmt: skip
 
 
@@ -344,7 +362,7 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
     timings["average_model"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    trials = run_transfer(config, hip, average, ss_trials)
+    trials = run_transfer(config, hip, average, ss_trials, added)
     timings["transfer"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -386,16 +404,17 @@ def trial_arrays(config: SwingupConfig, trials: list) -> dict[str, np.ndarray]:
     order of ``methods`` and ``test_masses`` ((m1, m2) per setting, kg). Read with
     ``np.load("trials.npz")`` (no pickle).
     """
-    shape = (len(METHODS), len(config.test_masses), config.n_trials)
+    methods = run_methods(config)
+    shape = (len(methods), len(config.test_masses), config.n_trials)
     returns = np.full((*shape, config.transfer.n_episodes), np.nan)
     steps = np.zeros(returns.shape, dtype=np.int64)
     for r in trials:
-        index = (METHODS.index(r.method), r.setting, r.trial)
+        index = (methods.index(r.method), r.setting, r.trial)
         returns[index], steps[index] = r.returns, r.steps
     if np.isnan(returns).any():
         raise ValueError("trials: expected one result per (method, setting, trial)")
     return {
-        "methods": np.array(METHODS),
+        "methods": np.array(methods),
         "test_masses": np.array(config.test_masses, dtype=np.float64),
         "returns": returns,
         "steps": steps,
@@ -409,7 +428,8 @@ def transfer_metrics(config: SwingupConfig, trials: list) -> dict[str, Any]:
     that runs to the step limit moves a mean by tens of steps), the medians are not.
     """
     curves, per_method, at_limit, all_steps = {}, {}, {}, {}
-    for method in METHODS:
+    methods, pairs = run_methods(config), run_pairs(config)
+    for method in methods:
         runs = sorted(
             (r for r in trials if r.method == method),
             key=lambda r: (r.setting, r.trial),
@@ -425,12 +445,12 @@ def transfer_metrics(config: SwingupConfig, trials: list) -> dict[str, Any]:
         )
     target = float(np.mean(curves["true"]["mean"][-config.final_window :]))
     episodes_to = {
-        m: first_episode_within(curves[m]["mean"], target, margin=0.1) for m in METHODS
+        m: first_episode_within(curves[m]["mean"], target, margin=0.1) for m in methods
     }
     medians = {m: np.median(r, axis=0) for m, r in per_method.items()}
     target_median = float(np.mean(medians["true"][-config.final_window :]))
     episodes_to_median = {
-        m: first_episode_within(medians[m], target_median, margin=0.1) for m in METHODS
+        m: first_episode_within(medians[m], target_median, margin=0.1) for m in methods
     }
     return {
         "episodes_to_near_optimal": episodes_to,
@@ -453,7 +473,7 @@ def transfer_metrics(config: SwingupConfig, trials: list) -> dict[str, Any]:
             f"{a} - {b}": paired_difference(
                 per_method[a], per_method[b], groups=settings
             )
-            for a, b in PAIRS
+            for a, b in pairs
         },
         # per trial and episode, the return minus the 10% threshold of the true
         # model's final return on the same trial: the target's verdict with an
@@ -462,13 +482,15 @@ def transfer_metrics(config: SwingupConfig, trials: list) -> dict[str, Any]:
             m: margin_to_target(
                 per_method[m], per_method["true"], config.final_window, margin=0.1
             )
-            for m in METHODS
+            for m in methods
         },
         "step_limit_rate": at_limit,
         "step_limit_split": step_limit_split(
-            [per_method[m] for m in METHODS],
-            [all_steps[m] for m in METHODS],
+            [per_method[m] for m in methods],
+            [all_steps[m] for m in methods],
             config.transfer.max_steps,
+            methods,
+            pairs,
         ),
         "paired_difference_per_setting": per_setting_differences(config, trials),
         "test_belief_means": {
@@ -486,7 +508,11 @@ def transfer_metrics(config: SwingupConfig, trials: list) -> dict[str, Any]:
 
 
 def step_limit_split(
-    returns: np.ndarray, steps: np.ndarray, max_steps: int, methods=METHODS
+    returns: np.ndarray,
+    steps: np.ndarray,
+    max_steps: int,
+    methods: tuple[str, ...] = METHODS,
+    pairs: tuple[tuple[str, str], ...] = PAIRS,
 ) -> dict[str, Any]:
     """How much of each mean return, and of each pair's gap, is the episodes that
     ran to the step limit.
@@ -519,7 +545,7 @@ def step_limit_split(
             if below.any()
             else None,
         }
-    for a, b in PAIRS:
+    for a, b in pairs:
         if a not in out["methods"] or b not in out["methods"]:
             continue
         ma, mb = out["methods"][a], out["methods"][b]
@@ -542,7 +568,7 @@ def per_setting_differences(config: SwingupConfig, trials: list) -> dict[str, An
     for r in sorted(trials, key=lambda r: r.trial):
         returns.setdefault((r.method, r.setting), []).append(r.returns)
     out = {}
-    for a, b in PAIRS:
+    for a, b in run_pairs(config):
         rows = []
         for i, masses in enumerate(config.test_masses):
             d = paired_difference(np.array(returns[a, i]), np.array(returns[b, i]))

@@ -1,10 +1,12 @@
-"""Your own method in the one-step prediction benchmark.
+"""Your own method in the benchmark: one-step prediction, and swing-up control.
 
 Both prediction tables (``tasks.cartpole_prediction`` and the one of
 ``tasks.acrobot_swingup``) score, beside the HiP-MDP and the three GP baselines, any
 method named with ``--method NAME=module:attribute``. It sees exactly what the
 HiP-MDP sees, on the same test settings and the same train/test splits, and its
-scores go into every table and into ``metrics.json`` under ``NAME``.
+scores go into every table and into ``metrics.json`` under ``NAME``. In the
+acrobot's transfer trials it is a fourth model to plan on, beside the true model,
+the average model and the HiP-MDP (``tasks.transfer``).
 
 A method is an object with two methods (``attribute`` is a class or a function
 that takes no arguments and returns one):
@@ -19,6 +21,14 @@ that takes no arguments and returns one):
   transitions' inputs. Angle changes are measured as ``Transitions.deltas``
   measures them. (The GP baselines have this shape: ``batch only`` adapts to
   nothing and returns itself; ``train only`` returns a GP fitted on ``train``.)
+
+In a transfer trial, the agent plans on ``s' = s + mean`` (angles wrapped) of the
+method adapted to the trial's real transitions so far (none before the first real
+episode; instance id 0), as the HiP-MDP plans on its belief filtered on them:
+``adapt`` runs before the first planning and after every real episode. Planning
+calls ``predict`` with one state at a time, so it should be cheap; a predictor with
+``predict_mean(states, actions) -> mean`` has that called instead
+(``hipmdp.planning.LearnedModel``).
 
 Each ``fit`` and ``adapt`` gets its own ``rng``, spawned from the run's seed and
 the method's name only (:func:`method_seed`), and copies of the data: adding or
@@ -150,7 +160,9 @@ def method_seed(seed: int, name: str, *key: int) -> np.random.SeedSequence:
     """The stream of method ``name`` in a run with seed ``seed``: the seed's
     descendant with spawn key ``(METHOD_STREAM, crc32(name), *key)``. ``fit`` gets
     key ``(0,)``; ``adapt`` on setting ``i`` of prediction table ``g`` gets
-    ``(1, g, i)``; the trial prediction of :func:`fit_all` ``(1, 2)``."""
+    ``(1, g, i)``; the trial prediction of :func:`fit_all` ``(1, 2)``; a transfer
+    trial's ``adapt`` after ``e`` real episodes of trial ``t`` on setting ``i``
+    ``(1, 3, i, t, e)``."""
     return np.random.SeedSequence(seed, spawn_key=(METHOD_STREAM, _crc(name), *key))
 
 

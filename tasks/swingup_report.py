@@ -24,10 +24,24 @@ from tasks.prediction import (
     unseen_section,
 )
 from tasks.recording import Recording
-from tasks.transfer import METHODS
 
 COLORS = {"true": (60, 60, 60), "average": (230, 120, 30), "hipmdp": (40, 110, 220)}
 LABELS = {"true": "true model", "average": "average model", "hipmdp": "HiP-MDP"}
+#: Colours of methods added with ``--method``, in turn.
+ADDED_COLORS = ((40, 160, 80), (150, 60, 180), (190, 160, 20), (20, 160, 170))
+
+
+def label(method: str) -> str:
+    """A method's name in tables and legends (an added method's own name)."""
+    return LABELS.get(method, method)
+
+
+def color(method: str, methods: list[str]) -> tuple[int, int, int]:
+    """A method's colour; added methods take ADDED_COLORS in their order."""
+    if method in COLORS:
+        return COLORS[method]
+    added = [m for m in methods if m not in COLORS]
+    return ADDED_COLORS[added.index(method) % len(ADDED_COLORS)]
 
 
 def write_artefacts(path: Path, config, metrics: dict, trials: list, hip) -> None:
@@ -45,13 +59,14 @@ def _learning_curves(file: Path, metrics: dict) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
-    for m in METHODS:
+    methods = list(metrics["returns"])  # METHODS, then any added with --method
+    for m in methods:
         c = metrics["returns"][m]
         mean, low, high = (np.asarray(c[k], float) for k in ("mean", "low", "high"))
         ep = np.arange(1, len(mean) + 1)
-        color = np.array(COLORS[m]) / 255
-        ax.plot(ep, mean, label=LABELS[m], color=color)
-        ax.fill_between(ep, low, high, color=color, alpha=0.2)
+        rgb = np.array(color(m, methods)) / 255
+        ax.plot(ep, mean, label=label(m), color=rgb)
+        ax.fill_between(ep, low, high, color=rgb, alpha=0.2)
     ax.set_xlabel("real episode")
     ax.set_ylabel("return (−steps to goal)")
     ax.set_title("Acrobot swing-up on new instances (mean, 95% interval)")
@@ -80,6 +95,7 @@ def record(file: Path, config, metrics: dict, trials: list) -> None:
 
     m1, m2 = config.test_masses[0]
     params = config.params(m1, m2)
+    methods = list(metrics["returns"])  # METHODS, then any added with --method
     blueprint = rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
@@ -88,8 +104,8 @@ def record(file: Path, config, metrics: dict, trials: list) -> None:
             ),
             rrb.Vertical(
                 *(
-                    rrb.Spatial3DView(origin=f"/rollout/{m}", name=LABELS[m])
-                    for m in METHODS
+                    rrb.Spatial3DView(origin=f"/rollout/{m}", name=label(m))
+                    for m in methods
                 ),
                 rrb.TextDocumentView(origin="/notes", name="what this shows"),
             ),
@@ -99,7 +115,7 @@ def record(file: Path, config, metrics: dict, trials: list) -> None:
     traced = {r.method: r for r in trials if r.traces}
     with Recording(file, application_id="hipmdp_acrobot", blueprint=blueprint) as rec:
         rec.text("/notes", _NOTES.format(m1=m1, m2=m2))
-        for m in METHODS:
+        for m in methods:
             c = metrics["returns"][m]
             ep = np.arange(len(c["mean"]))
             rec.scalars(f"/returns/{m}", c["mean"], episode=ep)
@@ -110,7 +126,7 @@ def record(file: Path, config, metrics: dict, trials: list) -> None:
                 pred = acrobot.link_points(trace.predicted, params)
                 rec.strips(
                     f"/rollout/{m}/real", real, episode=e, step=step,
-                    color=COLORS[m],
+                    color=color(m, methods),
                 )  # fmt: skip
                 rec.strips(
                     f"/rollout/{m}/predicted", pred, episode=e, step=step[1:],
@@ -146,14 +162,15 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
     curves = metrics["returns"]
     n_ep = len(curves["true"]["mean"])
     show = sorted({0, 1, min(4, n_ep - 1), n_ep - 1})
+    methods = list(curves)  # METHODS, then any added with --method
     rows = [
-        [LABELS[m]]
+        [label(m)]
         + [
             fmt_ci({k: curves[m][k][e] for k in ("mean", "low", "high")}, 4)
             for e in show
         ]
         + [ep[m] if ep[m] is not None else f"not within {n_ep}"]
-        for m in METHODS
+        for m in methods
     ]
     transfer = markdown_table(
         ["method"] + [f"episode {e + 1}" for e in show] + ["episodes to near-optimal"],
@@ -194,10 +211,10 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
     median_table = markdown_table(
         ["method"] + [f"episode {e + 1}" for e in show] + ["episodes to near-optimal"],
         [
-            [LABELS[m]]
+            [label(m)]
             + [f"{medians[m][e]:.4g}" for e in show]
             + [ep_median[m] if ep_median[m] is not None else f"not within {n_ep}"]
-            for m in METHODS
+            for m in methods
         ],
     )
     split = metrics["step_limit_split"]
@@ -215,7 +232,7 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
     limit = metrics["step_limit_rate"]
     limit_table = markdown_table(
         ["method"] + [f"episode {e + 1}" for e in range(n_ep)],
-        [[LABELS[m]] + [f"{x:.0%}" for x in limit[m]] for m in METHODS],
+        [[label(m)] + [f"{x:.0%}" for x in limit[m]] for m in methods],
     )
 
     ll = metrics["loglik_difference"]

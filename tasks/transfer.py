@@ -17,6 +17,11 @@ For one test instance, one trial and one method:
    (not the paper's protocol either), that planning starts from a fresh value
    function.
 
+A method added with ``--method`` (``tasks.methods``) runs as a fourth: the agent
+plans on its predictor adapted to the trial's real transitions so far, before the
+first real episode (none) and after each one, as the HiP-MDP plans on its belief
+filtered on them.
+
 Simulated episodes start from initial states of real episodes (the instance's own
 start distribution): the planning start states are the first states of every real
 episode so far plus ``n_start_states`` states drawn from the task's reset.
@@ -32,7 +37,8 @@ planning; the instance and the initial states are.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import dataclasses
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -153,6 +159,7 @@ def set_models(
     hipmdp_model,
     average_model,
     planning_wrapper: Callable[[Any, Any], Any] | None = None,
+    added: Sequence[Any] = (),
 ):
     """Install what every trial needs in this process (a pool initializer).
 
@@ -160,13 +167,15 @@ def set_models(
     HiP-MDP's and the average model's, not the true simulator) into the dynamics
     model the agent plans on, for the instance ``params``: e.g. a physical
     constraint applied to their predictions. Filtering and recording still see the
-    learned model's own predictions."""
+    learned model's own predictions. ``added``: fitted methods added with
+    ``--method`` (``tasks.methods.Added``), run as methods of their own names."""
     _MODELS.update(
         domain=domain,
         config=config,
         hipmdp=hipmdp_model,
         average=average_model,
         planning_wrapper=planning_wrapper,
+        added={a.name: a for a in added},
     )
 
 
@@ -186,8 +195,10 @@ def run_trial(job: TrialJob) -> TrialResult:
     domain: Domain = _MODELS["domain"]
     config: TransferConfig = _MODELS["config"]
     hip = _MODELS["hipmdp"]
-    if job.method not in METHODS:
-        raise ValueError(f"method: expected one of {METHODS}, got {job.method!r}")
+    added = _MODELS.get("added", {}).get(job.method)
+    if job.method not in METHODS and added is None:
+        known = (*METHODS, *_MODELS.get("added", {}))
+        raise ValueError(f"method: expected one of {known}, got {job.method!r}")
     entropy, spawn_key = job.seed
     env_seed, start_seed, agent_seed = np.random.SeedSequence(
         entropy, spawn_key=spawn_key
@@ -204,12 +215,17 @@ def run_trial(job: TrialJob) -> TrialResult:
     basis, sarsa = domain.basis(), domain.sarsa
 
     belief = hip.prior() if job.method == "hipmdp" else None
+    seen: list[Transitions] = []  # this trial's transitions, for an added method
 
     def model_now():
         if job.method == "true":
             return SimulatorModel(domain, job.params)
         if job.method == "average":
             return LearnedModel(_MODELS["average"], None, domain.angle_dims)
+        if added is not None:  # adapted to every transition so far, as filtered
+            data = _trial_data(seen, domain, env.control_timestep())
+            key = (3, job.setting, job.trial, len(seen))
+            return LearnedModel(added.adapt(data, key), None, domain.angle_dims)
         return LearnedModel(hip, belief, domain.angle_dims)
 
     def fresh_state():
@@ -233,6 +249,7 @@ def run_trial(job: TrialJob) -> TrialResult:
         data = episode_transitions(
             episode, episode_index, domain.angle_dims, env.control_timestep()
         )
+        seen.append(data)
         belief, trace = _filter_episode(model, hip, belief, data, episode, job)
         if trace is not None:
             traces.append(trace)
@@ -254,6 +271,18 @@ def run_trial(job: TrialJob) -> TrialResult:
         np.array(weight_means) if weight_means else None,
         traces if job.record else None,
     )
+
+
+def _trial_data(parts: list[Transitions], domain: Domain, dt: float) -> Transitions:
+    """A trial's real transitions so far, one instance (id 0); none at first."""
+    if not parts:
+        empty = np.empty((0, len(domain.low)))
+        return Transitions(
+            empty, np.empty(0, np.int64), empty, np.empty(0, np.int64),
+            angle_dims=domain.angle_dims, dt=dt,
+        )  # fmt: skip
+    data = Transitions.concatenate(parts)
+    return dataclasses.replace(data, instances=np.zeros(len(data), np.int64))
 
 
 def _planning_episodes(config: TransferConfig, episode_index: int) -> int:

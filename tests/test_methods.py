@@ -475,19 +475,38 @@ def test_readmes_example_method_runs_as_written(tmp_path, monkeypatch):
     assert all(v["mean"] > 0 for v in mse.values())
 
 
-def test_the_acrobot_tables_score_added_methods_and_nothing_else_changes(tmp_path):
-    """The swing-up run's test table and approximation floor, with and without
-    an added method: the same numbers for every other method and trial."""
+def test_the_acrobot_run_takes_added_methods_and_nothing_else_changes(tmp_path):
+    """The swing-up run with and without an added method: in the prediction
+    tables, the approximation floor and the transfer trials, the same numbers for
+    every other method, and the added method's own rows beside them."""
     from tasks.acrobot_swingup import main as swingup
     from tests.test_acrobot_swingup import TINY as SWINGUP
 
     plain = swingup(dataclasses.replace(SWINGUP, record=False), tmp_path / "plain")
-    config = dataclasses.replace(SWINGUP, record=False, methods=(LINEAR,))
+    config = dataclasses.replace(SWINGUP, methods=(LINEAR,))
     added = swingup(config, tmp_path / "added")
     a, b = plain.metrics, added.metrics
-    for key in ("mse", "approximation_floor", "loglik_difference", "coverage"):
-        assert {m: b[key][m] for m in a[key]} == a[key], key
+    for m in (a, b):
+        del m["seconds"], m["environment"]
+    pairs = {"hipmdp - linear", "linear - true"}
+    assert without(b, {"linear", *pairs}) == a
+    for key in ("mse", "approximation_floor", "coverage", "returns", "median_returns"):
         assert set(b[key]) - set(a[key]) == {"linear"}, key
-    assert b["returns"] == a["returns"]
+    for key in ("paired_difference", "paired_difference_per_setting"):
+        assert set(b[key]) - set(a[key]) == pairs, key
+    assert (
+        set(b["step_limit_split"]["pairs"]) - set(a["step_limit_split"]["pairs"])
+        == pairs
+    )
+    trials = {
+        k: np.load(run.out / "trials.npz") for k, run in (("a", plain), ("b", added))
+    }
+    assert trials["b"]["methods"].tolist() == ["true", "average", "hipmdp", "linear"]
+    np.testing.assert_array_equal(trials["b"]["returns"][:3], trials["a"]["returns"])
+    assert np.all(trials["b"]["steps"][3] > 0)
     report = (added.out / "report.md").read_text()
     assert "linear (`tasks.methods:BayesianLinear`)" in report
+    assert "| linear |" in report and "| hipmdp - linear |" in report
+    assert {"/rollout/linear/real", "/returns/linear"} <= set(
+        rrd_contents(added.out / "acrobot.rrd")
+    )
