@@ -217,11 +217,13 @@ class SimulatedEpisodes:
         if idx.size:
             s, a = self.states[idx], np.asarray(actions)[idx]
             s2 = np.asarray(self.model.predict(s, a), dtype=np.float64)
-            if s2.shape != s.shape or not np.all(np.isfinite(s2)):
+            if s2.shape != s.shape:
                 raise ValueError(
-                    f"model.predict: expected finite next states of shape {s.shape},"
-                    f" got shape {s2.shape}"
+                    f"model.predict: expected next states of shape {s.shape}, got "
+                    f"shape {s2.shape}"
                 )
+            if not np.all(np.isfinite(s2)):
+                raise ValueError("model.predict: expected finite next states")
             next_states[idx] = s2
             rewards[idx] = self.task.reward(s, a, s2)
             terminal[idx] = self.task.terminal(s2)

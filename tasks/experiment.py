@@ -456,7 +456,12 @@ def pool_map(
         workers, initializer=_init_worker, initargs=(initializer, initargs)
     ) as pool:
         it = pool.map(fn, jobs)
-        return list(tqdm(it, total=len(jobs), desc=desc, disable=not progress))
+        try:
+            return list(tqdm(it, total=len(jobs), desc=desc, disable=not progress))
+        except BaseException:
+            # a job failed (or Ctrl-C): drop the queued ones rather than run them
+            pool.shutdown(wait=True, cancel_futures=True)
+            raise
 
 
 def _init_worker(initializer, initargs: tuple) -> None:

@@ -51,11 +51,13 @@ import numpy as np
 
 from hipmdp.data import Transitions, gaussian_loglik
 from tasks.prediction import PREDICTION_METHODS, entity
+from tasks.transfer import METHODS as TRANSFER_METHODS
 
 Array = np.ndarray
 
-#: The methods every prediction table has; an added method may not take these names.
-BUILT_IN = PREDICTION_METHODS
+#: The methods of the prediction tables and of the transfer trials; an added
+#: method may not take these names.
+BUILT_IN = (*PREDICTION_METHODS, *(m for m in TRANSFER_METHODS if m != "hipmdp"))
 #: First spawn key of the added methods' streams (the runs' own streams are the
 #: seed's children 0, 1, ..., so these never coincide with them).
 METHOD_STREAM = 1000
@@ -160,9 +162,9 @@ def method_seed(seed: int, name: str, *key: int) -> np.random.SeedSequence:
     """The stream of method ``name`` in a run with seed ``seed``: the seed's
     descendant with spawn key ``(METHOD_STREAM, crc32(name), *key)``. ``fit`` gets
     key ``(0,)``; ``adapt`` on setting ``i`` of prediction table ``g`` gets
-    ``(1, g, i)``; the trial prediction of :func:`fit_all` ``(1, 2)``; a transfer
-    trial's ``adapt`` after ``e`` real episodes of trial ``t`` on setting ``i``
-    ``(1, 3, i, t, e)``."""
+    ``(1, g, i)``; the trials of :func:`fit_all` ``(1, 2)`` and ``(1, 2, 1)``; a
+    transfer trial's ``adapt`` after ``e`` real episodes of trial ``t`` on setting
+    ``i`` ``(1, 3, i, t, e)``."""
     return np.random.SeedSequence(seed, spawn_key=(METHOD_STREAM, _crc(name), *key))
 
 
@@ -267,10 +269,16 @@ def fit_all(
     loaded: Sequence[tuple[MethodSpec, Any]], batch: Transitions, seed: int
 ) -> tuple[Added, ...]:
     """Fit every loaded method (:func:`load_all`) on a copy of ``batch``, each with
-    its own stream (:func:`method_seed`), then try one prediction: the first
-    ``TRIAL_SIZE`` batch transitions as train, the next ``TRIAL_SIZE`` as test
-    (key ``(2,)``), so that a method that breaks does so before the run's long
-    stages. The experiments call it as soon as the batch data are gathered."""
+    its own stream (:func:`method_seed`), then try it as the runs will use it, so
+    that a method that breaks does so before the run's long stages (the
+    experiments call this as soon as the batch data are gathered):
+
+    - adapted to the first ``TRIAL_SIZE`` batch transitions, predicting the next
+      ``TRIAL_SIZE`` (key ``(2,)``), as in a prediction table;
+    - adapted to no transitions, predicting one state (key ``(2, 1)``), as a
+      transfer trial's first planning does; with ``predict_mean``, that must
+      agree with ``predict``'s mean (``numpy.allclose``), as planning calls it.
+    """
     out = []
     trial_train = batch.take(np.arange(min(TRIAL_SIZE, len(batch))))
     trial_test = batch.take(
@@ -285,8 +293,30 @@ def fit_all(
             raise
         added = Added(spec, method, seed)
         added.predict(trial_train, trial_test, (2,))
+        _check_planning(added, batch)
         out.append(added)
     return tuple(out)
+
+
+def _check_planning(added: Added, batch: Transitions) -> None:
+    """:func:`fit_all`'s second try: no transitions, one state."""
+    none, one = batch.take(np.arange(0)), batch.take(np.arange(min(1, len(batch))))
+    mean, _ = added.predict(none, one, (2, 1))
+    predictor = added.adapt(none, (2, 1))
+    if callable(getattr(predictor, "predict_mean", None)):
+        where = f"method {added.name}: predict_mean"
+        try:
+            fast = np.asarray(
+                predictor.predict_mean(one.states.copy(), one.actions.copy()), float
+            )
+        except Exception as err:
+            err.add_note(f"(in {where}, added with --method)")
+            raise
+        if fast.shape != mean.shape or not np.allclose(fast, mean):
+            raise ValueError(
+                f"{where} gives {fast.tolist()}, predict's mean {mean.tolist()}; "
+                "planning calls predict_mean, so the two must agree"
+            )
 
 
 def add_method_argument(parser) -> None:

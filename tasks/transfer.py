@@ -37,6 +37,7 @@ planning; the instance and the initial states are.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -166,9 +167,10 @@ def set_models(
     ``planning_wrapper(model, params)``, if given, turns the learned models (the
     HiP-MDP's and the average model's, not the true simulator) into the dynamics
     model the agent plans on, for the instance ``params``: e.g. a physical
-    constraint applied to their predictions. Filtering and recording still see the
-    learned model's own predictions. ``added``: fitted methods added with
-    ``--method`` (``tasks.methods.Added``), run as methods of their own names."""
+    constraint applied to their predictions (and to added methods' predictors).
+    Filtering and recording still see the learned model's own predictions.
+    ``added``: fitted methods added with ``--method`` (``tasks.methods.Added``),
+    run as methods of their own names, each trial on a fresh copy."""
     _MODELS.update(
         domain=domain,
         config=config,
@@ -199,6 +201,10 @@ def run_trial(job: TrialJob) -> TrialResult:
     if job.method not in METHODS and added is None:
         known = (*METHODS, *_MODELS.get("added", {}))
         raise ValueError(f"method: expected one of {known}, got {job.method!r}")
+    if added is not None:
+        # a fresh copy per trial: what adapt may keep on the object cannot carry
+        # over to the next trial, whichever process runs it
+        added = added._replace(method=copy.deepcopy(added.method))
     entropy, spawn_key = job.seed
     env_seed, start_seed, agent_seed = np.random.SeedSequence(
         entropy, spawn_key=spawn_key
@@ -231,11 +237,22 @@ def run_trial(job: TrialJob) -> TrialResult:
     def fresh_state():
         return init_state(domain.n_actions, basis.n_features, domain.initial_value)
 
+    def plan_on(model, state, n_episodes: int):
+        try:
+            return plan(
+                state, basis, sarsa, _planning_model(model, job), task,
+                np.array(starts), n_episodes, rng=rng,
+            ).state  # fmt: skip
+        except Exception as err:
+            if added is not None:  # the user's predictor: say whose
+                err.add_note(
+                    f"(planning on method {added.name}, added with --method; "
+                    f"setting {job.setting}, trial {job.trial})"
+                )
+            raise
+
     model = model_now()
-    state = plan(
-        fresh_state(), basis, sarsa, _planning_model(model, job), task,
-        np.array(starts), config.initial_planning_episodes, rng=rng,
-    ).state  # fmt: skip
+    state = plan_on(model, fresh_state(), config.initial_planning_episodes)
 
     returns, steps, weight_means, traces = [], [], [], []
     if belief is not None:
@@ -258,10 +275,7 @@ def run_trial(job: TrialJob) -> TrialResult:
         model = model_now()
         if episode_index == 0 and config.replan_after_first:
             state = fresh_state()
-        state = plan(
-            state, basis, sarsa, _planning_model(model, job), task,
-            np.array(starts), _planning_episodes(config, episode_index), rng=rng,
-        ).state  # fmt: skip
+        state = plan_on(model, state, _planning_episodes(config, episode_index))
     return TrialResult(
         job.method,
         job.setting,
@@ -279,6 +293,7 @@ def _trial_data(parts: list[Transitions], domain: Domain, dt: float) -> Transiti
         empty = np.empty((0, len(domain.low)))
         return Transitions(
             empty, np.empty(0, np.int64), empty, np.empty(0, np.int64),
+            rewards=np.empty(0), dones=np.empty(0, bool),
             angle_dims=domain.angle_dims, dt=dt,
         )  # fmt: skip
     data = Transitions.concatenate(parts)
@@ -315,8 +330,10 @@ def _filter_episode(model, hip, belief, data: Transitions, episode, job: TrialJo
         m, s = _belief_moments(belief)
         means.append(m)
         stds.append(s)
-    for t in range(len(data)):
-        predicted[t] = model.predict(data.states[t : t + 1], data.actions[t : t + 1])
+    for t in range(len(data)):  # copies: a model may write over its inputs
+        predicted[t] = model.predict(
+            data.states[t : t + 1].copy(), data.actions[t : t + 1].copy()
+        )
         if belief is not None:
             belief = hip.update(belief, data.take([t]))
             model = LearnedModel(hip, belief, model.angle_dims)

@@ -316,6 +316,7 @@ def test_run_seeds_replay_the_runs_own_trials(run, tmp_path, monkeypatch):
     swingup = SimpleNamespace(
         test_masses=config["test_masses"], n_trials=3, record=False, workers=1,
         progress=False, transfer=None, params=acrobot_swingup.setting_params,
+        methods=(),
     )  # fmt: skip
     with pytest.raises(Captured):
         acrobot_swingup.run_transfer(swingup, None, None, run_streams(5).trials)

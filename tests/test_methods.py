@@ -147,6 +147,9 @@ def test_bayesian_linear_moves_from_the_batch_fit_to_the_instance():
         ("hipmdp=tasks.methods:BayesianLinear", "'hipmdp' is .* a built-in method"),
         # the recording's name of "batch + train"
         ("batch_train=tasks.methods:BayesianLinear", "'batch_train' is .* built-in"),
+        # the transfer's models
+        ("true=tasks.methods:BayesianLinear", "'true' is .* a built-in method"),
+        ("average=tasks.methods:BayesianLinear", "'average' is .* a built-in method"),
         (3, "expected strings NAME=module:attribute"),
     ],
 )
@@ -200,6 +203,35 @@ class NoAdapt:
 class AdaptsToNothing(NoAdapt):
     def adapt(self, train, *, rng):
         return None
+
+
+class FailsInPlanning(Constant):
+    """Each predictor answers once (as fit_all's trials ask it), then raises: a
+    method that breaks only when planned on."""
+
+    def adapt(self, train, *, rng):
+        return OneAnswer()
+
+
+class OneAnswer:
+    def __init__(self):
+        self.calls = 0
+
+    def predict(self, states, actions):
+        self.calls += 1
+        if self.calls > 1:
+            raise RuntimeError("second call")
+        return np.zeros(states.shape), np.ones(states.shape)
+
+
+class DisagreeingMean(Constant):
+    """predict_mean and predict's mean differ."""
+
+    def adapt(self, train, *, rng):
+        return self
+
+    def predict_mean(self, states, actions):
+        return np.ones(states.shape)
 
 
 class Failing:
@@ -285,6 +317,27 @@ def test_errors_in_the_users_code_keep_their_type_and_name_the_method():
         with pytest.raises(RuntimeError, match=f"{where} failed") as err:
             methods.fit_all(loaded, batch, 0)  # fit, then the trial prediction
         assert f"in method mine: {where}" in "".join(err.value.__notes__)
+
+
+def test_fit_all_tries_the_transfers_first_planning_too():
+    """A predict_mean that disagrees with predict is refused before any run."""
+    batch = transitions(weights(np.random.default_rng(0)), 40, np.random.default_rng(1))
+    loaded = [(MethodSpec("mine", "m", "A"), DisagreeingMean())]
+    with pytest.raises(ValueError, match="mine: predict_mean gives .* must agree"):
+        methods.fit_all(loaded, batch, 0)
+
+
+def test_errors_while_planning_on_an_added_method_name_it(tmp_path):
+    from tasks.acrobot_swingup import main as swingup
+    from tests.test_acrobot_swingup import TINY as SWINGUP
+
+    config = dataclasses.replace(
+        SWINGUP, record=False, methods=("late=tests.test_methods:FailsInPlanning",)
+    )
+    with pytest.raises(RuntimeError, match="second call") as err:
+        swingup(config, tmp_path)
+    note = "".join(err.value.__notes__)
+    assert "planning on method late, added with --method; setting 0, trial 0" in note
 
 
 def test_each_call_gets_its_own_stream_from_the_seed_and_the_name():
@@ -475,15 +528,29 @@ def test_readmes_example_method_runs_as_written(tmp_path, monkeypatch):
     assert all(v["mean"] > 0 for v in mse.values())
 
 
-def test_the_acrobot_run_takes_added_methods_and_nothing_else_changes(tmp_path):
-    """The swing-up run with and without an added method: in the prediction
-    tables, the approximation floor and the transfer trials, the same numbers for
-    every other method, and the added method's own rows beside them."""
+def test_the_acrobot_run_takes_added_methods_and_nothing_else_changes(
+    tmp_path, monkeypatch
+):
+    """The swing-up run without an added method (one process) and with one (two
+    worker processes, each trial on a fresh copy of the method): in the
+    prediction tables, the approximation floor and the transfer trials, the same
+    numbers for every other method, and the added method's own rows beside them.
+    The tiny config's episodes all run to the step limit, so the returns alone
+    would not show a change: the traced trial's states, one-step predictions
+    and belief of every built-in method are compared too."""
+    from tasks import swingup_report
     from tasks.acrobot_swingup import main as swingup
     from tests.test_acrobot_swingup import TINY as SWINGUP
 
-    plain = swingup(dataclasses.replace(SWINGUP, record=False), tmp_path / "plain")
-    config = dataclasses.replace(SWINGUP, methods=(LINEAR,))
+    traced, write = [], swingup_report.write_artefacts
+
+    def keep_trials(path, config, metrics, trials, hip):
+        traced.append({r.method: r for r in trials})
+        return write(path, config, metrics, trials, hip)
+
+    monkeypatch.setattr(swingup_report, "write_artefacts", keep_trials)
+    plain = swingup(dataclasses.replace(SWINGUP, workers=1), tmp_path / "plain")
+    config = dataclasses.replace(SWINGUP, workers=2, methods=(LINEAR,))
     added = swingup(config, tmp_path / "added")
     a, b = plain.metrics, added.metrics
     for m in (a, b):
@@ -494,16 +561,19 @@ def test_the_acrobot_run_takes_added_methods_and_nothing_else_changes(tmp_path):
         assert set(b[key]) - set(a[key]) == {"linear"}, key
     for key in ("paired_difference", "paired_difference_per_setting"):
         assert set(b[key]) - set(a[key]) == pairs, key
-    assert (
-        set(b["step_limit_split"]["pairs"]) - set(a["step_limit_split"]["pairs"])
-        == pairs
-    )
-    trials = {
-        k: np.load(run.out / "trials.npz") for k, run in (("a", plain), ("b", added))
-    }
-    assert trials["b"]["methods"].tolist() == ["true", "average", "hipmdp", "linear"]
-    np.testing.assert_array_equal(trials["b"]["returns"][:3], trials["a"]["returns"])
-    assert np.all(trials["b"]["steps"][3] > 0)
+    split = b["step_limit_split"]["pairs"]
+    assert set(split) - set(a["step_limit_split"]["pairs"]) == pairs
+    for method, result in traced[0].items():
+        other = traced[1][method]
+        np.testing.assert_array_equal(result.steps, other.steps)
+        for x, y in zip(result.traces, other.traces, strict=True):
+            for field in ("states", "predicted", "belief_mean", "belief_std"):
+                np.testing.assert_array_equal(getattr(x, field), getattr(y, field))
+    assert set(traced[1]) == {"true", "average", "hipmdp", "linear"}
+    trials = [np.load(run.out / "trials.npz") for run in (plain, added)]
+    assert trials[1]["methods"].tolist() == ["true", "average", "hipmdp", "linear"]
+    for field in ("returns", "steps"):
+        np.testing.assert_array_equal(trials[1][field][:3], trials[0][field])
     report = (added.out / "report.md").read_text()
     assert "linear (`tasks.methods:BayesianLinear`)" in report
     assert "| linear |" in report and "| hipmdp - linear |" in report
