@@ -142,8 +142,9 @@ class SwingupConfig:
         mse_train, mse_test: transitions per instance for the prediction table.
         split: ``"random"`` (the paper's) or ``"time"``: how a test setting's
             transitions are split into train and test (``gather_split``).
-        methods: your own methods, scored in the prediction tables beside the
-            others, as ``"NAME=module:attribute"`` (``tasks.methods``).
+        methods: your own methods, run in the transfer trials and scored in the
+            prediction tables beside the others, as ``"NAME=module:attribute"``
+            (``tasks.methods``).
         n_floor_settings: training settings scored for the approximation floor.
         final_window: the true model's "final" return is its mean over this many
             last episodes (an episode that fails at the step limit moves one

@@ -595,13 +595,13 @@ def common_parser(prog: str, doc: str, presets: Sequence[str], out_default: str)
     return parser
 
 
-#: The command-line flag of each config field the flags set, for error messages.
 #: Top-level config fields of the experiments added after runs were made, with
 #: the value an older run's missing field stands for (how it ran: before
 #: ``--split``, every split was random; before ``--method``, no method was
 #: added). ``tasks.seed_spread`` and ``tasks.compare_runs`` read old runs so.
 ADDED_FIELDS = {"split": "random", "methods": []}
 
+#: The command-line flag of each config field the flags set, for error messages.
 FLAGS = {
     "out": "--out",
     "seed": "--seed",

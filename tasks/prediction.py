@@ -395,7 +395,7 @@ def score_settings(
                 rng=rng,
                 added=added,
                 key=(table, i),
-            )  # fmt: skip
+            )
         )
     return scores
 
