@@ -580,3 +580,14 @@ def test_the_acrobot_run_takes_added_methods_and_nothing_else_changes(
     assert {"/rollout/linear/real", "/returns/linear"} <= set(
         rrd_contents(added.out / "acrobot.rrd")
     )
+
+
+def test_seed_spread_tabulates_an_added_method_beside_the_others(runs, tmp_path):
+    from tests._seed_spread import assert_reads_the_run
+
+    _, added = runs
+    result = assert_reads_the_run(added.out, tmp_path, "cartpole_prediction")
+    labels = {n["label"] for n in result["numbers"]}
+    assert {"log-likelihood, HiP-MDP - linear", "log-likelihood, HiP-MDP - zero"} <= (
+        labels
+    )
