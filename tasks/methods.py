@@ -40,10 +40,11 @@ Symbols: ``a`` action, ``d`` state dimension, ``x`` features of a state.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import re
 import zlib
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -168,6 +169,17 @@ def method_seed(seed: int, name: str, *key: int) -> np.random.SeedSequence:
     return np.random.SeedSequence(seed, spawn_key=(METHOD_STREAM, _crc(name), *key))
 
 
+@contextlib.contextmanager
+def _users_call(where: str) -> Iterator[None]:
+    """Run the user's code; an error it raises keeps its type and traceback, with
+    a note saying which method's which call raised it."""
+    try:
+        yield
+    except Exception as err:
+        err.add_note(f"(in {where}, added with --method)")
+        raise
+
+
 def _copy(data: Transitions) -> Transitions:
     """An independent copy of ``data``: what a method does to its arguments cannot
     reach the run's own arrays."""
@@ -191,11 +203,8 @@ class Added(NamedTuple):
         :func:`method_seed` says."""
         rng = np.random.default_rng(method_seed(self.seed, self.name, 1, *key))
         where = f"method {self.name}: adapt"
-        try:
+        with _users_call(where):
             predictor = self.method.adapt(_copy(train), rng=rng)
-        except Exception as err:
-            err.add_note(f"(in {where}, added with --method)")
-            raise
         if not callable(getattr(predictor, "predict", None)):
             raise ValueError(
                 f"{where} must return an object with predict(states, actions), "
@@ -207,15 +216,15 @@ class Added(NamedTuple):
         self, train: Transitions, test: Transitions, key: tuple[int, ...]
     ) -> tuple[Array, Array]:
         """The (mean, var) of Δs on ``test`` of the method adapted to ``train``
-        (:meth:`adapt`), given copies of the inputs and checked: real and finite,
-        shapes (n, D), var > 0, and a finite log-likelihood of ``test``."""
-        predictor = self.adapt(train, key)
+        (:meth:`adapt`), checked as :meth:`checked_predict` says."""
+        return self.checked_predict(self.adapt(train, key), test)
+
+    def checked_predict(self, predictor: Any, test: Transitions) -> tuple[Array, Array]:
+        """``predictor.predict`` on copies of ``test``'s inputs, checked: real and
+        finite, shapes (n, D), var > 0, and a finite log-likelihood of ``test``."""
         where = f"method {self.name}: predict"
-        try:
+        with _users_call(where):
             out = predictor.predict(test.states.copy(), test.actions.copy())
-        except Exception as err:
-            err.add_note(f"(in {where}, added with --method)")
-            raise
         if not (isinstance(out, tuple | list) and len(out) == 2):
             raise ValueError(
                 f"{where} must return (mean, var), got {type(out).__name__}"
@@ -286,11 +295,8 @@ def fit_all(
     )
     for spec, method in loaded:
         rng = np.random.default_rng(method_seed(seed, spec.name, 0))
-        try:
+        with _users_call(f"method {spec.name}: fit"):
             method.fit(_copy(batch), rng=rng)
-        except Exception as err:
-            err.add_note(f"(in method {spec.name}: fit, added with --method)")
-            raise
         added = Added(spec, method, seed)
         added.predict(trial_train, trial_test, (2,))
         _check_planning(added, batch)
@@ -301,17 +307,14 @@ def fit_all(
 def _check_planning(added: Added, batch: Transitions) -> None:
     """:func:`fit_all`'s second try: no transitions, one state."""
     none, one = batch.take(np.arange(0)), batch.take(np.arange(min(1, len(batch))))
-    mean, _ = added.predict(none, one, (2, 1))
     predictor = added.adapt(none, (2, 1))
+    mean, _ = added.checked_predict(predictor, one)
     if callable(getattr(predictor, "predict_mean", None)):
         where = f"method {added.name}: predict_mean"
-        try:
+        with _users_call(where):
             fast = np.asarray(
                 predictor.predict_mean(one.states.copy(), one.actions.copy()), float
             )
-        except Exception as err:
-            err.add_note(f"(in {where}, added with --method)")
-            raise
         if fast.shape != mean.shape or not np.allclose(fast, mean):
             raise ValueError(
                 f"{where} gives {fast.tolist()}, predict's mean {mean.tolist()}; "
