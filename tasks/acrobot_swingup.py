@@ -142,9 +142,9 @@ class SwingupConfig:
         mse_train, mse_test: transitions per instance for the prediction table.
         split: ``"random"`` (the paper's) or ``"time"``: how a test setting's
             transitions are split into train and test (``gather_split``).
-        methods: your own methods, run in the transfer trials and scored in the
-            prediction tables beside the others, as ``"NAME=module:attribute"``
-            (``tasks.methods``).
+        methods: your own methods, run in the transfer trials and (models, not
+            policies) scored in the prediction tables beside the others, as
+            ``"NAME=module:attribute"`` (``tasks.methods``).
         n_floor_settings: training settings scored for the approximation floor.
         final_window: the true model's "final" return is its mean over this many
             last episodes (an episode that fails at the step limit moves one
@@ -329,7 +329,8 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
 
     started = time.perf_counter()
     machine = environment()  # the code and machine as the run starts
-    loaded = load_all(config.methods)  # a bad one fails here, before any work
+    # a bad one fails here, before any work
+    loaded = load_all(config.methods, policies=True)
     path = run_dir(out, config.name, ARTEFACTS)
     write_json(path / "config.json", config)
     ss_batch, ss_fit, ss_avg, ss_trials, ss_mse = run_streams(config.seed)
@@ -344,7 +345,7 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
     timings["batch_data"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()  # first, so that a method that breaks does so early
-    added = fit_all(loaded, batch, config.seed)
+    added = fit_all(loaded, batch, config.seed, n_actions=ACROBOT.n_actions)
     timings["added_methods"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -367,7 +368,8 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
     timings["transfer"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    mse = prediction_table(config, hip, average, batch, ss_mse, added)
+    models = tuple(a for a in added if not a.is_policy)  # policies do not predict
+    mse = prediction_table(config, hip, average, batch, ss_mse, models)
     timings["prediction"] = time.perf_counter() - t0
 
     arrays = trial_arrays(config, trials)
@@ -591,7 +593,7 @@ def parse_args(argv: list[str] | None = None) -> tuple[SwingupConfig, str | None
         "mass changes (default: it follows the mass, I = m l^2)",
     )
     add_split_argument(parser)
-    add_method_argument(parser)
+    add_method_argument(parser, policies=True)
     args = parser.parse_args(argv)
     preset = PRESETS[args.preset]
     transfer = final_window = None

@@ -30,10 +30,29 @@ calls ``predict`` with one state at a time, so it should be cheap; a predictor w
 ``predict_mean(states, actions) -> mean`` has that called instead
 (``hipmdp.planning.LearnedModel``).
 
-Each ``fit`` and ``adapt`` gets its own ``rng``, spawned from the run's seed and
-the method's name only (:func:`method_seed`), and copies of the data: adding or
-removing a method changes no other method's numbers, and the same seed gives the
-same scores. :class:`BayesianLinear` is a complete example.
+**A policy instead of a model.** The acrobot's transfer trials also take a method
+that acts itself, with its own learning and planning (model-free, meta-RL,
+a policy trained on the training instances, a planner of your own): an object
+with ``fit(batch, *, rng)`` as above and, instead of ``adapt``,
+
+- ``agent(*, rng) -> agent``: called once per trial, for a fresh agent. The
+  agent's ``act(state) -> action`` picks an action index (``0 .. A-1``, the
+  domain's action table) for the state (D,); ``observe(state, action, reward,
+  next_state, terminal)`` is called after every real step (``terminal``: the
+  episode ended at the goal; the last step of an episode cut by the step limit
+  has ``terminal`` False); ``end_episode()``, if the agent has it, after every
+  real episode.
+
+It runs the trial's real episodes on the same instance, from the same initial
+states as the built-in methods, and its returns go into every control table,
+curve and pair. It has no one-step predictions, so it is not in the prediction
+tables, and ``tasks.cartpole_prediction`` refuses it. :class:`SarsaPolicy` is
+a complete example: the built-in Sarsa(λ) agent with no model at all.
+
+Each ``fit``, ``adapt`` and ``agent`` gets its own ``rng``, spawned from the run's
+seed and the method's name only (:func:`method_seed`), and copies of the data:
+adding or removing a method changes no other method's numbers, and the same seed
+gives the same scores. :class:`BayesianLinear` is a complete example of a model.
 
 Symbols: ``a`` action, ``d`` state dimension, ``x`` features of a state.
 """
@@ -42,6 +61,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import operator
 import re
 import zlib
 from collections.abc import Iterator, Sequence
@@ -51,6 +71,8 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from hipmdp.data import Transitions, gaussian_loglik
+from hipmdp.sarsa import epsilon_greedy, init_state, reset_traces, sarsa_update
+from tasks.agents import DOMAINS, Domain
 from tasks.prediction import PREDICTION_METHODS, entity
 from tasks.transfer import METHODS as TRANSFER_METHODS
 
@@ -122,9 +144,15 @@ def _crc(name: str) -> int:
     return zlib.crc32(name.encode())
 
 
+def is_policy(method: Any) -> bool:
+    """Whether a loaded method is a policy (has ``agent``), not a model."""
+    return callable(getattr(method, "agent", None))
+
+
 def load(spec: MethodSpec, build: bool = True) -> Any:
     """Import ``spec.module`` and find ``spec.attribute``; with ``build``, call it
-    with no arguments and check that the result has ``fit`` and ``adapt``.
+    with no arguments and check that the result has ``fit`` and either ``adapt``
+    (a model) or ``agent`` (a policy), not both.
     Raise ValueError, naming the spec, if any step fails. Returns the object
     (with ``build``) or the class or function."""
     where = f"methods: {spec.name}={spec.module}:{spec.attribute}"
@@ -150,12 +178,17 @@ def load(spec: MethodSpec, build: bool = True) -> Any:
             f"{where}: calling {spec.attribute}() with no arguments raised "
             f"{type(err).__name__}: {err}"
         ) from err
-    missing = [m for m in ("fit", "adapt") if not callable(getattr(method, m, None))]
-    if missing:
-        raise ValueError(
-            f"{where}: expected an object with fit and adapt methods, "
-            f"{type(method).__name__} has no {' or '.join(missing)}"
-        )
+    has = {m for m in ("fit", "adapt", "agent") if callable(getattr(method, m, None))}
+    kind = (
+        f"{where}: expected an object with fit and adapt (a model) or with fit and "
+        f"agent (a policy), {type(method).__name__} has"
+    )
+    lacks = [] if "fit" in has else ["fit"]
+    lacks += [] if has & {"adapt", "agent"} else ["adapt or agent"]
+    if lacks:
+        raise ValueError(f"{kind} no {' and no '.join(lacks)}")
+    if {"adapt", "agent"} <= has:
+        raise ValueError(f"{kind} both adapt and agent")
     return method
 
 
@@ -165,7 +198,8 @@ def method_seed(seed: int, name: str, *key: int) -> np.random.SeedSequence:
     key ``(0,)``; ``adapt`` on setting ``i`` of prediction table ``g`` gets
     ``(1, g, i)``; the trials of :func:`fit_all` ``(1, 2)`` and ``(1, 2, 1)``; a
     transfer trial's ``adapt`` after ``e`` real episodes of trial ``t`` on setting
-    ``i`` ``(1, 3, i, t, e)``."""
+    ``i`` ``(1, 3, i, t, e)``; a policy's ``agent`` in :func:`fit_all` ``(1, 2,
+    2)``, and for trial ``t`` on setting ``i`` ``(1, 4, i, t)``."""
     return np.random.SeedSequence(seed, spawn_key=(METHOD_STREAM, _crc(name), *key))
 
 
@@ -259,14 +293,82 @@ class Added(NamedTuple):
             )
         return mean, var
 
+    @property
+    def is_policy(self) -> bool:
+        """Whether the method is a policy (see the module docstring)."""
+        return is_policy(self.method)
+
+    def agent(self, key: tuple[int, ...]) -> Any:
+        """A fresh agent of a policy, checked to have ``act`` and ``observe``.
+        ``key``: as :func:`method_seed` says."""
+        rng = np.random.default_rng(method_seed(self.seed, self.name, 1, *key))
+        where = f"method {self.name}: agent"
+        with _users_call(where):
+            agent = self.method.agent(rng=rng)
+        missing = [
+            m for m in ("act", "observe") if not callable(getattr(agent, m, None))
+        ]
+        if missing:
+            raise ValueError(
+                f"{where} must return an object with act(state) and observe(state, "
+                f"action, reward, next_state, terminal); {type(agent).__name__} has "
+                f"no {' and no '.join(missing)}"
+            )
+        return agent
+
+    def act(self, agent: Any, state: Array, n_actions: int) -> int:
+        """``agent.act`` on a copy of ``state``, checked to be an action index
+        ``0 .. n_actions - 1``."""
+        where = f"method {self.name}: act"
+        with _users_call(where):
+            action = agent.act(np.array(state, dtype=float))
+        try:
+            index = operator.index(action)
+        except TypeError:
+            raise ValueError(
+                f"{where} must return an action index (an integer), got "
+                f"{action!r} ({type(action).__name__})"
+            ) from None
+        if isinstance(action, bool) or not 0 <= index < n_actions:
+            raise ValueError(
+                f"{where} must return an action index 0..{n_actions - 1}, "
+                f"got {action!r}"
+            )
+        return index
+
+    def observe(self, agent: Any, *step: Any) -> None:
+        """``agent.observe(state, action, reward, next_state, terminal)``, with
+        copies of the states."""
+        state, action, reward, next_state, terminal = step
+        with _users_call(f"method {self.name}: observe"):
+            agent.observe(
+                np.array(state, dtype=float), int(action), float(reward),
+                np.array(next_state, dtype=float), bool(terminal),
+            )  # fmt: skip
+
+    def end_episode(self, agent: Any) -> None:
+        """``agent.end_episode()``, if the agent has it."""
+        if callable(getattr(agent, "end_episode", None)):
+            with _users_call(f"method {self.name}: end_episode"):
+                agent.end_episode()
+
 
 def load_all(
-    specs: Sequence[str], build: bool = True
+    specs: Sequence[str], build: bool = True, policies: bool = False
 ) -> tuple[tuple[MethodSpec, Any], ...]:
     """``(spec, load(spec, build))`` for every ``NAME=module:attribute`` of
     ``specs``; raise ValueError if any is malformed or cannot be loaded
-    (:func:`load`). Experiments call it before any work."""
-    return tuple((spec, load(spec, build)) for spec in check_specs(specs))
+    (:func:`load`). Experiments call it before any work. A policy is refused
+    unless ``policies`` is True (an experiment with transfer trials)."""
+    loaded = tuple((spec, load(spec, build)) for spec in check_specs(specs))
+    for spec, method in loaded:
+        if build and not policies and is_policy(method):
+            raise ValueError(
+                f"methods: {spec.name}={spec.module}:{spec.attribute} is a policy "
+                "(it has agent, not adapt): a prediction table needs a model's "
+                "predictions; only tasks.acrobot_swingup runs policies"
+            )
+    return loaded
 
 
 #: Transitions of the batch that :func:`fit_all`'s trial prediction trains and
@@ -275,7 +377,10 @@ TRIAL_SIZE = 10
 
 
 def fit_all(
-    loaded: Sequence[tuple[MethodSpec, Any]], batch: Transitions, seed: int
+    loaded: Sequence[tuple[MethodSpec, Any]],
+    batch: Transitions,
+    seed: int,
+    n_actions: int | None = None,
 ) -> tuple[Added, ...]:
     """Fit every loaded method (:func:`load_all`) on a copy of ``batch``, each with
     its own stream (:func:`method_seed`), then try it as the runs will use it, so
@@ -287,6 +392,10 @@ def fit_all(
     - adapted to no transitions, predicting one state (key ``(2, 1)``), as a
       transfer trial's first planning does; with ``predict_mean``, that must
       agree with ``predict``'s mean (``numpy.allclose``), as planning calls it.
+
+    A policy instead gets one agent (key ``(2, 2)``) that acts on the first
+    batch state (an action ``0 .. n_actions - 1``; ``n_actions`` defaults to the
+    batch's), observes the first transition and ends the episode.
     """
     out = []
     trial_train = batch.take(np.arange(min(TRIAL_SIZE, len(batch))))
@@ -298,10 +407,28 @@ def fit_all(
         with _users_call(f"method {spec.name}: fit"):
             method.fit(_copy(batch), rng=rng)
         added = Added(spec, method, seed)
-        added.predict(trial_train, trial_test, (2,))
-        _check_planning(added, batch)
+        if added.is_policy:
+            _check_policy(added, batch, n_actions)
+        else:
+            added.predict(trial_train, trial_test, (2,))
+            _check_planning(added, batch)
         out.append(added)
     return tuple(out)
+
+
+def _check_policy(added: Added, batch: Transitions, n_actions: int | None) -> None:
+    """:func:`fit_all`'s try of a policy: one step of one agent."""
+    if n_actions is None:
+        n_actions = int(batch.actions.max()) + 1 if len(batch) else 1
+    agent = added.agent((2, 2))
+    if len(batch):
+        action = added.act(agent, batch.states[0], n_actions)
+        added.observe(
+            agent, batch.states[0], action,
+            0.0 if batch.rewards is None else batch.rewards[0],
+            batch.next_states[0], False,
+        )  # fmt: skip
+    added.end_episode(agent)
 
 
 def _check_planning(added: Added, batch: Transitions) -> None:
@@ -322,15 +449,21 @@ def _check_planning(added: Added, batch: Transitions) -> None:
             )
 
 
-def add_method_argument(parser) -> None:
-    """The prediction experiments' repeatable ``--method NAME=module:attribute``."""
+def add_method_argument(parser, policies: bool = False) -> None:
+    """The experiments' repeatable ``--method NAME=module:attribute``; with
+    ``policies``, the help says that a policy is taken too."""
+    policy = (
+        " or with fit and agent (a policy, e.g. sarsa=tasks.methods:SarsaPolicy)"
+        if policies
+        else ""
+    )
     parser.add_argument(
         "--method",
         action="append",
         metavar="NAME=module:attribute",
         help="also score your own method under NAME (repeatable); module:attribute "
-        "is a class or function giving an object with fit and adapt, see "
-        "tasks/methods.py (example: linear=tasks.methods:BayesianLinear)",
+        "is a class or function giving an object with fit and adapt (a model, "
+        f"e.g. linear=tasks.methods:BayesianLinear){policy}; see tasks/methods.py",
     )
 
 
@@ -433,6 +566,61 @@ class LinearPredictor:
         return mean, self.noise[actions] * (1.0 + lever[:, None])
 
 
+class SarsaPolicy:
+    """A worked example of a policy, and a reference: the built-in agent (Sarsa(λ)
+    with the domain's Fourier basis and hyperparameters, ``tasks.agents``)
+    learning on the instance alone. It plans nothing and leaves the batch unused:
+    what the transfer has to beat. Its agent acts and learns exactly as
+    ``tasks.agents.run_episode`` does, step for step and draw for draw.
+
+    Attributes:
+        domain: a key of ``tasks.agents.DOMAINS`` (default ``"acrobot"``).
+    """
+
+    def __init__(self, domain: str = "acrobot") -> None:
+        if domain not in DOMAINS:
+            raise ValueError(f"domain: expected one of {list(DOMAINS)}, got {domain!r}")
+        self.domain = DOMAINS[domain]
+
+    def fit(self, batch: Transitions, *, rng: np.random.Generator) -> None:
+        del batch, rng  # learns on the instance alone
+
+    def agent(self, *, rng: np.random.Generator) -> SarsaAgent:
+        return SarsaAgent(self.domain, rng)
+
+
+class SarsaAgent:
+    """:class:`SarsaPolicy`'s agent: fresh weights ``q₀``; ``observe`` picks the
+    next action (ε-greedy from ``rng``) and makes the Sarsa(λ) update on it, and
+    ``act`` returns that action; the traces are reset after each episode."""
+
+    def __init__(self, domain: Domain, rng: np.random.Generator) -> None:
+        self.basis, self.config, self.rng = domain.basis(), domain.sarsa, rng
+        self.step_sizes = self.config.alpha * self.basis.step_scale
+        self.state = init_state(
+            domain.n_actions, self.basis.n_features, domain.initial_value
+        )
+        self._next: int | None = None  # the action chosen for the next state
+
+    def _choose(self, state: Array) -> int:
+        q = self.state.weights @ self.basis(state)
+        return epsilon_greedy(q, self.config.epsilon, rng=self.rng)
+
+    def act(self, state: Array) -> int:
+        return self._choose(state) if self._next is None else self._next
+
+    def observe(self, state, action, reward, next_state, terminal) -> None:
+        self._next = self._choose(next_state)
+        phi_next = None if terminal else self.basis(next_state)
+        self.state = sarsa_update(
+            self.state, self.basis(state), action, reward, phi_next, self._next,
+            self.step_sizes, self.config,
+        ).state  # fmt: skip
+
+    def end_episode(self) -> None:
+        self.state, self._next = reset_traces(self.state), None
+
+
 def _features(states: Array, angle_dims: tuple[int, ...]) -> Array:
     """``x = (1, s, sin θ, cos θ)`` for each state, shape (n, p)."""
     states = np.asarray(states, dtype=float)
@@ -448,9 +636,12 @@ __all__ = [
     "BayesianLinear",
     "LinearPredictor",
     "MethodSpec",
+    "SarsaAgent",
+    "SarsaPolicy",
     "add_method_argument",
     "check_specs",
     "fit_all",
+    "is_policy",
     "load",
     "load_all",
     "method_seed",

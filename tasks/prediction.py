@@ -26,7 +26,7 @@ error a method makes on instances it was fitted on.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -473,13 +473,15 @@ test log-likelihood, HiP-MDP minus method):
 {ll}{ratio_text}"""
 
 
-def added_text(methods: Sequence[str]) -> str:
+def added_text(methods: Sequence[str], policies: Collection[str] = ()) -> str:
     """A paragraph naming the methods added with ``--method`` ("" if none), to
-    put before a table."""
+    put before a table; the names in ``policies`` are said to be policies, which
+    no prediction table scores."""
     if not methods:
         return ""
+    policy = ", a policy, so not in the prediction tables"
     named = ", ".join(
-        f"{name} (`{target}`)"
+        f"{name} (`{target}`{policy if name in policies else ''})"
         for name, _, target in (m.partition("=") for m in methods)
     )
     return (

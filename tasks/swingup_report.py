@@ -123,15 +123,16 @@ def record(file: Path, config, metrics: dict, trials: list) -> None:
             for e, trace in enumerate(result.traces):
                 step = np.arange(trace.states.shape[0])
                 real = acrobot.link_points(trace.states, params)
-                pred = acrobot.link_points(trace.predicted, params)
                 rec.strips(
                     f"/rollout/{m}/real", real, episode=e, step=step,
                     color=color(m, methods),
                 )  # fmt: skip
-                rec.strips(
-                    f"/rollout/{m}/predicted", pred, episode=e, step=step[1:],
-                    color=(200, 40, 40), radius=0.015,
-                )  # fmt: skip
+                if trace.predicted is not None:  # None: a policy, without a model
+                    pred = acrobot.link_points(trace.predicted, params)
+                    rec.strips(
+                        f"/rollout/{m}/predicted", pred, episode=e, step=step[1:],
+                        color=(200, 40, 40), radius=0.015,
+                    )  # fmt: skip
                 if trace.belief_mean is not None:
                     rec.belief(
                         trace.belief_mean, trace.belief_std, {"m1": m1, "m2": m2},
@@ -238,7 +239,8 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
     ll = metrics["loglik_difference"]
     ll_rows = [[m, fmt_ci(v)] for m, v in ll.items()]
     unseen_text = unseen_section(metrics)
-    pre = added_text(config.methods)  # a paragraph before the MSE table, or ""
+    policies = [m for m in methods if m not in metrics["mse"]]
+    pre = added_text(config.methods, policies)  # before the MSE table, or ""
     s = metrics["seconds"]
     inertia = (
         "Each link's moment of inertia stays at the book's 1 kg·m² as its mass "

@@ -20,7 +20,8 @@ For one test instance, one trial and one method:
 A method added with ``--method`` (``tasks.methods``) runs as a fourth: the agent
 plans on its predictor adapted to the trial's real transitions so far, before the
 first real episode (none) and after each one, as the HiP-MDP plans on its belief
-filtered on them.
+filtered on them. An added policy instead acts with its own agent on the same real
+episodes (same instance, same initial states), and plans as it likes.
 
 Simulated episodes start from initial states of real episodes (the instance's own
 start distribution): the planning start states are the first states of every real
@@ -126,12 +127,13 @@ class EpisodeTrace(NamedTuple):
 
     states: ``s_0..s_T``, shape (T + 1, D). predicted: the model's one-step
     prediction of ``s_{t+1}`` from ``s_t`` with the model as it stood at step ``t``,
-    shape (T, D). belief_mean, belief_std: the weight belief after ``t`` transitions,
-    shape (T + 1, K) (HiP-MDP only, else None).
+    shape (T, D) (None for a policy, which has no model). belief_mean,
+    belief_std: the weight belief after ``t`` transitions, shape (T + 1, K)
+    (HiP-MDP only, else None).
     """
 
     states: Array
-    predicted: Array
+    predicted: Array | None
     belief_mean: Array | None
     belief_std: Array | None
 
@@ -213,6 +215,8 @@ def run_trial(job: TrialJob) -> TrialResult:
     env = domain.make_env(
         job.params, seed=np.random.default_rng(env_seed), max_steps=config.max_steps
     )
+    if added is not None and added.is_policy:
+        return _policy_trial(job, added, env, domain, config)
     start_env = domain.make_env(job.params, seed=np.random.default_rng(start_seed))
     starts = [
         start_env.reset().observation["state"] for _ in range(config.n_start_states)
@@ -285,6 +289,46 @@ def run_trial(job: TrialJob) -> TrialResult:
         np.array(weight_means) if weight_means else None,
         traces if job.record else None,
     )
+
+
+def _policy_trial(job: TrialJob, added, env, domain: Domain, config) -> TrialResult:
+    """A policy's trial (``tasks.methods``): a fresh agent acts and learns on
+    the instance's ``config.n_episodes`` real episodes, which start from the
+    states every method's do (``env``'s seed)."""
+    agent = added.agent((4, job.setting, job.trial))
+    returns, steps, traces = [], [], []
+    for _ in range(config.n_episodes):
+        try:
+            states, rewards = _policy_episode(env, agent, added, domain.n_actions)
+        except Exception as err:
+            err.add_note(f"(setting {job.setting}, trial {job.trial})")
+            raise
+        returns.append(float(np.sum(rewards)))
+        steps.append(len(rewards))
+        traces.append(EpisodeTrace(np.array(states), None, None, None))
+    return TrialResult(
+        job.method, job.setting, job.trial, np.array(returns), np.array(steps),
+        None, traces if job.record else None,
+    )  # fmt: skip
+
+
+def _policy_episode(env, agent, added, n_actions: int) -> tuple[list, list]:
+    """One real episode of a policy's agent: the states ``s_0..s_T`` and the
+    ``T`` rewards."""
+    time_step = env.reset()
+    s = time_step.observation["state"].copy()
+    states, rewards = [s], []
+    while not time_step.last():
+        a = added.act(agent, s, n_actions)
+        time_step = env.step(a)
+        s2, r = time_step.observation["state"].copy(), float(time_step.reward)
+        terminal = time_step.last() and time_step.discount == 0.0
+        added.observe(agent, s, a, r, s2, terminal)
+        states.append(s2)
+        rewards.append(r)
+        s = s2
+    added.end_episode(agent)
+    return states, rewards
 
 
 def _trial_data(parts: list[Transitions], domain: Domain, dt: float) -> Transitions:

@@ -1,0 +1,311 @@
+"""A policy as your own method (tasks/methods.py): the example agent against the
+built-in agent's episode loop, the checks on what a policy returns, and a policy
+added to a swing-up run leaving every other number as it was."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from hipmdp.data import Transitions
+from tasks import methods
+from tasks.acrobot import AcrobotParams
+from tasks.agents import ACROBOT, run_episode
+from tasks.methods import Added, MethodSpec, SarsaAgent, SarsaPolicy, method_seed
+from tasks.transfer import TransferConfig, _policy_episode
+
+SARSA = "sarsa=tasks.methods:SarsaPolicy"
+
+
+def added(method, name="mine", seed=0) -> Added:
+    return Added(MethodSpec(name, "m", "A"), method, seed)
+
+
+def test_the_example_policy_acts_and_learns_as_the_built_in_agent():
+    """SarsaPolicy's agent in the trials' episode loop against
+    ``tasks.agents.run_episode`` (the built-in agent, learning): the same
+    environment seed and exploration seed give the same states, rewards and
+    weights, through an episode that ends at the goal and one cut by the step
+    limit."""
+    params = AcrobotParams(link_mass_1=1.1, link_mass_2=0.9)
+    envs = [
+        ACROBOT.make_env(params, seed=np.random.default_rng(3), max_steps=max_steps)
+        for max_steps in (2000, 2000)
+    ]
+    policy = added(SarsaPolicy())
+    agent = SarsaAgent(ACROBOT, np.random.default_rng(4))
+    basis, rng = ACROBOT.basis(), np.random.default_rng(4)
+    state = agent.state  # the same fresh weights
+    terminal = []
+    for _ in range(2):
+        states, rewards = _policy_episode(envs[0], agent, policy, ACROBOT.n_actions)
+        episode = run_episode(envs[1], basis, ACROBOT.sarsa, state, rng=rng)
+        state = episode.state
+        np.testing.assert_array_equal(np.array(states), episode.states)
+        np.testing.assert_array_equal(rewards, episode.rewards)
+        np.testing.assert_array_equal(agent.state.weights, state.weights)
+        terminal.append(episode.terminal)
+    # the second episode again, cut short: the step limit's last update
+    cut = [
+        ACROBOT.make_env(params, seed=np.random.default_rng(5), max_steps=30)
+        for _ in range(2)
+    ]
+    states, rewards = _policy_episode(cut[0], agent, policy, ACROBOT.n_actions)
+    episode = run_episode(cut[1], basis, ACROBOT.sarsa, state, rng=rng)
+    np.testing.assert_array_equal(np.array(states), episode.states)
+    np.testing.assert_array_equal(agent.state.weights, episode.state.weights)
+    assert terminal[0] and len(rewards) == 30 and not episode.terminal
+
+
+class Acts:
+    """A policy whose agent returns ``action`` (or what ``agent`` says)."""
+
+    def __init__(self, action=0, agent=None):
+        self.action, self.made = action, agent
+
+    def fit(self, batch, *, rng):
+        pass
+
+    def agent(self, *, rng):
+        return self if self.made is None else self.made
+
+    def act(self, state):
+        state[:] = np.nan  # scribbles, as a careless policy might
+        return self.action
+
+    def observe(self, state, action, reward, next_state, terminal):
+        next_state[:] = np.nan
+
+
+class BothKinds(Acts):
+    def adapt(self, train, *, rng):
+        return self
+
+
+class NoObserve:
+    def act(self, state):
+        return 0
+
+
+class FailsLater(Acts):
+    """Acts once (as fit_all tries it), then raises."""
+
+    calls = 0
+
+    def act(self, state):
+        FailsLater.calls += 1
+        if FailsLater.calls > 1:
+            raise RuntimeError("second act")
+        return 0
+
+
+def batch():
+    """A small batch shaped as the acrobot's: 4-D states, actions 0, 1, 2."""
+    rng = np.random.default_rng(0)
+    s = rng.normal(size=(20, 4))
+    return Transitions(
+        s, rng.integers(3, size=20), s + 0.01, np.zeros(20, int), rewards=-np.ones(20)
+    )
+
+
+@pytest.mark.parametrize(
+    "policy, match",
+    [
+        (Acts(3), "mine: act must return an action index 0..2, got 3"),
+        (Acts(-1), "mine: act must return an action index 0..2, got -1"),
+        (Acts(True), "mine: act must return an action index 0..2, got True"),
+        (Acts(1.0), "mine: act must return an action index \\(an integer\\), got 1.0"),
+        (Acts(None), "an action index \\(an integer\\), got None \\(NoneType\\)"),
+        (Acts(agent=NoObserve()), "mine: agent must return .* NoObserve has no obs"),
+    ],
+)
+def test_bad_agents_are_refused_before_any_run_naming_the_method(policy, match):
+    with pytest.raises(ValueError, match=match):
+        methods.fit_all([(MethodSpec("mine", "m", "A"), policy)], batch(), 0, 3)
+
+
+def test_a_good_agent_passes_and_its_action_may_be_a_numpy_integer():
+    loaded = [(MethodSpec("p", "m", "A"), Acts(np.int64(2)))]
+    (fitted,) = methods.fit_all(loaded, batch(), 0)  # n_actions: the batch's (3)
+    assert fitted.is_policy
+    assert fitted.act(Acts(np.int64(2)), np.zeros(4), 3) == 2
+    with pytest.raises(ValueError, match="index 0..1, got np.int64\\(2\\)"):
+        methods.fit_all(loaded, batch(), 0, n_actions=2)
+
+
+def test_policies_are_loaded_by_the_swing_up_alone():
+    with pytest.raises(ValueError, match="sarsa=tasks.methods:SarsaPolicy is a pol"):
+        methods.load_all([SARSA])
+    ((spec, policy),) = methods.load_all([SARSA], policies=True)
+    assert spec.name == "sarsa" and methods.is_policy(policy)
+    with pytest.raises(ValueError, match="BothKinds has both adapt and agent"):
+        methods.load_all(["x=tests.test_policies:BothKinds"], policies=True)
+    with pytest.raises(ValueError, match="NoObserve has no fit and no adapt or agent"):
+        methods.load_all(["x=tests.test_policies:NoObserve"], policies=True)
+
+
+def test_the_cart_pole_refuses_a_policy_before_any_work(tmp_path):
+    from tasks.cartpole_prediction import main
+    from tests.test_cartpole_prediction import TINY
+
+    with pytest.raises(ValueError, match="only tasks.acrobot_swingup runs policies"):
+        main(dataclasses.replace(TINY, methods=(SARSA,)), out=tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
+def test_an_agent_gets_its_trials_stream_and_its_copies_of_the_states():
+    """``Added.agent``'s rng: the one of (seed, name, key); act and observe see
+    copies, so the scribbling policy leaves the caller's states as they were."""
+
+    class Draws(Acts):
+        def agent(self, *, rng):
+            self.drawn = rng.random()
+            return self
+
+    policy = Draws()
+    agent = added(policy, "a", 7).agent((4, 2, 1))
+    assert (
+        policy.drawn == np.random.default_rng(method_seed(7, "a", 1, 4, 2, 1)).random()
+    )
+    s = np.arange(4.0)
+    added(policy).act(agent, s, 3)
+    added(policy).observe(agent, s, 0, -1.0, s, False)
+    np.testing.assert_array_equal(s, np.arange(4.0))
+
+
+def test_a_policy_that_breaks_in_a_trial_says_where(tmp_path):
+    from tasks.acrobot_swingup import main as swingup
+    from tests.test_acrobot_swingup import TINY as SWINGUP
+
+    FailsLater.calls = 0
+    config = dataclasses.replace(
+        SWINGUP,
+        record=False,
+        workers=1,
+        methods=("late=tests.test_policies:FailsLater",),
+    )
+    with pytest.raises(RuntimeError, match="second act") as err:
+        swingup(config, tmp_path)
+    note = "".join(err.value.__notes__)
+    assert "in method late: act" in note and "setting 0, trial 0" in note
+
+
+def test_a_swing_up_run_takes_a_policy_and_nothing_else_changes(tmp_path, monkeypatch):
+    """A tiny swing-up run without added methods (one process) and with a policy
+    and a model (two worker processes): every other method's numbers, traced
+    states and predictions the same; the policy in every control table and pair,
+    in no prediction table; its episodes start where the true model's do."""
+    from tasks import swingup_report
+    from tasks.acrobot_swingup import main as swingup
+    from tasks.recording import rrd_contents
+    from tests.test_acrobot_swingup import TINY as SWINGUP
+    from tests.test_methods import LINEAR, without
+
+    traced, write = [], swingup_report.write_artefacts
+
+    def keep_trials(path, config, metrics, trials, hip):
+        traced.append({(r.method, r.setting, r.trial): r for r in trials})
+        return write(path, config, metrics, trials, hip)
+
+    monkeypatch.setattr(swingup_report, "write_artefacts", keep_trials)
+    plain = swingup(dataclasses.replace(SWINGUP, workers=1), tmp_path / "plain")
+    config = dataclasses.replace(SWINGUP, workers=2, methods=(SARSA, LINEAR))
+    run = swingup(config, tmp_path / "added")
+    a, b = plain.metrics, run.metrics
+    for m in (a, b):
+        del m["seconds"], m["environment"]
+    pairs = {"hipmdp - sarsa", "sarsa - true", "hipmdp - linear", "linear - true"}
+    assert without(b, {"sarsa", "linear", *pairs}) == a
+    for key in ("returns", "median_returns", "step_limit_rate", "margin_to_target"):
+        assert set(b[key]) - set(a[key]) == {"sarsa", "linear"}, key
+    for key in ("mse", "approximation_floor", "coverage", "loglik_difference"):
+        assert "sarsa" not in b[key] and "sarsa" not in str(b[key]), key
+    assert set(b["paired_difference"]) - set(a["paired_difference"]) == pairs
+    for key, result in traced[0].items():
+        other = traced[1][key]
+        np.testing.assert_array_equal(result.returns, other.returns)
+        for x, y in zip(result.traces or [], other.traces or [], strict=True):
+            np.testing.assert_array_equal(x.states, y.states)
+            np.testing.assert_array_equal(x.predicted, y.predicted)
+    n = len(SWINGUP.test_masses)
+    for i in range(n):
+        for t in range(SWINGUP.n_trials):
+            policy = traced[1][("sarsa", i, t)]
+            assert policy.weight_means is None
+            np.testing.assert_array_equal(policy.steps, -policy.returns)
+    (trace_true, trace_policy) = (
+        traced[1][(m, 0, 0)].traces for m in ("true", "sarsa")
+    )
+    assert len(trace_policy) == SWINGUP.transfer.n_episodes
+    for x, y in zip(trace_true, trace_policy, strict=True):
+        np.testing.assert_array_equal(x.states[0], y.states[0])  # paired starts
+        assert y.predicted is None
+    trials = np.load(run.out / "trials.npz")
+    assert trials["methods"].tolist() == [
+        "true",
+        "average",
+        "hipmdp",
+        "sarsa",
+        "linear",
+    ]
+    report = (run.out / "report.md").read_text()
+    assert "sarsa (`tasks.methods:SarsaPolicy`, a policy, so not in the" in report
+    assert "| hipmdp - sarsa |" in report
+    entities = set(rrd_contents(run.out / "acrobot.rrd"))
+    assert {"/rollout/sarsa/real", "/returns/sarsa"} <= entities
+    assert "/rollout/sarsa/predicted" not in entities
+    assert "/rollout/linear/predicted" in entities
+
+
+def test_same_seed_same_policy_trial():
+    """One policy trial run twice from the same job: the same returns and
+    states (the agent's stream and the environment's seed are the job's)."""
+    from tasks.transfer import TrialJob, run_trial, set_models
+
+    config = TransferConfig(n_episodes=2, max_steps=40, planning_max_steps=10)
+    (policy,) = methods.fit_all(
+        methods.load_all([SARSA], policies=True), batch(), 0, ACROBOT.n_actions
+    )
+    set_models(ACROBOT, config, None, None, added=(policy,))
+    job = TrialJob(
+        "sarsa",
+        1,
+        2,
+        AcrobotParams(link_mass_1=0.9, link_mass_2=1.1),
+        (5, (0, 1)),
+        True,
+    )
+    first, second = run_trial(job), run_trial(job)
+    np.testing.assert_array_equal(first.returns, second.returns)
+    for x, y in zip(first.traces, second.traces, strict=True):
+        np.testing.assert_array_equal(x.states, y.states)
+    assert not np.array_equal(first.traces[0].states, first.traces[1].states)
+
+
+def test_readmes_example_policy_runs_as_written(tmp_path, monkeypatch):
+    """README's `pump.py`, saved where its command puts it, in a tiny swing-up
+    run; the command parses as written."""
+    import shlex
+
+    from tasks.acrobot_swingup import main as swingup
+    from tasks.acrobot_swingup import parse_args
+    from tests.test_acrobot_swingup import TINY as SWINGUP
+    from tests.test_docs import ROOT, python_block
+
+    readme = ROOT / "README.md"
+    code = python_block(readme, "#### A policy instead of a model")
+    (tmp_path / "pump.py").write_text(code)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.chdir(tmp_path)
+    command = next(
+        line for line in readme.read_text().splitlines()
+        if line.startswith("python -m tasks.acrobot_swingup") and "pump:" in line
+    )  # fmt: skip
+    config, out = parse_args(shlex.split(command)[3:])
+    assert config.methods == ("pump=pump:Pump",) and str(out) == "runs/acro_pump"
+    config = dataclasses.replace(SWINGUP, methods=config.methods, record=False)
+    run = swingup(config, out=tmp_path / "run")
+    assert set(run.metrics["returns"]) == {"true", "average", "hipmdp", "pump"}
+    assert "pump" not in run.metrics["mse"]
