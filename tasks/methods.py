@@ -60,6 +60,7 @@ Symbols: ``a`` action, ``d`` state dimension, ``x`` features of a state.
 from __future__ import annotations
 
 import contextlib
+import copy
 import importlib
 import operator
 import re
@@ -358,8 +359,9 @@ def load_all(
 ) -> tuple[tuple[MethodSpec, Any], ...]:
     """``(spec, load(spec, build))`` for every ``NAME=module:attribute`` of
     ``specs``; raise ValueError if any is malformed or cannot be loaded
-    (:func:`load`). Experiments call it before any work. A policy is refused
-    unless ``policies`` is True (an experiment with transfer trials)."""
+    (:func:`load`). Experiments call it before any work. With ``build``, a
+    policy is refused unless ``policies`` is True (an experiment with transfer
+    trials); without, the kind of a method is not known yet."""
     loaded = tuple((spec, load(spec, build)) for spec in check_specs(specs))
     for spec, method in loaded:
         if build and not policies and is_policy(method):
@@ -394,8 +396,10 @@ def fit_all(
       agree with ``predict``'s mean (``numpy.allclose``), as planning calls it.
 
     A policy instead gets one agent (key ``(2, 2)``) that acts on the first
-    batch state (an action ``0 .. n_actions - 1``; ``n_actions`` defaults to the
-    batch's), observes the first transition and ends the episode.
+    batch state (an action ``0 .. n_actions - 1``: ``n_actions`` must be given
+    if there is a policy), observes the first transition and ends the episode.
+    The tries run on a copy of the fitted object, so the object returned is as
+    ``fit`` left it.
     """
     out = []
     trial_train = batch.take(np.arange(min(TRIAL_SIZE, len(batch))))
@@ -407,19 +411,24 @@ def fit_all(
         with _users_call(f"method {spec.name}: fit"):
             method.fit(_copy(batch), rng=rng)
         added = Added(spec, method, seed)
+        # the tries run on a copy: what they leave on the object (a policy whose
+        # agent is the object itself, say) is not where every trial starts
+        trying = added._replace(method=copy.deepcopy(method))
         if added.is_policy:
-            _check_policy(added, batch, n_actions)
+            if n_actions is None:
+                raise ValueError(
+                    f"n_actions: needed to try the policy {spec.name}, got None"
+                )
+            _check_policy(trying, batch, n_actions)
         else:
-            added.predict(trial_train, trial_test, (2,))
-            _check_planning(added, batch)
+            trying.predict(trial_train, trial_test, (2,))
+            _check_planning(trying, batch)
         out.append(added)
     return tuple(out)
 
 
-def _check_policy(added: Added, batch: Transitions, n_actions: int | None) -> None:
+def _check_policy(added: Added, batch: Transitions, n_actions: int) -> None:
     """:func:`fit_all`'s try of a policy: one step of one agent."""
-    if n_actions is None:
-        n_actions = int(batch.actions.max()) + 1 if len(batch) else 1
     agent = added.agent((2, 2))
     if len(batch):
         action = added.act(agent, batch.states[0], n_actions)
@@ -573,8 +582,9 @@ class SarsaPolicy:
     what the transfer has to beat. Its agent acts and learns exactly as
     ``tasks.agents.run_episode`` does, step for step and draw for draw.
 
-    Attributes:
-        domain: a key of ``tasks.agents.DOMAINS`` (default ``"acrobot"``).
+    Args:
+        domain: a key of ``tasks.agents.DOMAINS`` (default ``"acrobot"``); the
+            attribute ``domain`` holds that ``Domain``.
     """
 
     def __init__(self, domain: str = "acrobot") -> None:

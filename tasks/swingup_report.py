@@ -150,7 +150,8 @@ Test instance m1 = {m1} kg, m2 = {m2} kg (first test setting, first trial).
 - **return per episode**: mean return over all trials, per method.
 - **rollouts**: the acrobot posed from the simulator state of each real step (coloured)
   and, in red, the position the method's model predicted for that step from the
-  previous real state.
+  previous real state (none for a policy added with `--method`, which has no
+  model).
 
 Timelines: `episode` (real episode) and `step` (step within it).
 """

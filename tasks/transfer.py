@@ -33,7 +33,10 @@ random stream's seed depend only on (setting, trial), never on the method. The o
 agent stream serves planning (start picks, exploration in simulated episodes) and
 acting alike, and each method's planning draws from it differently, so the
 exploration in real episodes is not paired across methods after the first
-planning; the instance and the initial states are.
+planning; the instance and the initial states are. An added policy's agent gets
+a stream of its own, from the run's seed and the method's name
+(``tasks.methods.method_seed``), so its exploration is not paired with the
+others' at all; its instance and initial states are.
 """
 
 from __future__ import annotations
@@ -295,17 +298,17 @@ def _policy_trial(job: TrialJob, added, env, domain: Domain, config) -> TrialRes
     """A policy's trial (``tasks.methods``): a fresh agent acts and learns on
     the instance's ``config.n_episodes`` real episodes, which start from the
     states every method's do (``env``'s seed)."""
-    agent = added.agent((4, job.setting, job.trial))
     returns, steps, traces = [], [], []
-    for _ in range(config.n_episodes):
-        try:
+    try:
+        agent = added.agent((4, job.setting, job.trial))
+        for _ in range(config.n_episodes):
             states, rewards = _policy_episode(env, agent, added, domain.n_actions)
-        except Exception as err:
-            err.add_note(f"(setting {job.setting}, trial {job.trial})")
-            raise
-        returns.append(float(np.sum(rewards)))
-        steps.append(len(rewards))
-        traces.append(EpisodeTrace(np.array(states), None, None, None))
+            returns.append(float(np.sum(rewards)))
+            steps.append(len(rewards))
+            traces.append(EpisodeTrace(np.array(states), None, None, None))
+    except Exception as err:
+        err.add_note(f"(setting {job.setting}, trial {job.trial})")
+        raise
     return TrialResult(
         job.method, job.setting, job.trial, np.array(returns), np.array(steps),
         None, traces if job.record else None,

@@ -13,7 +13,7 @@ from hipmdp.data import Transitions
 from tasks import methods
 from tasks.acrobot import AcrobotParams
 from tasks.agents import ACROBOT, run_episode
-from tasks.methods import Added, MethodSpec, SarsaAgent, SarsaPolicy, method_seed
+from tasks.methods import Added, MethodSpec, SarsaPolicy, method_seed
 from tasks.transfer import TransferConfig, _policy_episode
 
 SARSA = "sarsa=tasks.methods:SarsaPolicy"
@@ -35,7 +35,7 @@ def test_the_example_policy_acts_and_learns_as_the_built_in_agent():
         for max_steps in (2000, 2000)
     ]
     policy = added(SarsaPolicy())
-    agent = SarsaAgent(ACROBOT, np.random.default_rng(4))
+    agent = SarsaPolicy().agent(rng=np.random.default_rng(4))
     basis, rng = ACROBOT.basis(), np.random.default_rng(4)
     state = agent.state  # the same fresh weights
     terminal = []
@@ -90,15 +90,50 @@ class NoObserve:
 
 
 class FailsLater(Acts):
-    """Acts once (as fit_all tries it), then raises."""
+    """Acts once (as fit_all tries it), then raises; with ``where="agent"``, its
+    second agent raises instead."""
 
     calls = 0
+    where = "act"
+
+    def fit(self, batch, *, rng):
+        FailsLater.calls = 0  # a run starts counting afresh
+
+    def agent(self, *, rng):
+        FailsLater.calls += self.where == "agent"
+        if FailsLater.calls > 1:
+            raise RuntimeError("second agent")
+        return self
 
     def act(self, state):
-        FailsLater.calls += 1
+        FailsLater.calls += self.where == "act"
         if FailsLater.calls > 1:
             raise RuntimeError("second act")
         return 0
+
+
+class FailsInItsSecondAgent(FailsLater):
+    where = "agent"
+
+
+class Counts(Acts):
+    """Its agent is itself, and counts what it observes."""
+
+    observed = 0
+
+    def observe(self, state, action, reward, next_state, terminal):
+        self.observed += 1
+
+
+class Draws(Acts):
+    """Keeps the first draw of each agent's rng, on the class (trials run on
+    copies of the object)."""
+
+    drawn: list = []
+
+    def agent(self, *, rng):
+        Draws.drawn.append(rng.random())
+        return self
 
 
 def batch():
@@ -128,7 +163,7 @@ def test_bad_agents_are_refused_before_any_run_naming_the_method(policy, match):
 
 def test_a_good_agent_passes_and_its_action_may_be_a_numpy_integer():
     loaded = [(MethodSpec("p", "m", "A"), Acts(np.int64(2)))]
-    (fitted,) = methods.fit_all(loaded, batch(), 0)  # n_actions: the batch's (3)
+    (fitted,) = methods.fit_all(loaded, batch(), 0, n_actions=3)
     assert fitted.is_policy
     assert fitted.act(Acts(np.int64(2)), np.zeros(4), 3) == 2
     with pytest.raises(ValueError, match="index 0..1, got np.int64\\(2\\)"):
@@ -155,41 +190,65 @@ def test_the_cart_pole_refuses_a_policy_before_any_work(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
-def test_an_agent_gets_its_trials_stream_and_its_copies_of_the_states():
+def test_an_agent_gets_its_keys_stream_and_copies_of_the_states():
     """``Added.agent``'s rng: the one of (seed, name, key); act and observe see
     copies, so the scribbling policy leaves the caller's states as they were."""
-
-    class Draws(Acts):
-        def agent(self, *, rng):
-            self.drawn = rng.random()
-            return self
-
-    policy = Draws()
+    policy, Draws.drawn = Draws(), []
     agent = added(policy, "a", 7).agent((4, 2, 1))
-    assert (
-        policy.drawn == np.random.default_rng(method_seed(7, "a", 1, 4, 2, 1)).random()
-    )
+    expected = np.random.default_rng(method_seed(7, "a", 1, 4, 2, 1)).random()
+    assert Draws.drawn == [expected]
     s = np.arange(4.0)
     added(policy).act(agent, s, 3)
     added(policy).observe(agent, s, 0, -1.0, s, False)
     np.testing.assert_array_equal(s, np.arange(4.0))
 
 
-def test_a_policy_that_breaks_in_a_trial_says_where(tmp_path):
+@pytest.mark.parametrize(
+    "cls, where", [("FailsLater", "act"), ("FailsInItsSecondAgent", "agent")]
+)
+def test_a_policy_that_breaks_in_a_trial_says_where(tmp_path, cls, where):
     from tasks.acrobot_swingup import main as swingup
     from tests.test_acrobot_swingup import TINY as SWINGUP
 
-    FailsLater.calls = 0
     config = dataclasses.replace(
         SWINGUP,
         record=False,
         workers=1,
-        methods=("late=tests.test_policies:FailsLater",),
+        methods=(f"late=tests.test_policies:{cls}",),
     )
-    with pytest.raises(RuntimeError, match="second act") as err:
+    with pytest.raises(RuntimeError, match=f"second {where}") as err:
         swingup(config, tmp_path)
     note = "".join(err.value.__notes__)
-    assert "in method late: act" in note and "setting 0, trial 0" in note
+    assert f"in method late: {where}" in note and "setting 0, trial 0" in note
+
+
+def test_the_try_leaves_the_fitted_object_as_fit_left_it():
+    policy = Counts()
+    (fitted,) = methods.fit_all([(MethodSpec("c", "m", "A"), policy)], batch(), 0, 3)
+    assert fitted.method is policy and policy.observed == 0
+    with pytest.raises(ValueError, match="n_actions: needed to try the policy c"):
+        methods.fit_all([(MethodSpec("c", "m", "A"), policy)], batch(), 0)
+
+
+def test_each_trial_gets_its_own_agent_stream():
+    """run_trial gives a policy's agent the stream of (run seed, name, setting,
+    trial): the same for the same trial, another for another."""
+    from tasks.transfer import TrialJob, run_trial, set_models
+
+    config = TransferConfig(n_episodes=1, max_steps=5, planning_max_steps=5)
+    loaded = [(MethodSpec("d", "m", "A"), Draws())]
+    set_models(
+        ACROBOT, config, None, None, added=methods.fit_all(loaded, batch(), 7, 3)
+    )
+    params = AcrobotParams(link_mass_1=0.9, link_mass_2=1.1)
+    Draws.drawn = []
+    for i, t in [(0, 0), (1, 2), (0, 0), (2, 1)]:
+        run_trial(TrialJob("d", i, t, params, (5, (i, t)), False))
+    expected = [
+        np.random.default_rng(method_seed(7, "d", 1, 4, i, t)).random()
+        for i, t in [(0, 0), (1, 2), (0, 0), (2, 1)]
+    ]
+    assert Draws.drawn == expected and len(set(expected)) == 3
 
 
 def test_a_swing_up_run_takes_a_policy_and_nothing_else_changes(tmp_path, monkeypatch):
@@ -261,7 +320,8 @@ def test_a_swing_up_run_takes_a_policy_and_nothing_else_changes(tmp_path, monkey
 
 def test_same_seed_same_policy_trial():
     """One policy trial run twice from the same job: the same returns and
-    states (the agent's stream and the environment's seed are the job's)."""
+    states (the environment's seed is the job's, the agent's stream the run's
+    seed's and the name's)."""
     from tasks.transfer import TrialJob, run_trial, set_models
 
     config = TransferConfig(n_episodes=2, max_steps=40, planning_max_steps=10)
