@@ -57,6 +57,7 @@ def _learning_curves(file: Path, metrics: dict) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
     methods = list(metrics["returns"])  # METHODS, then any added with --method
@@ -67,6 +68,7 @@ def _learning_curves(file: Path, metrics: dict) -> None:
         rgb = np.array(color(m, methods)) / 255
         ax.plot(ep, mean, label=label(m), color=rgb)
         ax.fill_between(ep, low, high, color=rgb, alpha=0.2)
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # episodes are whole
     ax.set_xlabel("real episode")
     ax.set_ylabel("return (−steps to goal)")
     ax.set_title("Acrobot swing-up on new instances (mean, 95% interval)")
