@@ -259,6 +259,7 @@ def test_a_swing_up_run_takes_a_policy_and_nothing_else_changes(tmp_path, monkey
     from tasks import swingup_report
     from tasks.acrobot_swingup import main as swingup
     from tasks.recording import rrd_contents
+    from tests._seed_spread import assert_reads_the_run
     from tests.test_acrobot_swingup import TINY as SWINGUP
     from tests.test_methods import LINEAR, without
 
@@ -316,6 +317,11 @@ def test_a_swing_up_run_takes_a_policy_and_nothing_else_changes(tmp_path, monkey
     assert {"/rollout/sarsa/real", "/returns/sarsa"} <= entities
     assert "/rollout/sarsa/predicted" not in entities
     assert "/rollout/linear/predicted" in entities
+    spread = assert_reads_the_run(run.out, tmp_path, "acrobot_swingup")
+    labels = {n["label"] for n in spread["numbers"]}
+    assert {"episodes to near-optimal, sarsa", "return, sarsa - true (trials)"} <= (
+        labels
+    )
 
 
 def test_same_seed_same_policy_trial():
