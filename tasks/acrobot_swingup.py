@@ -58,7 +58,13 @@ from tasks.experiment import (
     trial_seeds,
     write_json,
 )
-from tasks.methods import add_method_argument, check_specs, fit_all, load_all
+from tasks.methods import (
+    add_method_argument,
+    check_specs,
+    fit_all,
+    load_all,
+    provenance,
+)
 from tasks.prediction import (
     add_split_argument,
     check_split,
@@ -331,6 +337,8 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
     machine = environment()  # the code and machine as the run starts
     # a bad one fails here, before any work
     loaded = load_all(config.methods, policies=True)
+    if loaded:  # which code the added methods are
+        machine["methods"] = provenance(loaded)
     path = run_dir(out, config.name, ARTEFACTS)
     write_json(path / "config.json", config)
     ss_batch, ss_fit, ss_avg, ss_trials, ss_mse = run_streams(config.seed)

@@ -49,7 +49,13 @@ from tasks.experiment import (
     to_jsonable,
     write_json,
 )
-from tasks.methods import add_method_argument, check_specs, fit_all, load_all
+from tasks.methods import (
+    add_method_argument,
+    check_specs,
+    fit_all,
+    load_all,
+    provenance,
+)
 from tasks.prediction import (
     add_split_argument,
     best_baseline,
@@ -168,6 +174,8 @@ def main(config: PredictionConfig, out: str | os.PathLike | None = None) -> Resu
     started = time.perf_counter()
     machine = environment()  # the code and machine as the run starts
     loaded = load_all(config.methods)  # a bad one fails here, before any work
+    if loaded:  # which code the added methods are
+        machine["methods"] = provenance(loaded)
     path = run_dir(out, config.name, ARTEFACTS)
     write_json(path / "config.json", config)
     ss_batch, ss_fit, ss_avg, ss_test = np.random.SeedSequence(config.seed).spawn(4)

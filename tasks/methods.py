@@ -61,12 +61,16 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import hashlib
 import importlib
 import operator
 import re
+import sys
 import zlib
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -191,6 +195,28 @@ def load(spec: MethodSpec, build: bool = True) -> Any:
     if {"adapt", "agent"} <= has:
         raise ValueError(f"{kind} both adapt and agent")
     return method
+
+
+def provenance(loaded: Sequence[tuple[MethodSpec, Any]]) -> dict[str, Any]:
+    """Which code each loaded method (:func:`load_all`) ran, for a run's
+    ``environment``: per name, its ``module``, the module's ``file`` and the
+    file's ``sha256`` (None for a module without a file), and the ``version`` of
+    the installed distribution that provides the module's top-level package
+    (None if none does, e.g. a file in the working directory)."""
+    dists = metadata.packages_distributions()
+    out = {}
+    for spec, _ in loaded:
+        module = sys.modules[spec.module]
+        file = getattr(module, "__file__", None)
+        digest = hashlib.sha256(Path(file).read_bytes()).hexdigest() if file else None
+        names = dists.get(spec.module.partition(".")[0], [])
+        out[spec.name] = {
+            "module": spec.module,
+            "file": file,
+            "sha256": digest,
+            "version": metadata.version(names[0]) if names else None,
+        }
+    return out
 
 
 def method_seed(seed: int, name: str, *key: int) -> np.random.SeedSequence:
@@ -656,4 +682,5 @@ __all__ = [
     "load_all",
     "method_seed",
     "parse_spec",
+    "provenance",
 ]

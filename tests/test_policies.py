@@ -5,6 +5,7 @@ added to a swing-up run leaving every other number as it was."""
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 
 import numpy as np
 import pytest
@@ -274,6 +275,8 @@ def test_a_swing_up_run_takes_a_policy_and_nothing_else_changes(tmp_path, monkey
     config = dataclasses.replace(SWINGUP, workers=2, methods=(SARSA, LINEAR))
     run = swingup(config, tmp_path / "added")
     a, b = plain.metrics, run.metrics
+    assert "methods" not in a["environment"]
+    assert set(b["environment"]["methods"]) == {"sarsa", "linear"}
     for m in (a, b):
         del m["seconds"], m["environment"]
     pairs = {"hipmdp - sarsa", "sarsa - true", "hipmdp - linear", "linear - true"}
@@ -375,3 +378,9 @@ def test_readmes_example_policy_runs_as_written(tmp_path, monkeypatch):
     run = swingup(config, out=tmp_path / "run")
     assert set(run.metrics["returns"]) == {"true", "average", "hipmdp", "pump"}
     assert "pump" not in run.metrics["mse"]
+    assert run.metrics["environment"]["methods"]["pump"] == {
+        "module": "pump",
+        "file": str(tmp_path / "pump.py"),
+        "sha256": hashlib.sha256(code.encode()).hexdigest(),
+        "version": None,  # a file in the working directory, not a package
+    }
