@@ -63,6 +63,7 @@ from tasks.methods import (
     check_specs,
     fit_all,
     load_all,
+    must_pickle,
     provenance,
 )
 from tasks.prediction import (
@@ -353,7 +354,10 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
     timings["batch_data"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()  # first, so that a method that breaks does so early
-    added = fit_all(loaded, batch, config.seed, n_actions=ACROBOT.n_actions)
+    added = fit_all(
+        loaded, batch, config.seed, n_actions=ACROBOT.n_actions,
+        pickled=must_pickle(config.workers),
+    )  # fmt: skip
     timings["added_methods"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()

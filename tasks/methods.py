@@ -32,7 +32,7 @@ calls ``predict`` with one state at a time, so it should be cheap; a predictor w
 
 **A policy instead of a model.** The acrobot's transfer trials also take a method
 that acts itself, with its own learning and planning (model-free, meta-RL,
-a policy trained on the training instances, a planner of your own): an object
+a policy trained offline on the batch data, a planner of your own): an object
 with ``fit(batch, *, rng)`` as above and, instead of ``adapt``,
 
 - ``agent(*, rng) -> agent``: called once per trial, for a fresh agent. The
@@ -63,9 +63,12 @@ import contextlib
 import copy
 import hashlib
 import importlib
+import inspect
+import multiprocessing
 import operator
+import os
+import pickle
 import re
-import sys
 import zlib
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -150,8 +153,10 @@ def _crc(name: str) -> int:
 
 
 def is_policy(method: Any) -> bool:
-    """Whether a loaded method is a policy (has ``agent``), not a model."""
-    return callable(getattr(method, "agent", None))
+    """Whether a loaded method is a policy (its class has an ``agent`` method),
+    not a model. The class, not the object: a model whose object has a callable
+    attribute ``agent`` (a network's submodule, say) stays a model."""
+    return callable(getattr(type(method), "agent", None))
 
 
 def load(spec: MethodSpec, build: bool = True) -> Any:
@@ -183,7 +188,8 @@ def load(spec: MethodSpec, build: bool = True) -> Any:
             f"{where}: calling {spec.attribute}() with no arguments raised "
             f"{type(err).__name__}: {err}"
         ) from err
-    has = {m for m in ("fit", "adapt", "agent") if callable(getattr(method, m, None))}
+    has = {m for m in ("fit", "adapt") if callable(getattr(method, m, None))}
+    has |= {"agent"} if is_policy(method) else set()
     kind = (
         f"{where}: expected an object with fit and adapt (a model) or with fit and "
         f"agent (a policy), {type(method).__name__} has"
@@ -199,24 +205,47 @@ def load(spec: MethodSpec, build: bool = True) -> Any:
 
 def provenance(loaded: Sequence[tuple[MethodSpec, Any]]) -> dict[str, Any]:
     """Which code each loaded method (:func:`load_all`) ran, for a run's
-    ``environment``: per name, its ``module``, the module's ``file`` and the
-    file's ``sha256`` (None for a module without a file), and the ``version`` of
-    the installed distribution that provides the module's top-level package
-    (None if none does, e.g. a file in the working directory)."""
-    dists = metadata.packages_distributions()
+    ``environment``: per name, its ``module`` (the spec's), its ``class``
+    (``module.qualname`` of the built object's type, where its code is), that
+    class's source ``file`` (absolute) and the file's ``sha256``, and the
+    ``version`` of the installed distribution whose files hold that file. Any of
+    the last three is None if it cannot be told (no source file, a file in the
+    working directory, a shadowed install). Only the class's own file is hashed,
+    not the modules it imports. Bookkeeping: it never raises for a method that
+    loaded."""
     out = {}
-    for spec, _ in loaded:
-        module = sys.modules[spec.module]
-        file = getattr(module, "__file__", None)
-        digest = hashlib.sha256(Path(file).read_bytes()).hexdigest() if file else None
-        names = dists.get(spec.module.partition(".")[0], [])
+    for spec, method in loaded:
+        cls = type(method)
+        try:
+            file = os.path.abspath(inspect.getfile(cls))
+            digest = hashlib.sha256(Path(file).read_bytes()).hexdigest()
+        except (TypeError, OSError):  # built-in, zip-imported, "<string>" ...
+            file = digest = None
         out[spec.name] = {
             "module": spec.module,
+            "class": f"{cls.__module__}.{cls.__qualname__}",
             "file": file,
             "sha256": digest,
-            "version": metadata.version(names[0]) if names else None,
+            "version": _version_holding(file, cls.__module__),
         }
     return out
+
+
+def _version_holding(file: str | None, module: str) -> str | None:
+    """The version of the installed distribution among whose files ``file`` is
+    (looked for among those that provide ``module``'s top-level package)."""
+    if file is None:
+        return None
+    try:
+        names = metadata.packages_distributions().get(module.partition(".")[0], [])
+        for name in dict.fromkeys(names):
+            dist = metadata.distribution(name)
+            files = {os.path.realpath(dist.locate_file(f)) for f in dist.files or ()}
+            if os.path.realpath(file) in files:
+                return dist.version
+    except Exception:  # a broken installation's metadata: say nothing
+        return None
+    return None
 
 
 def method_seed(seed: int, name: str, *key: int) -> np.random.SeedSequence:
@@ -320,6 +349,11 @@ class Added(NamedTuple):
             )
         return mean, var
 
+    def fresh_copy(self) -> Any:
+        """``copy.deepcopy`` of the fitted object: where each trial starts."""
+        with _users_call(f"method {self.name}: copy.deepcopy of the fitted object"):
+            return copy.deepcopy(self.method)
+
     @property
     def is_policy(self) -> bool:
         """Whether the method is a policy (see the module docstring)."""
@@ -409,6 +443,7 @@ def fit_all(
     batch: Transitions,
     seed: int,
     n_actions: int | None = None,
+    pickled: bool = False,
 ) -> tuple[Added, ...]:
     """Fit every loaded method (:func:`load_all`) on a copy of ``batch``, each with
     its own stream (:func:`method_seed`), then try it as the runs will use it, so
@@ -425,7 +460,8 @@ def fit_all(
     batch state (an action ``0 .. n_actions - 1``: ``n_actions`` must be given
     if there is a policy), observes the first transition and ends the episode.
     The tries run on a copy of the fitted object, so the object returned is as
-    ``fit`` left it.
+    ``fit`` left it. With ``pickled`` (:func:`must_pickle`), the fitted object
+    must also pickle, as worker processes will receive it that way.
     """
     out = []
     trial_train = batch.take(np.arange(min(TRIAL_SIZE, len(batch))))
@@ -437,9 +473,12 @@ def fit_all(
         with _users_call(f"method {spec.name}: fit"):
             method.fit(_copy(batch), rng=rng)
         added = Added(spec, method, seed)
+        if pickled:  # as the worker processes will receive it
+            with _users_call(f"method {spec.name}: pickle.dumps of the fitted object"):
+                pickle.dumps(method)
         # the tries run on a copy: what they leave on the object (a policy whose
         # agent is the object itself, say) is not where every trial starts
-        trying = added._replace(method=copy.deepcopy(method))
+        trying = added._replace(method=added.fresh_copy())
         if added.is_policy:
             if n_actions is None:
                 raise ValueError(
@@ -453,13 +492,20 @@ def fit_all(
     return tuple(out)
 
 
+def must_pickle(workers: int) -> bool:
+    """Whether ``workers`` processes receive the fitted methods pickled: with
+    more than one, unless they are forked (``multiprocessing``'s default start
+    method)."""
+    return workers > 1 and multiprocessing.get_start_method() != "fork"
+
+
 def _check_policy(added: Added, batch: Transitions, n_actions: int) -> None:
     """:func:`fit_all`'s try of a policy: one step of one agent."""
     agent = added.agent((2, 2))
     if len(batch):
-        action = added.act(agent, batch.states[0], n_actions)
-        added.observe(
-            agent, batch.states[0], action,
+        added.act(agent, batch.states[0], n_actions)
+        added.observe(  # the batch's transition from that state, a true one
+            agent, batch.states[0], batch.actions[0],
             0.0 if batch.rewards is None else batch.rewards[0],
             batch.next_states[0], False,
         )  # fmt: skip
@@ -681,6 +727,7 @@ __all__ = [
     "load",
     "load_all",
     "method_seed",
+    "must_pickle",
     "parse_spec",
     "provenance",
 ]

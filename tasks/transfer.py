@@ -41,7 +41,6 @@ others' at all; its instance and initial states are.
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -209,7 +208,7 @@ def run_trial(job: TrialJob) -> TrialResult:
     if added is not None:
         # a fresh copy per trial: what adapt may keep on the object cannot carry
         # over to the next trial, whichever process runs it
-        added = added._replace(method=copy.deepcopy(added.method))
+        added = added._replace(method=added.fresh_copy())
     entropy, spawn_key = job.seed
     env_seed, start_seed, agent_seed = np.random.SeedSequence(
         entropy, spawn_key=spawn_key

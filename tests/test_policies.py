@@ -77,6 +77,7 @@ class Acts:
         return self.action
 
     def observe(self, state, action, reward, next_state, terminal):
+        state[:] = np.nan
         next_state[:] = np.nan
 
 
@@ -329,8 +330,7 @@ def test_a_swing_up_run_takes_a_policy_and_nothing_else_changes(tmp_path, monkey
 
 def test_same_seed_same_policy_trial():
     """One policy trial run twice from the same job: the same returns and
-    states (the environment's seed is the job's, the agent's stream the run's
-    seed's and the name's)."""
+    states."""
     from tasks.transfer import TrialJob, run_trial, set_models
 
     config = TransferConfig(n_episodes=2, max_steps=40, planning_max_steps=10)
@@ -380,7 +380,66 @@ def test_readmes_example_policy_runs_as_written(tmp_path, monkeypatch):
     assert "pump" not in run.metrics["mse"]
     assert run.metrics["environment"]["methods"]["pump"] == {
         "module": "pump",
+        "class": "pump.Pump",
         "file": str(tmp_path / "pump.py"),
         "sha256": hashlib.sha256(code.encode()).hexdigest(),
         "version": None,  # a file in the working directory, not a package
     }
+
+
+def test_the_example_policies_pickle_for_worker_processes():
+    """What --workers > 1 needs under spawn or forkserver (``must_pickle``):
+    a fitted SarsaPolicy, and an agent mid-trial, survive a pickle round trip
+    and act the same after it."""
+    import pickle
+
+    (policy,) = methods.fit_all(
+        methods.load_all([SARSA], policies=True), batch(), 0, 3, pickled=True
+    )
+    agent = policy.agent((4, 0, 0))
+    s = np.array([0.1, -0.2, 0.3, 0.4])
+    policy.observe(agent, s, policy.act(agent, s, 3), -1.0, s + 0.1, False)
+    twin = pickle.loads(pickle.dumps(agent))
+    np.testing.assert_array_equal(twin.state.weights, agent.state.weights)
+    for x in (agent, twin):
+        policy.observe(x, s + 0.1, policy.act(x, s + 0.1, 3), -1.0, s, False)
+    np.testing.assert_array_equal(twin.state.weights, agent.state.weights)
+    assert methods.must_pickle(1) is False
+
+
+class Unpicklable(Acts):
+    def fit(self, batch, *, rng):
+        self.hook = lambda: None  # a closure: deepcopy copies it, pickle cannot
+
+
+def test_a_method_that_will_not_pickle_is_refused_when_workers_need_it():
+    loaded = [(MethodSpec("u", "m", "A"), Unpicklable())]
+    methods.fit_all(loaded, batch(), 0, 3)  # in one process: fine
+    with pytest.raises(Exception, match="lambda") as err:
+        methods.fit_all(loaded, batch(), 0, 3, pickled=True)
+    assert "in method u: pickle.dumps of the fitted object" in "".join(
+        err.value.__notes__
+    )
+
+
+def test_provenance_names_the_class_its_file_and_nothing_it_cannot_tell():
+    import numpy
+
+    (entry,) = methods.provenance(
+        [(MethodSpec("s", "tasks.methods", "X"), SarsaPolicy())]
+    ).values()
+    assert entry["class"] == "tasks.methods.SarsaPolicy"
+    assert entry["file"] == str(methods.Path(methods.__file__).resolve())
+    assert (
+        entry["sha256"]
+        == hashlib.sha256(methods.Path(methods.__file__).read_bytes()).hexdigest()
+    )
+    dynamic = type("Dynamic", (Acts,), {"__module__": "not_a_module"})()
+    (entry,) = methods.provenance([(MethodSpec("d", "x", "Y"), dynamic)]).values()
+    assert entry == {
+        "module": "x", "class": "not_a_module.Dynamic", "file": None,
+        "sha256": None, "version": None,
+    }  # fmt: skip
+    # an installed package's own file gets its version; another file, none
+    assert methods._version_holding(numpy.__file__, "numpy") == numpy.__version__
+    assert methods._version_holding(__file__, "numpy") is None
