@@ -240,7 +240,10 @@ def _version_holding(file: str | None, module: str) -> str | None:
         names = metadata.packages_distributions().get(module.partition(".")[0], [])
         for name in dict.fromkeys(names):
             dist = metadata.distribution(name)
-            files = {os.path.realpath(dist.locate_file(f)) for f in dist.files or ()}
+            where = (Path(dist.locate_file(f)) for f in dist.files or ())
+            # a relative location (some editable installs) would be read against
+            # the working directory: not evidence of where the file is
+            files = {os.path.realpath(p) for p in where if p.is_absolute()}
             if os.path.realpath(file) in files:
                 return dist.version
     except Exception:  # a broken installation's metadata: say nothing

@@ -443,3 +443,6 @@ def test_provenance_names_the_class_its_file_and_nothing_it_cannot_tell():
     # an installed package's own file gets its version; another file, none
     assert methods._version_holding(numpy.__file__, "numpy") == numpy.__version__
     assert methods._version_holding(__file__, "numpy") is None
+    # this checkout's own file, installed editable: where the install's file
+    # list is relative, it is not read against the working directory
+    assert methods._version_holding(methods.__file__, "tasks") is None
