@@ -443,10 +443,3 @@ def test_provenance_names_the_class_its_file_and_nothing_it_cannot_tell():
     # an installed package's own file gets its version; another file, none
     assert methods._version_holding(numpy.__file__, "numpy") == numpy.__version__
     assert methods._version_holding(__file__, "numpy") is None
-    # this checkout's own file (an editable install, as README's): no installed
-    # package holds it, though an editable install's file list may name it
-    # relative to the working directory
-    from tests.test_docs import ROOT
-
-    if methods.Path(methods.__file__).resolve().is_relative_to(ROOT.resolve()):
-        assert methods._version_holding(methods.__file__, "tasks") is None
