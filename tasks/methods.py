@@ -400,10 +400,12 @@ class Added(NamedTuple):
             )
         return index
 
-    def observe(self, agent: Any, *step: Any) -> None:
+    def observe(
+        self, agent: Any, state: Array, action: int, reward: float,
+        next_state: Array, terminal: bool,
+    ) -> None:  # fmt: skip
         """``agent.observe(state, action, reward, next_state, terminal)``, with
         copies of the states."""
-        state, action, reward, next_state, terminal = step
         with _users_call(f"method {self.name}: observe"):
             agent.observe(
                 np.array(state, dtype=float), int(action), float(reward),
@@ -677,7 +679,9 @@ class SarsaPolicy:
 class SarsaAgent:
     """:class:`SarsaPolicy`'s agent: fresh weights ``q₀``; ``observe`` picks the
     next action (ε-greedy from ``rng``) and makes the Sarsa(λ) update on it, and
-    ``act`` returns that action; the traces are reset after each episode."""
+    ``act`` returns that action; the traces are reset after each episode. As the
+    trials call it, ``observe``'s ``state`` is the state ``act`` (or the last
+    ``observe``) saw, so each state's features ``φ`` are computed once."""
 
     def __init__(self, domain: Domain, rng: np.random.Generator) -> None:
         self.basis, self.config, self.rng = domain.basis(), domain.sarsa, rng
@@ -685,25 +689,31 @@ class SarsaAgent:
         self.state = init_state(
             domain.n_actions, self.basis.n_features, domain.initial_value
         )
-        self._next: int | None = None  # the action chosen for the next state
+        # the next state's features and the action chosen there
+        self._phi: Array | None = None
+        self._next: int | None = None
 
-    def _choose(self, state: Array) -> int:
-        q = self.state.weights @ self.basis(state)
+    def _choose(self, phi: Array) -> int:
+        q = self.state.weights @ phi
         return epsilon_greedy(q, self.config.epsilon, rng=self.rng)
 
     def act(self, state: Array) -> int:
-        return self._choose(state) if self._next is None else self._next
+        if self._next is None:  # an episode's first state
+            self._phi = self.basis(state)
+            self._next = self._choose(self._phi)
+        return self._next
 
     def observe(self, state, action, reward, next_state, terminal) -> None:
-        self._next = self._choose(next_state)
-        phi_next = None if terminal else self.basis(next_state)
+        phi, phi_next = self._phi, self.basis(next_state)
+        self._phi, self._next = phi_next, self._choose(phi_next)
         self.state = sarsa_update(
-            self.state, self.basis(state), action, reward, phi_next, self._next,
-            self.step_sizes, self.config,
+            self.state, phi, action, reward, None if terminal else phi_next,
+            self._next, self.step_sizes, self.config,
         ).state  # fmt: skip
 
     def end_episode(self) -> None:
-        self.state, self._next = reset_traces(self.state), None
+        self.state = reset_traces(self.state)
+        self._phi = self._next = None
 
 
 def _features(states: Array, angle_dims: tuple[int, ...]) -> Array:

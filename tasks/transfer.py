@@ -304,7 +304,8 @@ def _policy_trial(job: TrialJob, added, env, domain: Domain, config) -> TrialRes
             states, rewards = _policy_episode(env, agent, added, domain.n_actions)
             returns.append(float(np.sum(rewards)))
             steps.append(len(rewards))
-            traces.append(EpisodeTrace(np.array(states), None, None, None))
+            if job.record:
+                traces.append(EpisodeTrace(np.array(states), None, None, None))
     except Exception as err:
         err.add_note(f"(setting {job.setting}, trial {job.trial})")
         raise
