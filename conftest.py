@@ -13,7 +13,20 @@ import tasks  # noqa: F401
 
 # isort: split
 
+import pytest
 from hypothesis import settings
 
 settings.register_profile("hipmdp", derandomize=True, database=None, deadline=None)
 settings.load_profile("hipmdp")
+
+
+@pytest.fixture(autouse=True)
+def _no_models_from_another_test(monkeypatch):
+    """Each test starts with empty per-process model slots (the pool initializers'
+    state, set in this process when a test runs trials with one worker), so no
+    test can pass on what an earlier one installed."""
+    from tasks import acrobot_energy, acrobot_identified, transfer
+
+    monkeypatch.setattr(transfer, "_MODELS", {})
+    monkeypatch.setattr(acrobot_identified, "_STATE", {})
+    monkeypatch.setattr(acrobot_energy, "_STATE", {})

@@ -328,7 +328,7 @@ def mse_ratios(per_setting: dict[str, dict[str, list[float]]]) -> dict[str, Any]
                 "low": float(np.exp(ci["low"])),
                 "high": float(np.exp(ci["high"])),
                 "n": int(ok.sum()),
-                "hipmdp_lower": int(np.sum(a < b)),
+                "hipmdp_lower": int(np.sum(a[ok] < b[ok])),  # of the n
             }
     return out
 

@@ -425,9 +425,7 @@ def test_energy_variants_plan_on_the_conserving_model_of_their_method(
             assert seen[0]._model.belief is not seen[-1]._model.belief
 
 
-def test_the_planning_wrapper_skips_the_simulator_and_spares_the_recording(
-    run, monkeypatch
-):
+def test_the_planning_wrapper_skips_the_simulator_and_spares_the_recording(run):
     """``_planning_model`` wraps the learned models only; a recorded trial with a
     wrapper installed traces the learned model's own one-step predictions."""
     from hipmdp import baselines
@@ -446,7 +444,6 @@ def test_the_planning_wrapper_skips_the_simulator_and_spares_the_recording(
         wrapped.append(model)
         return EnergyConserving(model, params)
 
-    monkeypatch.setattr(transfer, "_MODELS", {})  # this process's models: restored
     transfer.set_models(ACROBOT, TINY.transfer, hip, average, wrapper)
     params = setting_params(*TINY.test_masses[0])
     for method in transfer.METHODS:
@@ -471,7 +468,7 @@ def test_the_planning_wrapper_skips_the_simulator_and_spares_the_recording(
     assert not np.any(np.all(np.isclose(conserving, trace.predicted[0]), axis=1))
 
 
-def test_recording_a_trial_does_not_change_its_results(run, monkeypatch):
+def test_recording_a_trial_does_not_change_its_results(run):
     """A recorded trial also filters step by step, for the trace; the belief it
     goes on with must be the unrecorded trial's, bit for bit, or the chaotic
     agent turns the round-off into other returns."""
@@ -481,7 +478,6 @@ def test_recording_a_trial_does_not_change_its_results(run, monkeypatch):
 
     out, _ = run
     hip = hipmdp.load(out / "hipmdp_model.npz")
-    monkeypatch.setattr(transfer, "_MODELS", {})  # this process's models: restored
     transfer.set_models(ACROBOT, TINY.transfer, hip, None)
     params = setting_params(*TINY.test_masses[0])
     recorded, plain = (

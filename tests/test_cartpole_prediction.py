@@ -165,7 +165,8 @@ def test_summarise_separates_the_settings_seen_in_training():
         base = np.array([[0.1, 0.2, 0.3, 0.4], [0.5, 0.6, 0.7, 0.8]])
         cover = {m: base * x / 4 + 0.01 * i
                  for i, m in enumerate(PREDICTION_METHODS)}  # fmt: skip
-        loglik = {m: x for m in PREDICTION_METHODS}
+        # distinct per method: a flipped sign or a swapped method shows
+        loglik = {m: x * (i + 1) for i, m in enumerate(PREDICTION_METHODS)}
         return InstanceScores(mse=mse, loglik=loglik, coverage=cover)
 
     table = summarise([scores(1.0), scores(2.0), scores(4.0)], DIM_NAMES, [1, 0, 0])
@@ -179,6 +180,14 @@ def test_summarise_separates_the_settings_seen_in_training():
     unseen = table["unseen"]["coverage"]["hipmdp"]["0.95"]["dtheta_dot"]
     assert unseen["mean"] == pytest.approx(0.8 * 3 / 4)
     assert table["unseen"]["n_instances"] == 2
+    # HiP-MDP minus the method, > 0 favouring the HiP-MDP: here x·1 − x·2 for
+    # batch only (method 1), x·1 − x·4 for batch + train (method 3)
+    diff = table["loglik_difference"]
+    assert "hipmdp" not in diff
+    assert diff["batch only"]["mean"] == pytest.approx(-7 / 3)
+    assert diff["batch + train"]["mean"] == pytest.approx(-3 * 7 / 3)
+    assert table["unseen"]["loglik_difference"]["train only"]["mean"] == -6.0
+    assert table["per_instance"]["loglik_difference"]["batch only"] == [-1, -2, -4]
     assert summarise([scores(1.0)], DIM_NAMES, [True])["unseen"] is None
     with pytest.raises(ValueError, match="seen: expected 1 flags"):
         summarise([scores(1.0)], DIM_NAMES, [True, False])
@@ -240,7 +249,7 @@ def test_score_instance_averages_the_fits_scores(monkeypatch):
             return np.full(shape, self.mean), np.full(shape, self.var)
 
         def log_likelihood(self, data, belief=None):
-            return 0.0
+            return 10.0 * self.mean + 1.0  # distinct per fit
 
     for name in ("train_only", "batch_plus_train"):
         monkeypatch.setattr(prediction.baselines, name, lambda *a, **k: Stub(0, 1))
@@ -260,6 +269,14 @@ def test_score_instance_averages_the_fits_scores(monkeypatch):
             for f in fits]  # fmt: skip
     np.testing.assert_allclose(scores.coverage["hipmdp"], np.mean(each, axis=0))
     assert not np.allclose(each[0], each[1])  # so one fit alone would not pass
+    # the HiP-MDP's log-likelihood is the mean of the fits' (1 and 11); each
+    # baseline's is its own (Stub(0, 1): 1)
+    assert scores.loglik == {
+        "hipmdp": 6.0,
+        "batch only": 1.0,
+        "train only": 1.0,
+        "batch + train": 1.0,
+    }
 
 
 @pytest.mark.parametrize("scale, side", [(1.0, 0), (4.0, 1), (0.25, -1)])
@@ -290,7 +307,8 @@ def test_mse_ratios_are_paired_per_setting():
     r = mse_ratios(per)["batch only"]["dx"]
     logs = np.log([0.1, 0.2, 2.0])  # the setting with a zero MSE is left out
     assert r["geometric_mean"] == pytest.approx(np.exp(logs.mean()))
-    assert r["n"] == 3 and r["hipmdp_lower"] == 3  # 1 < 10, 2 < 10, 0 < 1
+    # counted on the same 3 settings: 1 < 10, 2 < 10, not 4 < 2 (0 < 1 is left out)
+    assert r["n"] == 3 and r["hipmdp_lower"] == 2
     assert r["low"] < r["geometric_mean"] < r["high"]
 
 
@@ -301,3 +319,22 @@ def test_seed_spread_reads_the_run(run, tmp_path):
     assert (
         result["numbers"][0]["label"] == f"HiP-MDP MSE / {best}'s, dx (ratio of means)"
     )
+
+
+def test_ratio_to_best_baseline_divides_by_the_lowest_mean_mse():
+    from tasks.cartpole_prediction import _ratios
+
+    def ci(x):
+        return {"mean": x, "low": x, "high": x}
+
+    mse = {
+        "hipmdp": {d: ci(1.0) for d in DIM_NAMES},
+        "batch only": {d: ci(4.0) for d in DIM_NAMES},
+        "train only": {d: ci(8.0 if d != "dx" else 2.0) for d in DIM_NAMES},
+        "batch + train": {d: ci(5.0 if d != "dtheta" else 0.0) for d in DIM_NAMES},
+        "mine": {d: ci(0.5) for d in DIM_NAMES},  # added: never the best baseline
+    }
+    ratios = _ratios(mse)
+    assert ratios["dx"] == 0.5  # train only, 2.0
+    assert ratios["dtheta"] is None  # the best baseline predicts it exactly
+    assert ratios["dx_dot"] == ratios["dtheta_dot"] == 0.25  # batch only, 4.0

@@ -196,11 +196,14 @@ def _coverage(model, n_trials, n, seed, **update):
     return inside / n_trials
 
 
-def test_filter_is_calibrated_when_the_model_has_error():
-    # Instances drawn from the prior, data from the filter's own likelihood: the
-    # posterior is exact, so its 95% region holds the truth 95% of the time (400
-    # trials: sd 1.1%; the bounds are ±4 sd). The paper's filter trusts σ² alone,
-    # 2-400× (median 19×) too small here, and its regions miss far more often.
+def test_filter_is_calibrated_on_data_from_its_own_likelihood():
+    # Instances drawn from the prior, data from the filter's own likelihood (with
+    # the model-error terms): the posterior is exact, so its 95% region holds the
+    # truth 95% of the time (400 trials: sd 1.1%; the bounds are ±4 sd). This
+    # checks the update end to end (prior, noise and region together), not
+    # whether the model-error terms match a real model's errors (README,
+    # coverage, measures that). The paper's filter trusts σ² alone, 2-400×
+    # (median 19×) too small here, and its regions miss far more often.
     model = dataclasses.replace(_model(5), **WITH_ERROR_TERMS)
     assert 0.906 <= _coverage(model, 400, 30, seed=6) <= 0.994
     assert _coverage(model, 400, 30, seed=6, model_error=False) < 0.8

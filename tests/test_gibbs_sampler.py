@@ -263,11 +263,11 @@ def test_no_data_reproduces_ibp_prior():
 
 
 def test_no_data_reproduces_the_ibp_prior_beyond_its_mean():
-    """As above, sweep by sweep, with three more moments of the IBP prior over R
-    rows: Var[K+] = α H_R (K+ is Poisson), E[Σ_k m_k] = α R (each row takes α
-    features in expectation, shared or new), and E[m_k / R] over features, which
-    the shared-feature odds m₋ᵣ,ₖ/(R − m₋ᵣ,ₖ) set (E[Σ m_k] / E[K+] = R / H_R).
-    Standard errors by batch means, as above."""
+    """As above, sweep by sweep, with two more moments of the IBP prior over R
+    rows: Var[K+] = α H_R (K+ is Poisson) and E[Σ_k m_k] = α R (each row takes α
+    features in expectation, shared or new). With E[K+] = α H_R (above) they fix
+    the mean feature size E[Σ m_k] / E[K+] = R / H_R, which the shared-feature
+    odds m₋ᵣ,ₖ/(R − m₋ᵣ,ₖ) set. Standard errors by batch means, as above."""
     R, m, alpha = 5, 3, 2.0
     data = GibbsData(np.zeros((R, 0, m)), np.tile(np.eye(m), (R, 1, 1)), np.ones(R))
     priors = GibbsPriors(alpha=alpha, sigma_w=1.0, sigma_w0=1.0, n_w=3)
@@ -495,6 +495,46 @@ def test_new_feature_step_with_data_targets_the_posterior_of_k():
         batches = (ks == k).reshape(50, -1).mean(axis=1)
         se = batches.std(ddof=1) / np.sqrt(50)
         assert abs(np.mean(ks == k) - post[k]) < 4 * se, (k, np.mean(ks == k), post)
+
+
+def test_new_feature_prior_draws_have_the_hierarchical_moments():
+    """μ ~ N(0, σ_w0²), w_b = μ + N(0, σ_w²): Var w_b = σ_w0² + σ_w², Cov(w_b, w_c)
+    = Cov(μ, w_b) = σ_w0², independent across new features. σ_w ≠ σ_w0, so a
+    swap of the two or a dropped μ shows (the sampler tests above use equal
+    ones). Whitened against that covariance (5 standard errors per entry, as
+    every whole-covariance check here)."""
+    sigma_w, sigma_w0, B, k_new = 0.5, 2.0, 3, 2
+    priors = GibbsPriors(alpha=1.0, sigma_w=sigma_w, sigma_w0=sigma_w0, n_w=1)
+    mu, W = draw_new_weights(N_DRAWS, B, k_new, priors, rng=np.random.default_rng(3))
+    assert mu.shape == (N_DRAWS, k_new) and W.shape == (N_DRAWS, B, k_new)
+    one = np.full((B + 1, B + 1), sigma_w0**2)  # (μ, w_1..w_B) of one feature
+    one[1:, 1:] += sigma_w**2 * np.eye(B)
+    cov = linalg.block_diag(*[one] * k_new)
+    draws = np.concatenate(
+        [np.concatenate([mu[:, [k]], W[:, :, k]], axis=1) for k in range(k_new)], 1
+    )
+    assert_whitened(draws, np.zeros(len(cov)), cov)
+
+
+def test_run_chains_keeps_the_best_sample_after_annealing():
+    """The kept sample is the best-scoring of the sweeps after annealing, of every
+    chain, by the marginal or the joint; never an annealing sweep, whose samples
+    target a hotter posterior. Set up so the best sweep overall is an annealing
+    one (checked), so keeping it would show."""
+    data, _ = small_problem(21)
+    priors = GibbsPriors(alpha=1.0, sigma_w=1.0, sigma_w0=1.0, n_w=20)
+    n_sweeps, anneal = 10, 8
+    for select, trace in (("marginal", "traces_marginal"), ("joint", "traces")):
+        res = run_chains(
+            data, priors, n_sweeps=n_sweeps, n_chains=2, anneal=anneal,
+            select=select, rng=np.random.default_rng(4), progress=False,
+        )  # fmt: skip
+        scores = getattr(res, trace)
+        assert scores[:, :anneal].max() > scores[:, anneal:].max()  # it can tell
+        c, s = np.unravel_index(np.argmax(scores[:, anneal:]), (2, n_sweeps - anneal))
+        assert (res.best_chain, res.best_sweep) == (c, s + anneal)
+        assert res.best_score == scores[:, anneal:].max()
+        assert res.best_log_joint == res.traces[c, s + anneal]
 
 
 def test_remove_unused_keeps_feature_zero_and_used_features():

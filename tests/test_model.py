@@ -100,7 +100,11 @@ def test_new_instance_prediction_after_40_transitions(fitted):
     its error is the noise) is no larger than the model's own predictive
     variance beyond the noise says, up to 4 standard errors of the per-value
     differences. And the filter is what makes it so: the prior mean's squared
-    error exceeds the filtered one's by more than 4 standard errors."""
+    error exceeds the filtered one's by more than 4 standard errors.
+
+    One-sided on purpose: the variance must not be too small. It is much larger
+    here (about 46× the excess), as on the acrobot (README, coverage): the
+    model-error terms are conservative, a measured property, not a checked one."""
     rng = np.random.default_rng(2)
     w_new = np.array([0.8, -1.2])
     train, test = _instance(7, w_new, 40, rng), _instance(7, w_new, 400, rng)
