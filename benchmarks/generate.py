@@ -15,6 +15,13 @@ Measured side by side in one run, in MuJoCo steps (`mj_step` calls) per second:
   `env.step` per control step) and the `sarsa` policy (an agent learning per
   instance, the paper's data).
 
+Also the bookkeeping per finished shard for a run of `--run-instances` instances
+(default 90,000) in shards of `--instances`: rewriting the whole manifest, as
+`tasks.generate` did after every shard until 2026-12-03, against appending one
+line to `progress.jsonl`, as it does now (both atomic or flushed to disk, in a
+temporary folder, interleaved); the manifest's size grows with the run, so the
+first costs O(instances) per shard and the second O(1).
+
 Each figure is the median of `--repeats` measurements, the kinds interleaved, so
 load from other processes hits all of them alike; each is given per wall-clock
 second and per CPU second of the processes doing the work (less sensitive to other
@@ -108,6 +115,49 @@ def shard_rate(batch, submit) -> Rate:
     return Rate(steps / elapsed, steps / sum(cpu for _, cpu in outputs))
 
 
+def bookkeeping(n_instances: int, shard_size: int, repeats: int) -> dict[str, float]:
+    """Median seconds to record one finished shard of a run of ``n_instances``:
+    ``"manifest"``, the whole manifest rewritten; ``"progress"``, one line
+    appended. A synthetic manifest of the real layout (6 parameters per instance,
+    the acrobot's), so the size is a real run's."""
+    import tempfile
+    from pathlib import Path
+
+    from hipmdp import shards
+
+    rng = np.random.default_rng(1)
+    entries = []
+    for index, start in enumerate(range(0, n_instances, shard_size)):
+        ids = list(range(start, min(start + shard_size, n_instances)))
+        entries.append(
+            {
+                "index": index, "file": shards.shard_name(index), "instances": ids,
+                "parameters": rng.uniform(0.5, 1.5, size=(len(ids), 6)).tolist(),
+                "sha256": None, "counts": None, "diverged": [],
+            }
+        )  # fmt: skip
+    manifest = {"format": shards.FORMAT, "shards": entries, "complete": False}
+    times: dict[str, list[float]] = {"manifest": [], "progress": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        for k in range(repeats):
+            entries[k].update(
+                sha256="0" * 64,
+                counts={"episodes": 2, "transitions": 400, "diverged_episodes": 0},
+            )
+            for name, record in (
+                ("manifest", lambda: shards.write_manifest(Path(tmp), manifest)),
+                ("progress", lambda e=entries[k]: shards.append_progress(Path(tmp), e)),
+            ):
+                start = time.perf_counter()
+                record()
+                times[name].append(time.perf_counter() - start)
+        size = (Path(tmp) / shards.MANIFEST).stat().st_size
+    out = {name: float(np.median(v)) for name, v in times.items()}
+    out["manifest_bytes"] = float(size)
+    out["shards"] = float(len(entries))
+    return out
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(
         prog="python -m benchmarks.generate", description=__doc__.splitlines()[0]
@@ -118,6 +168,10 @@ def main(argv=None) -> None:
     parser.add_argument("--max-steps", type=int, default=200)
     parser.add_argument("--raw-steps", type=int, default=5000, help="control steps")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument(
+        "--run-instances", type=int, default=90_000,
+        help="instances of the run whose bookkeeping is measured",
+    )  # fmt: skip
     args = parser.parse_args(argv)
     rng = np.random.default_rng(0)
     load = os.getloadavg()
@@ -191,6 +245,22 @@ def main(argv=None) -> None:
         "column is 2 x (2-worker rate per CPU second) / (1-core rate per CPU "
         "second): the scaling with 2 free cores, if the per-CPU rate holds"
     )
+    book = bookkeeping(args.run_instances, args.instances, max(args.repeats, 5))
+    n_shards = int(book["shards"])
+    print(
+        f"recording a finished shard, a run of {args.run_instances} instances in "
+        f"{n_shards} shards of {args.instances} (manifest "
+        f"{book['manifest_bytes'] / 1e6:.1f} MB; median of {max(args.repeats, 5)}):"
+    )
+    print(
+        f"  rewrite the manifest (until 2026-12-03) {book['manifest'] * 1e3:9.2f} ms"
+        f"  -> {book['manifest'] * n_shards / 60:.1f} min over the run"
+    )
+    print(
+        f"  append a progress line (now)           {book['progress'] * 1e3:9.2f} ms"
+        f"  -> {book['progress'] * n_shards / 60:.2f} min over the run"
+    )
+    print(f"  ratio {book['manifest'] / book['progress']:.0f}x")
 
 
 if __name__ == "__main__":

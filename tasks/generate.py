@@ -22,8 +22,9 @@ Policies: `random` (uniform actions on the dm_control environment), `sarsa` (an
 
 Output (`hipmdp.shards`): `OUT/shard-XXXXX.npz`, one per `--shard-size` instances,
 each written to a temporary name and renamed, and `OUT/manifest.json` (config, seed,
-each shard's instances, parameters, counts and SHA-256), rewritten atomically after
-every shard. Streams: the instance parameters come from
+each shard's instances, parameters, counts and SHA-256), written atomically when the
+run starts and when it completes; in between, each finished shard is one line of
+`OUT/progress.jsonl` (see `hipmdp.shards`). Streams: the instance parameters come from
 `SeedSequence(seed, spawn_key=(0, split))`, shard `k`'s episodes from
 `SeedSequence(seed, spawn_key=(1, split, k))`, so the files are the same whatever
 `--workers` or `--scheduler`. `--resume` keeps the shards whose file matches its
@@ -492,7 +493,8 @@ def generate(config: Config, *, executor: cf.Executor | None = None) -> Generate
         # scheduler that cannot be reached leaves no unfinished run behind
         out.mkdir(parents=True, exist_ok=True)
         shards.remove_temporaries(out)
-        path = shards.write_manifest(out, manifest)
+        path = shards.write_manifest(out, manifest)  # with what was done before
+        shards.remove_progress(out)  # the manifest holds it now
         in_flight = 2 * max(config.workers, 1) if config.scheduler is None else 64
         pending: set[cf.Future] = set()
         queue = list(reversed(jobs))
@@ -506,10 +508,11 @@ def generate(config: Config, *, executor: cf.Executor | None = None) -> Generate
                 entry["sha256"] = shards.write_shard(out, result.index, result.data)
                 entry["counts"] = result.counts
                 entry["diverged"] = result.diverged
-                shards.write_manifest(out, manifest)
+                shards.append_progress(out, entry)
                 bar.update()
     manifest["complete"] = True
     shards.write_manifest(out, manifest)
+    shards.remove_progress(out)
     return Generated(path, manifest, tuple(todo))
 
 

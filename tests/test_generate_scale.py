@@ -132,15 +132,19 @@ def test_killed_run_resumes_to_the_bytes_of_an_uninterrupted_run(tmp_path):
         timeout=300,  # a guard against hanging, not a timing check
     )
     assert run.returncode == -signal.SIGKILL
-    manifest = json.loads((killed / "manifest.json").read_text())
+    # the manifest as written at the start (nothing finished); the two finished
+    # shards in the progress log; the third's file on disk but recorded nowhere
+    written = json.loads((killed / "manifest.json").read_text())
+    assert not any(e["sha256"] for e in written["shards"])
+    manifest = shards.read_manifest(killed)
     finished = [e["index"] for e in manifest["shards"] if e["sha256"]]
-    # two shards recorded; the third's file is on disk but not in the manifest
     assert not manifest["complete"] and len(finished) == 2
+    assert sorted(shards.read_progress(killed)) == sorted(finished)
     assert len(list(killed.glob("shard-*.npz"))) == 3
     resumed = generate.main([*argv, "--out", str(killed), "--resume"])
     assert set(resumed.redone) == set(range(24)) - set(finished)
     generate.main([*argv, "--out", str(tmp_path / "whole")])
-    assert files(killed) == files(tmp_path / "whole")
+    assert files(killed) == files(tmp_path / "whole")  # and no progress log left
 
 
 def test_corrupt_truncated_and_missing_shards_are_detected_and_redone(

@@ -107,6 +107,42 @@ def test_temporaries_are_removed_and_foreign_manifests_refused(tmp_path):
         shards.Dataset(tmp_path)
 
 
+def test_progress_lines_finish_shards_of_an_unfinished_run(run, tmp_path):
+    """An unfinished run's manifest holds no checksums; its progress log does. A
+    reader sees the logged shards as finished (and loads them, checked), the
+    others as not; a line cut short by a kill, or not a record, is skipped."""
+    import json
+    import shutil
+
+    whole = shards.read_manifest(run)
+    part = tmp_path / "part"
+    shutil.copytree(run, part)
+    blank = json.loads(json.dumps(whole))
+    blank["complete"] = False
+    for e in blank["shards"]:
+        e.update(sha256=None, counts=None, diverged=[])
+    shards.write_manifest(part, blank)
+    assert shards.read_progress(part) == {}
+    shards.append_progress(part, whole["shards"][2])
+    shards.append_progress(part, whole["shards"][0])
+    with open(part / shards.PROGRESS, "a") as fh:
+        fh.write('["not", "a record"]\n{"index": 1, "sha256": "ab')  # killed
+    assert sorted(shards.read_progress(part)) == [0, 2]
+    dataset = shards.Dataset(part)
+    assert not dataset.complete
+    assert dataset.n_transitions == sum(
+        whole["shards"][i]["counts"]["transitions"] for i in (0, 2)
+    )
+    expected = shards.Dataset(run).load(instances=[0, 4])
+    got = dataset.load(instances=[0, 4])  # shards 0 and 2
+    np.testing.assert_array_equal(got.states, expected.states)
+    with pytest.raises(ValueError, match="is not finished"):
+        dataset.load(instances=[2])  # shard 1: its line was cut short
+    shards.remove_progress(part)
+    assert shards.read_progress(part) == {}
+    shards.remove_progress(part)  # nothing to remove: no error
+
+
 def test_transitions_load_reads_a_run_directory_or_its_manifest(run):
     everything = shards.Dataset(run).load()
     np.testing.assert_array_equal(Transitions.load(run).states, everything.states)
