@@ -79,6 +79,26 @@ def atomic_write(path: str | os.PathLike, write) -> Path:
     return path
 
 
+def load_npz(path: str | os.PathLike | io.IOBase):
+    """``np.load(path, allow_pickle=False)`` of an ``.npz`` archive (a path or a
+    binary file object), refusing anything else with a ``ValueError`` that names
+    the file: an empty, truncated or other kind of file would otherwise give
+    numpy's ``EOFError``, or its advice to load the file with pickle."""
+    if isinstance(path, (str, os.PathLike)) and not Path(path).is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    is_zip = zipfile.is_zipfile(path)
+    if hasattr(path, "seek"):
+        path.seek(0)
+    if not is_zip:
+        raise ValueError(
+            f"{path}: not an .npz archive (empty, cut short, or another kind of file)"
+        )
+    try:
+        return np.load(path, allow_pickle=False)
+    except (zipfile.BadZipFile, EOFError, OSError) as error:
+        raise ValueError(f"{path}: not a readable .npz archive ({error})") from None
+
+
 def npz_bytes(arrays: dict[str, Array]) -> bytes:
     """An ``.npz`` archive of ``arrays`` whose bytes depend only on the arrays.
 
@@ -210,7 +230,7 @@ class ParameterTable:
     @classmethod
     def load(cls, path: str | os.PathLike) -> ParameterTable | None:
         """The table stored in a dataset file, or None if it has none."""
-        with np.load(path, allow_pickle=False) as f:
+        with load_npz(path) as f:
             if "table_instances" not in f:
                 return None
             return cls(
@@ -498,7 +518,7 @@ class Transitions:
 
     @classmethod
     def _load_file(cls, path) -> Transitions:
-        with np.load(path, allow_pickle=False) as f:
+        with load_npz(path) as f:
             if "format_version" not in f:
                 raise ValueError(
                     f"{path}: not a hipmdp Transitions file (no format_version)"

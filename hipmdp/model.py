@@ -68,6 +68,7 @@ from hipmdp.data import (
     atomic_write,
     check_queries,
     gaussian_loglik,
+    load_npz,
     npz_bytes,
 )
 from hipmdp.filter import Belief, predictive, prior_belief, update_belief
@@ -412,7 +413,7 @@ class HipMDP:
 
 def load(path: str | os.PathLike) -> HipMDP:
     """Read a model written by `HipMDP.save` (allow_pickle=False)."""
-    with np.load(path, allow_pickle=False) as npz:
+    with load_npz(path) as npz:
         missing = [k for k in (*_ARRAYS, "meta_json") if k not in npz.files]
         if missing:
             raise ValueError(f"{path}: not a HiP-MDP model file, missing {missing}")

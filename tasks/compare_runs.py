@@ -38,6 +38,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from hipmdp.data import load_npz
 from tasks.experiment import ADDED_FIELDS, check_out_file, write_json
 
 #: Metrics that say how long a run took, never what it found.
@@ -166,7 +167,7 @@ def _count(a: np.ndarray, b: np.ndarray) -> dict[str, int]:
 def _compare_files(fa: Path, fb: Path) -> dict[str, Any]:
     """Every array of two ``.npz`` files, by ``file:array``."""
     out: dict[str, Any] = {}
-    with np.load(fa, allow_pickle=False) as za, np.load(fb, allow_pickle=False) as zb:
+    with load_npz(fa) as za, load_npz(fb) as zb:
         for key in sorted(set(za.files) | set(zb.files)):
             name = f"{fa.name}:{key}"
             if key not in za.files or key not in zb.files:

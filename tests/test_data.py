@@ -187,6 +187,29 @@ def test_load_rejects_other_files(tmp_path):
         Transitions.load(tmp_path / "x.npz")
 
 
+@pytest.mark.parametrize(
+    "content",
+    [b"", b"states,actions\n1,2\n", b"\x80\x04K\x01.", "cut"],
+    ids=["empty", "text", "a pickle", "cut short"],
+)
+def test_files_that_are_not_npz_archives_are_refused_by_name(tmp_path, content):
+    """Every loader of a user's file says which file is not an archive, never
+    numpy's EOFError or its advice to allow pickle."""
+    from hipmdp import load
+    from hipmdp.data import ParameterTable
+
+    path = tmp_path / "x.npz"
+    if content == "cut":
+        make(n=10).save(path)
+        content = path.read_bytes()[:-30]  # a killed copy: no central directory
+    path.write_bytes(content)
+    for loader in (Transitions.load, ParameterTable.load, load):
+        with pytest.raises(ValueError, match=f"{path}: not an .npz archive"):
+            loader(path)
+    with pytest.raises(FileNotFoundError, match="no such file"):
+        Transitions.load(tmp_path / "missing.npz")
+
+
 @settings(max_examples=25, deadline=None)
 @given(st.integers(1, 30), st.integers(1, 5), st.integers(0, 10_000))
 def test_select_partitions_data(n, d, seed):
