@@ -23,6 +23,7 @@ the settings changed in its preset.
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
 import sys
 import time
@@ -108,16 +109,16 @@ def main(
     config["fit"] = {**dataclasses.asdict(fit_config), "progress": False}
     config["refit"] = {"from": str(run), "changes": fit, "environment": machine}
 
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write(
-        out / "batch.npz",
-        lambda fh: fh.write((run / "batch.npz").read_bytes()),
-    )
-    batch = hipmdp.Transitions.load(out / "batch.npz")
+    data = (run / "batch.npz").read_bytes()  # copied as it is, once fitted
+    batch = hipmdp.Transitions.load(io.BytesIO(data))
     ss_fit = run_streams(config["seed"]).fit  # as the run did
     t0 = time.perf_counter()
     model = hipmdp.fit(batch, fit_config, rng=np.random.default_rng(ss_fit))
     seconds = time.perf_counter() - t0
+    # nothing in out until the fit is done: a failed or killed fit leaves no
+    # folder that would refuse the same command again; config.json last
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write(out / "batch.npz", lambda fh: fh.write(data))
     model.save(out / "hipmdp_model.npz")
     write_json(out / "config.json", config)
     return Results(out, fit, seconds, model)

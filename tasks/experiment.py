@@ -205,8 +205,9 @@ def run_dir(
     files matching the glob patterns ``artefacts`` (what the experiment writes)
     are deleted first, so a run that stops early, or writes fewer files
     (``--no-record``, fewer fits), never leaves its folder holding files of two
-    runs. Other files (a check's JSON on the previous run, say) are left, and
-    named on stderr.
+    runs. So are the temporary files a killed run left (``.<artefact>.*.tmp``:
+    :func:`hipmdp.data.atomic_write`'s, the recording's). Other files (a check's
+    JSON on the previous run, say) are left, and named on stderr.
 
     Raises:
         ValueError: before anything is deleted or written, if ``out`` exists and
@@ -218,6 +219,9 @@ def run_dir(
     path.mkdir(parents=True, exist_ok=True)
     for file in stale:
         file.unlink()
+    for pattern in artefacts:  # what a killed run's atomic writes left behind
+        for tmp in path.glob(f".{pattern}.*.tmp"):
+            tmp.unlink(missing_ok=True)
     others = sorted(f.name for f in path.iterdir() if not f.name.startswith("."))
     if stale and others:
         print(

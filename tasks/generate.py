@@ -46,6 +46,7 @@ import contextlib
 import dataclasses
 import importlib.util
 import json
+import math
 import multiprocessing
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -300,6 +301,8 @@ def _parse_range(item: str) -> tuple[str, float, float]:
         low, high = (float(x) for x in bounds.split(":"))
     except ValueError:
         raise ValueError(f"--vary expects NAME=LOW:HIGH, got {item!r}") from None
+    if not (math.isfinite(low) and math.isfinite(high)):
+        raise ValueError(f"--vary {item}: LOW and HIGH must be finite numbers")
     if not low <= high:
         raise ValueError(f"--vary {item}: LOW must be <= HIGH")
     return name, low, high

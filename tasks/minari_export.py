@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import shutil
 from collections.abc import Sequence
 from pathlib import Path
@@ -39,7 +40,7 @@ import numpy as np
 from hipmdp import shards
 from tasks import agents
 from tasks.collect import get_domain
-from tasks.experiment import path_argument
+from tasks.experiment import check_folder_out, path_argument
 
 Array = np.ndarray
 
@@ -52,17 +53,23 @@ def export(run: str | Path, out: str | Path, *, dataset_id: str | None = None) -
     Args:
         run: a run directory (or its `manifest.json`) from `tasks.generate`.
         out: the folder to hold `<dataset_id>/data/`.
-        dataset_id: Minari's `(env_name-)(dataset_name)-v(version)`.
+        dataset_id: Minari's `[namespace/]name[-vN]` (`DATASET_ID`); with a
+            namespace the dataset is `out/<namespace>/<name-vN>`, as Minari
+            stores namespaced datasets.
 
     Returns:
         The `data` folder written.
 
     Raises:
-        ValueError: if the run is not complete or a shard fails its checksum, or if
+        ValueError: if `dataset_id` is not a Minari id, `out` cannot be a
+            folder, the run is not complete or a shard fails its checksum, or if
             `out/<dataset_id>` exists already (nothing is written then).
     """
     import pyarrow as pa
 
+    if dataset_id is not None:
+        check_dataset_id(dataset_id)
+    check_folder_out(Path(out), "--out")
     dataset = shards.Dataset(run)
     if not dataset.complete:
         raise ValueError(
@@ -77,7 +84,7 @@ def export(run: str | Path, out: str | Path, *, dataset_id: str | None = None) -
     spec = get_domain(domain)
     max_steps = config["max_steps"] or agents.DOMAINS[domain].max_steps
     table = dataset.parameters
-    building = Path(out) / f".{dataset_id}.tmp"
+    building = target.parent / f".{target.name}.tmp"
     if building.exists():
         shutil.rmtree(building)  # a previous export killed mid-way
     data = building / "data"
@@ -136,6 +143,22 @@ def export(run: str | Path, out: str | Path, *, dataset_id: str | None = None) -
     return target / "data"
 
 
+#: Minari's dataset id: an optional namespace, a name, an optional version (as
+#: ``minari.dataset.dataset_id``'s pattern; no path may climb out of ``out``).
+DATASET_ID = re.compile(r"(?:[\w:.-]+/)?[\w:.-]+?(?:-v\d+)?")
+
+
+def check_dataset_id(dataset_id: str) -> None:
+    """Raise ValueError unless ``dataset_id`` is a Minari id that names a folder
+    inside ``out`` (no empty, ``.`` or ``..`` part)."""
+    parts = dataset_id.split("/")
+    if not DATASET_ID.fullmatch(dataset_id) or any(p in ("", ".", "..") for p in parts):
+        raise ValueError(
+            f"--dataset-id: expected [namespace/]name[-vN] of letters, digits and "
+            f"'_:.-' (e.g. acrobot-random-v0), got {dataset_id!r}"
+        )
+
+
 def _episode_columns(transitions, start: int, stop: int, terminal: bool) -> dict:
     """Minari's Arrow columns for transitions `[start, stop)`: `T + 1` rows each."""
     import pyarrow as pa
@@ -175,6 +198,8 @@ def main(argv: Sequence[str] | None = None) -> Path:
         path = export(args.run, args.out, dataset_id=args.dataset_id)
     except (ValueError, FileNotFoundError, ImportError) as error:
         parser.error(str(error))
+    except OSError as error:  # a full disk, a permission: not a usage error
+        parser.exit(1, f"{parser.prog}: error: {error}\n")
     print(f"wrote {path}")
     return path
 

@@ -89,6 +89,22 @@ def test_bad_folders_and_values_fail_before_any_file_is_written(run, tmp_path):
     assert not (tmp_path / "bad").exists()
 
 
+def test_a_failed_fit_leaves_nothing_so_the_same_command_can_run_again(
+    run, tmp_path, monkeypatch
+):
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    fit = acrobot_refit.hipmdp.fit
+    monkeypatch.setattr(acrobot_refit.hipmdp, "fit", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        acrobot_refit.main(run, tmp_path / "refit", {}, progress=False)
+    assert not (tmp_path / "refit").exists()
+    monkeypatch.setattr(acrobot_refit.hipmdp, "fit", fit)
+    out = acrobot_refit.main(run, tmp_path / "refit", {}, progress=False).out
+    assert (out / "batch.npz").read_bytes() == (run / "batch.npz").read_bytes()
+
+
 def test_cli_reports_bad_options(run, tmp_path, capsys):
     with pytest.raises(SystemExit):
         acrobot_refit.cli([str(run), str(tmp_path / "o"), "--fit", "nope=1"])

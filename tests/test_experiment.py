@@ -247,10 +247,14 @@ def test_run_dir_replaces_the_previous_run_of_the_same_experiment(tmp_path, caps
     write_json(out / "config.json", {"name": "exp"})
     for name in ("metrics.json", "fit_run3.npz", "identified.json"):
         (out / name).write_text("old")
+    # a killed run's temporaries, of its artefacts and of another file
+    for name in (".fit_run1.npz.x1.tmp", ".metrics.json.y2.tmp", ".notes.txt.z.tmp"):
+        (out / name).write_text("partial")
     assert run_dir(out, "exp", ("config.json", "metrics.json", "fit_run*.npz")) == out
-    # the experiment's own files are gone (a shorter run cannot mix with them);
-    # a check's file on the old run stays, and is named
-    assert sorted(f.name for f in out.iterdir()) == ["identified.json"]
+    # the experiment's own files are gone (a shorter run cannot mix with them),
+    # with their temporaries; a check's file on the old run stays, and is named
+    left = sorted(f.name for f in out.iterdir())
+    assert left == [".notes.txt.z.tmp", "identified.json"]
     assert "identified.json" in capsys.readouterr().err
 
 

@@ -174,6 +174,8 @@ def test_other_policies_write_chained_episodes(tmp_path, policy):
         (["--domain", "acrobot", "--vary", "link_mass_1=0.1:1"], "lower bound 0.2"),
         (["--domain", "acrobot", "--vary", "link_mass_1=1"], "NAME=LOW:HIGH"),
         (["--domain", "acrobot", "--vary", "link_mass_1=1.2:0.9"], "LOW must be"),
+        (["--domain", "acrobot", "--vary", "link_mass_1=nan:2"], "must be finite"),
+        (["--domain", "acrobot", "--vary", "link_mass_1=1:inf"], "must be finite"),
         (
             [
                 "--domain",

@@ -104,3 +104,32 @@ def test_a_missing_run_is_a_usage_error(tmp_path, capsys):
         minari_export.main([str(tmp_path), "--out", ""])
     assert stopped.value.code == 2
     assert "argument --out: expected a path" in capsys.readouterr().err
+
+
+def test_a_namespaced_id_is_stored_as_minari_stores_it(run, tmp_path):
+    data = minari_export.export(run, tmp_path, dataset_id="hipmdp/cartpole-v2")
+    assert data == tmp_path / "hipmdp" / "cartpole-v2" / "data"
+    meta = json.loads((data / "metadata.json").read_text())
+    assert meta["dataset_id"] == "hipmdp/cartpole-v2"
+    assert sorted(p.name for p in (tmp_path / "hipmdp").iterdir()) == ["cartpole-v2"]
+
+
+@pytest.mark.parametrize("dataset_id", ["", "../out-v0", "a//b-v0", "a b", "ns/.."])
+def test_a_bad_dataset_id_is_refused_before_any_file_is_written(
+    run, tmp_path, capsys, dataset_id
+):
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as stopped:
+        minari_export.main([str(run), "--out", str(out), "--dataset-id", dataset_id])
+    assert stopped.value.code == 2
+    assert "--dataset-id: expected [namespace/]name[-vN]" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []  # not out, nor anything beside it
+
+
+def test_an_out_that_is_a_file_is_a_usage_error(run, tmp_path, capsys):
+    file = tmp_path / "file"
+    file.write_text("mine")
+    with pytest.raises(SystemExit) as stopped:
+        minari_export.main([str(run), "--out", str(file)])
+    assert stopped.value.code == 2
+    assert "--out: " in capsys.readouterr().err and file.read_text() == "mine"
