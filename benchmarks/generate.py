@@ -115,11 +115,15 @@ def shard_rate(batch, submit) -> Rate:
     return Rate(steps / elapsed, steps / sum(cpu for _, cpu in outputs))
 
 
-def bookkeeping(n_instances: int, shard_size: int, repeats: int) -> dict[str, float]:
+def bookkeeping(
+    n_instances: int, shard_size: int, repeats: int, where: str = "."
+) -> dict[str, float]:
     """Median seconds to record one finished shard of a run of ``n_instances``:
     ``"manifest"``, the whole manifest rewritten; ``"progress"``, one line
-    appended. A synthetic manifest of the real layout (6 parameters per instance,
-    the acrobot's), so the size is a real run's."""
+    appended; both flushed to disk, in a temporary folder under ``where`` (the
+    filesystem matters: on tmpfs a flush costs nothing). A synthetic manifest of
+    the real layout (6 parameters per instance, the acrobot's), so the size is a
+    real run's."""
     import tempfile
     from pathlib import Path
 
@@ -138,8 +142,8 @@ def bookkeeping(n_instances: int, shard_size: int, repeats: int) -> dict[str, fl
         )  # fmt: skip
     manifest = {"format": shards.FORMAT, "shards": entries, "complete": False}
     times: dict[str, list[float]] = {"manifest": [], "progress": []}
-    with tempfile.TemporaryDirectory() as tmp:
-        for k in range(repeats):
+    with tempfile.TemporaryDirectory(dir=where) as tmp:
+        for k in range(min(repeats, len(entries))):
             entries[k].update(
                 sha256="0" * 64,
                 counts={"episodes": 2, "transitions": 400, "diverged_episodes": 0},
@@ -158,6 +162,22 @@ def bookkeeping(n_instances: int, shard_size: int, repeats: int) -> dict[str, fl
     return out
 
 
+def _filesystem(path: str) -> str:
+    """The type of the filesystem holding ``path`` (Linux: from /proc/mounts),
+    or "unknown"."""
+    try:
+        mounts = [line.split() for line in open("/proc/mounts")]
+    except OSError:
+        return "unknown"
+    real = os.path.realpath(path)
+    best = max(
+        (m for m in mounts if real == m[1] or real.startswith(m[1].rstrip("/") + "/")),
+        key=lambda m: len(m[1]),
+        default=None,
+    )
+    return best[2] if best else "unknown"
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(
         prog="python -m benchmarks.generate", description=__doc__.splitlines()[0]
@@ -171,6 +191,10 @@ def main(argv=None) -> None:
     parser.add_argument(
         "--run-instances", type=int, default=90_000,
         help="instances of the run whose bookkeeping is measured",
+    )  # fmt: skip
+    parser.add_argument(
+        "--dir", default=".",
+        help="where the bookkeeping is measured (default: here; not a tmpfs)",
     )  # fmt: skip
     args = parser.parse_args(argv)
     rng = np.random.default_rng(0)
@@ -245,12 +269,15 @@ def main(argv=None) -> None:
         "column is 2 x (2-worker rate per CPU second) / (1-core rate per CPU "
         "second): the scaling with 2 free cores, if the per-CPU rate holds"
     )
-    book = bookkeeping(args.run_instances, args.instances, max(args.repeats, 5))
+    book = bookkeeping(
+        args.run_instances, args.instances, max(args.repeats, 5), args.dir
+    )
     n_shards = int(book["shards"])
     print(
         f"recording a finished shard, a run of {args.run_instances} instances in "
         f"{n_shards} shards of {args.instances} (manifest "
-        f"{book['manifest_bytes'] / 1e6:.1f} MB; median of {max(args.repeats, 5)}):"
+        f"{book['manifest_bytes'] / 1e6:.1f} MB; median of {max(args.repeats, 5)}; "
+        f"in {os.path.abspath(args.dir)}, on {_filesystem(args.dir)}):"
     )
     print(
         f"  rewrite the manifest (until 2026-12-03) {book['manifest'] * 1e3:9.2f} ms"

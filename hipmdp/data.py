@@ -81,22 +81,21 @@ def atomic_write(path: str | os.PathLike, write) -> Path:
 
 def load_npz(path: str | os.PathLike | io.IOBase):
     """``np.load(path, allow_pickle=False)`` of an ``.npz`` archive (a path or a
-    binary file object), refusing anything else with a ``ValueError`` that names
-    the file: an empty, truncated or other kind of file would otherwise give
-    numpy's ``EOFError``, or its advice to load the file with pickle."""
-    if isinstance(path, (str, os.PathLike)) and not Path(path).is_file():
-        raise FileNotFoundError(f"{path}: no such file")
-    is_zip = zipfile.is_zipfile(path)
-    if hasattr(path, "seek"):
+    binary file object), refusing a file that is not one (empty, cut short, or
+    another kind of file) with a ``ValueError`` that names it, where numpy would
+    raise ``EOFError`` or advise loading the file with pickle. Errors reading
+    the file (a missing file, a folder, a permission) stay ``OSError``s."""
+    if isinstance(path, (str, os.PathLike)):
+        with open(path, "rb") as fh:  # OSError: the file cannot be read at all
+            is_zip = zipfile.is_zipfile(fh)
+    else:
+        is_zip = zipfile.is_zipfile(path)
         path.seek(0)
     if not is_zip:
         raise ValueError(
             f"{path}: not an .npz archive (empty, cut short, or another kind of file)"
         )
-    try:
-        return np.load(path, allow_pickle=False)
-    except (zipfile.BadZipFile, EOFError, OSError) as error:
-        raise ValueError(f"{path}: not a readable .npz archive ({error})") from None
+    return np.load(path, allow_pickle=False)
 
 
 def npz_bytes(arrays: dict[str, Array]) -> bytes:

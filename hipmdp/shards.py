@@ -124,9 +124,12 @@ def append_progress(directory: Path, entry: Mapping[str, Any]) -> None:
     `PROGRESS_FIELDS`, flushed to disk before returning (O(1), whatever the size
     of the run)."""
     record = {"index": entry["index"], **{k: entry[k] for k in PROGRESS_FIELDS}}
-    line = json.dumps(record, sort_keys=True) + "\n"
-    with open(Path(directory) / PROGRESS, "a", encoding="utf-8") as fh:
-        fh.write(line)
+    line = json.dumps(record, sort_keys=True).encode() + b"\n"
+    with open(Path(directory) / PROGRESS, "a+b") as fh:
+        if fh.seek(0, os.SEEK_END):  # after a line a kill cut short: a new line
+            fh.seek(-1, os.SEEK_END)
+            line = line if fh.read(1) == b"\n" else b"\n" + line
+        fh.write(line)  # (appended, wherever the position is)
         fh.flush()
         os.fsync(fh.fileno())
 

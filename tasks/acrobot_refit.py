@@ -23,7 +23,6 @@ the settings changed in its preset.
 from __future__ import annotations
 
 import dataclasses
-import io
 import json
 import sys
 import time
@@ -109,8 +108,8 @@ def main(
     config["fit"] = {**dataclasses.asdict(fit_config), "progress": False}
     config["refit"] = {"from": str(run), "changes": fit, "environment": machine}
 
+    batch = hipmdp.Transitions.load(run / "batch.npz")  # an error names the file
     data = (run / "batch.npz").read_bytes()  # copied as it is, once fitted
-    batch = hipmdp.Transitions.load(io.BytesIO(data))
     ss_fit = run_streams(config["seed"]).fit  # as the run did
     t0 = time.perf_counter()
     model = hipmdp.fit(batch, fit_config, rng=np.random.default_rng(ss_fit))

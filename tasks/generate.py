@@ -462,7 +462,8 @@ def generate(config: Config, *, executor: cf.Executor | None = None) -> Generate
     """
     manifest, todo = prepare(config)
     out = config.out
-    if not todo and manifest["complete"]:  # finished already: touch nothing
+    if not todo and manifest["complete"]:  # finished already: touch nothing ...
+        shards.remove_progress(out)  # ... but a log a kill left (the manifest has it)
         return Generated(out / shards.MANIFEST, manifest, ())
     entries = {e["index"]: e for e in manifest["shards"]}
     split = SPLITS.index(config.distribution.split)

@@ -53,7 +53,7 @@ def export(run: str | Path, out: str | Path, *, dataset_id: str | None = None) -
     Args:
         run: a run directory (or its `manifest.json`) from `tasks.generate`.
         out: the folder to hold `<dataset_id>/data/`.
-        dataset_id: Minari's `[namespace/]name[-vN]` (`DATASET_ID`); with a
+        dataset_id: Minari's `[namespace/]name-vN` (`DATASET_ID`); with a
             namespace the dataset is `out/<namespace>/<name-vN>`, as Minari
             stores namespaced datasets.
 
@@ -143,19 +143,19 @@ def export(run: str | Path, out: str | Path, *, dataset_id: str | None = None) -
     return target / "data"
 
 
-#: Minari's dataset id: an optional namespace, a name, an optional version (as
-#: ``minari.dataset.dataset_id``'s pattern; no path may climb out of ``out``).
-DATASET_ID = re.compile(r"(?:[\w:.-]+/)?[\w:.-]+?(?:-v\d+)?")
+#: Minari's dataset id (``minari.dataset.minari_dataset.DATASET_ID_RE``, Minari
+#: 0.5): an optional namespace of two or more characters (nested with ``/``), a
+#: name and, required here as ``parse_dataset_id`` needs it, a version.
+DATASET_ID = re.compile(r"(?:[-_\w][-_\w/]*[-_\w]+/)?[-_\w]+-v\d+")
 
 
 def check_dataset_id(dataset_id: str) -> None:
-    """Raise ValueError unless ``dataset_id`` is a Minari id that names a folder
-    inside ``out`` (no empty, ``.`` or ``..`` part)."""
-    parts = dataset_id.split("/")
-    if not DATASET_ID.fullmatch(dataset_id) or any(p in ("", ".", "..") for p in parts):
+    """Raise ValueError unless ``dataset_id`` is a Minari id (:data:`DATASET_ID`)
+    whose parts are folders inside ``out`` (no empty part)."""
+    if not DATASET_ID.fullmatch(dataset_id) or "" in dataset_id.split("/"):
         raise ValueError(
-            f"--dataset-id: expected [namespace/]name[-vN] of letters, digits and "
-            f"'_:.-' (e.g. acrobot-random-v0), got {dataset_id!r}"
+            "--dataset-id: expected Minari's [namespace/]name-vN, of letters, "
+            f"digits, '_' and '-' (e.g. acrobot-random-v0), got {dataset_id!r}"
         )
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import os
 
 import numpy as np
@@ -206,8 +207,19 @@ def test_files_that_are_not_npz_archives_are_refused_by_name(tmp_path, content):
     for loader in (Transitions.load, ParameterTable.load, load):
         with pytest.raises(ValueError, match=f"{path}: not an .npz archive"):
             loader(path)
-    with pytest.raises(FileNotFoundError, match="no such file"):
+    with pytest.raises(ValueError, match="BytesIO.*: not an .npz archive"):
+        Transitions.load(io.BytesIO(content))
+    with pytest.raises(FileNotFoundError):
         Transitions.load(tmp_path / "missing.npz")
+    with pytest.raises(IsADirectoryError):
+        load(tmp_path)  # (Transitions.load reads a folder as a sharded run)
+
+
+def test_an_archive_in_memory_loads_as_its_file_does(tmp_path):
+    t = make(n=10)
+    t.save(tmp_path / "x.npz")
+    got = Transitions.load(io.BytesIO((tmp_path / "x.npz").read_bytes()))
+    np.testing.assert_array_equal(got.states, t.states)
 
 
 @settings(max_examples=25, deadline=None)

@@ -103,7 +103,8 @@ def test_wrap_matches_the_environment_scalar_wrap():
 
 
 # A generation process that SIGKILLs itself right after writing its third shard
-# file, before the manifest records it: a hard kill at a chosen point, not raced.
+# file, before the progress log records it: a hard kill at a chosen point, not
+# raced.
 _KILL_AFTER_THIRD_SHARD = """
 import os, signal, sys
 from tasks import generate
@@ -218,6 +219,37 @@ def test_another_or_unfinished_run_is_refused_untouched(
     assert stopped.value.code == 2 and message in capsys.readouterr().err
     after = {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in run.iterdir()}
     assert after == before
+
+
+def test_a_log_left_by_a_kill_after_the_final_manifest_is_cleared(reference, tmp_path):
+    """Killed between writing the complete manifest and deleting the progress
+    log: the next command finds the run finished and clears the log, so the
+    folder holds what an uninterrupted run's does."""
+    run = tmp_path / "run"
+    shutil.copytree(reference, run)
+    for entry in shards.read_manifest(run)["shards"]:
+        shards.append_progress(run, entry)
+    again = generate.main([*RUN, "--out", str(run), "--resume"])
+    assert again.redone == ()
+    assert files(run) == files(reference)
+
+
+def test_a_stale_record_of_a_corrupt_shard_is_redone(reference, tmp_path):
+    """A progress line for a shard whose file is later damaged (and a resume
+    killed before it cleared the log): the checksum still finds it, and it is
+    redone."""
+    run = tmp_path / "run"
+    shutil.copytree(reference, run)
+    manifest = shards.read_manifest(run)
+    shards.append_progress(run, manifest["shards"][1])  # as the run recorded it
+    manifest["complete"] = False
+    for entry in manifest["shards"]:
+        entry.update(sha256=None, counts=None, diverged=[])
+    shards.write_manifest(run, manifest)  # as the run wrote it at the start
+    (run / "shard-00001.npz").write_bytes(b"damaged")
+    resumed = generate.main([*RUN, "--out", str(run), "--resume"])
+    assert resumed.redone == (0, 1, 2)  # 0 and 2 unrecorded, 1 damaged
+    assert files(run) == files(reference)
 
 
 def test_a_finished_run_is_left_as_it_is(reference, tmp_path):

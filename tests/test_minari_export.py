@@ -106,15 +106,20 @@ def test_a_missing_run_is_a_usage_error(tmp_path, capsys):
     assert "argument --out: expected a path" in capsys.readouterr().err
 
 
-def test_a_namespaced_id_is_stored_as_minari_stores_it(run, tmp_path):
-    data = minari_export.export(run, tmp_path, dataset_id="hipmdp/cartpole-v2")
-    assert data == tmp_path / "hipmdp" / "cartpole-v2" / "data"
+@pytest.mark.parametrize("dataset_id", ["hipmdp/cartpole-v2", "D4RL/door/human-v2"])
+def test_a_namespaced_id_is_stored_as_minari_stores_it(run, tmp_path, dataset_id):
+    data = minari_export.export(run, tmp_path, dataset_id=dataset_id)
+    assert data == tmp_path.joinpath(*dataset_id.split("/"), "data")
     meta = json.loads((data / "metadata.json").read_text())
-    assert meta["dataset_id"] == "hipmdp/cartpole-v2"
-    assert sorted(p.name for p in (tmp_path / "hipmdp").iterdir()) == ["cartpole-v2"]
+    assert meta["dataset_id"] == dataset_id
+    assert [p.name for p in data.parent.parent.iterdir()] == [data.parent.name]
 
 
-@pytest.mark.parametrize("dataset_id", ["", "../out-v0", "a//b-v0", "a b", "ns/.."])
+@pytest.mark.parametrize(
+    "dataset_id",
+    # Minari refuses the last three too: a dot, no version, a 1-letter namespace
+    ["", "../out-v0", "ab//cd/x-v0", "a b-v0", "ns/..", "a.b-v0", "ab-cd", "x/y-v0"],
+)
 def test_a_bad_dataset_id_is_refused_before_any_file_is_written(
     run, tmp_path, capsys, dataset_id
 ):
@@ -122,7 +127,9 @@ def test_a_bad_dataset_id_is_refused_before_any_file_is_written(
     with pytest.raises(SystemExit) as stopped:
         minari_export.main([str(run), "--out", str(out), "--dataset-id", dataset_id])
     assert stopped.value.code == 2
-    assert "--dataset-id: expected [namespace/]name[-vN]" in capsys.readouterr().err
+    assert "--dataset-id: expected Minari's [namespace/]name-vN" in (
+        capsys.readouterr().err
+    )
     assert list(tmp_path.iterdir()) == []  # not out, nor anything beside it
 
 

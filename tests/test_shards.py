@@ -128,6 +128,13 @@ def test_progress_lines_finish_shards_of_an_unfinished_run(run, tmp_path):
     with open(part / shards.PROGRESS, "a") as fh:
         fh.write('["not", "a record"]\n{"index": 1, "sha256": "ab')  # killed
     assert sorted(shards.read_progress(part)) == [0, 2]
+    # a line appended after the cut one is whole; the last line for an index
+    # wins; an index beyond the run's shards is skipped
+    shards.append_progress(part, {**whole["shards"][2], "counts": None})
+    assert shards.read_progress(part)[2]["counts"] is None
+    shards.append_progress(part, whole["shards"][2])
+    shards.append_progress(part, {**whole["shards"][2], "index": 99})
+    assert len(shards.read_manifest(part)["shards"]) == len(whole["shards"])
     dataset = shards.Dataset(part)
     assert not dataset.complete
     assert dataset.n_transitions == sum(
