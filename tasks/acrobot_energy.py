@@ -64,6 +64,7 @@ energy terms (settings × trials), the banded errors, and summaries (the paired
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -507,13 +508,16 @@ def main(
             "noise: expected a σ (--noise) exactly when the models include 'noisy', "
             f"got noise={noise} with models {tuple(names)}"
         )
-    config, hip, average, batch = load_run(run)
-    transfer = TransferConfig(**config["transfer"])
+    # before load_run, whose refit is work
+    transfer = TransferConfig(
+        **json.loads((run / "config.json").read_text())["transfer"]
+    )
     if last > transfer.initial_planning_episodes:
         raise ValueError(
             f"last: expected <= the run's initial_planning_episodes "
             f"({transfer.initial_planning_episodes}), got {last}"
         )
+    config, hip, average, batch = load_run(run)
     batch_distance = BatchDistance(batch.states)
     settings = run_test_instances(config)
     ss_trials, ss_identify = np.random.SeedSequence(seed).spawn(2)

@@ -78,6 +78,7 @@ from tasks.experiment import (
     check_integer,
     check_out_file,
     environment,
+    inputs_checked,
     mean_ci,
     one_blas_thread,
     paired_difference,
@@ -232,6 +233,7 @@ def load_run(run: Path) -> FinishedRun:
     config = json.loads((run / "config.json").read_text())
     hip = hipmdp.load(run / "hipmdp_model.npz")
     batch = hipmdp.Transitions.load(run / "batch.npz")
+    inputs_checked()  # the run's files are read; from here on, work
     ss_avg = run_streams(config["seed"]).average  # as the run did
     fit = hipmdp.FitConfig(**config["fit"])  # runs before `periodic` lack it
     average = baselines.batch_only(

@@ -38,6 +38,7 @@ from tasks.acrobot_swingup import run_streams
 from tasks.experiment import (
     check_folder_out,
     environment,
+    inputs_checked,
     one_blas_thread,
     run_or_exit,
     run_parser,
@@ -111,6 +112,7 @@ def main(
     batch = hipmdp.Transitions.load(run / "batch.npz")  # an error names the file
     data = (run / "batch.npz").read_bytes()  # copied as it is, once fitted
     ss_fit = run_streams(config["seed"]).fit  # as the run did
+    inputs_checked()
     t0 = time.perf_counter()
     model = hipmdp.fit(batch, fit_config, rng=np.random.default_rng(ss_fit))
     seconds = time.perf_counter() - t0

@@ -11,6 +11,7 @@ spawned from one ``np.random.SeedSequence``.
 from __future__ import annotations
 
 import argparse
+import contextvars
 import dataclasses
 import functools
 import json
@@ -560,13 +561,30 @@ def run_parser(prog: str, doc: str):
     return parser
 
 
+_INPUTS_CHECKED = contextvars.ContextVar("inputs_checked", default=False)
+
+
+def inputs_checked() -> None:
+    """Mark, inside :func:`run_or_exit`, that the command's inputs are checked
+    and its work begins: a later error is a failure of the work (or a bug), shown
+    with its traceback, not a usage error."""
+    _INPUTS_CHECKED.set(True)
+
+
 def run_or_exit(parser, fn: Callable[[], Any]) -> Any:
-    """``fn()``, with a ValueError or FileNotFoundError (bad input, a folder that
-    is not a run) reported as ``parser``'s usage error (exit status 2)."""
+    """``fn()``, with a ValueError or FileNotFoundError raised before ``fn`` calls
+    :func:`inputs_checked` (bad input, a folder that is not a run) reported as
+    ``parser``'s usage error (exit status 2); one raised after it propagates,
+    traceback and all."""
+    token = _INPUTS_CHECKED.set(False)
     try:
         return fn()
     except (ValueError, FileNotFoundError) as err:
+        if _INPUTS_CHECKED.get():
+            raise
         parser.error(str(err))
+    finally:
+        _INPUTS_CHECKED.reset(token)
 
 
 def common_parser(prog: str, doc: str, presets: Sequence[str], out_default: str):

@@ -293,3 +293,31 @@ def test_a_file_output_is_not_a_folder():
     with pytest.raises(argparse.ArgumentTypeError, match="expected a path, got ' '"):
         path_argument(" ")
     assert path_argument("runs/x") == Path("runs/x")
+
+
+def test_run_or_exit_reports_bad_input_as_usage_and_lets_later_errors_through(
+    capsys,
+):
+    import argparse
+
+    from tasks.experiment import inputs_checked, run_or_exit
+
+    parser = argparse.ArgumentParser(prog="check")
+
+    def bad_input():
+        raise FileNotFoundError("run: x has no config.json")
+
+    def failed_work():
+        inputs_checked()
+        raise ValueError("a bug, an hour in")
+
+    with pytest.raises(SystemExit) as stopped:
+        run_or_exit(parser, bad_input)
+    assert stopped.value.code == 2
+    assert "check: error: run: x has no config.json" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="a bug, an hour in"):
+        run_or_exit(parser, failed_work)
+    # the mark is the call's own: the next call starts unchecked again
+    with pytest.raises(SystemExit):
+        run_or_exit(parser, bad_input)
+    assert run_or_exit(parser, lambda: 7) == 7
