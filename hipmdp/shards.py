@@ -25,8 +25,9 @@ are appended as one line to `progress.jsonl` (flushed to disk), not written into
 the manifest: rewriting a manifest that lists every instance after every shard
 costs O(shards × instances), and at 90,000 instances more than the data. Reading
 a manifest (`read_manifest`, `Dataset`) applies those lines, so an unfinished run
-reads as if the manifest held them; the completed run's manifest holds them all,
-and the log is deleted. A line cut short by a kill is ignored.
+reads as if the manifest held them (a manifest replaced while the log is read
+is read again); the completed run's manifest holds them all, and the log is
+deleted. A line cut short by a kill is ignored.
 
 A shard counts as finished only if the manifest (with the log) holds its checksum
 and the file's bytes match it; anything else (missing, truncated, corrupt) is
@@ -96,10 +97,15 @@ def read_manifest(directory: Path) -> dict[str, Any] | None:
     path = Path(directory) / MANIFEST
     if not path.is_file():
         return None
-    try:
-        manifest = json.loads(path.read_text())
-    except json.JSONDecodeError as error:
-        raise ValueError(f"{path} is not valid JSON ({error})") from None
+    for _ in range(3):  # a manifest replaced while the log was read: again
+        before = _identity(path)
+        try:
+            manifest = json.loads(path.read_text())
+        except json.JSONDecodeError as error:
+            raise ValueError(f"{path} is not valid JSON ({error})") from None
+        progress = read_progress(directory)
+        if _identity(path) == before:
+            break
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
         raise ValueError(f"{path} is not a {FORMAT} manifest")
     entries = manifest.get("shards")
@@ -107,10 +113,16 @@ def read_manifest(directory: Path) -> dict[str, Any] | None:
         not isinstance(e, dict) or e.get("index") != i for i, e in enumerate(entries)
     ):
         raise ValueError(f"{path}: expected shards listed by index 0, 1, ...")
-    for index, record in read_progress(directory).items():
+    for index, record in progress.items():
         if index < len(entries):
             entries[index].update(record)
     return manifest
+
+
+def _identity(path: Path) -> tuple[int, int]:
+    """What changes when a file is replaced (``os.replace``) or rewritten."""
+    st = path.stat()
+    return st.st_ino, st.st_mtime_ns
 
 
 def write_manifest(directory: Path, manifest: Mapping[str, Any]) -> Path:

@@ -452,15 +452,22 @@ def executor_for(workers: int, scheduler: str | None) -> Iterator[cf.Executor]:
             yield pool
 
 
-def generate(config: Config, *, executor: cf.Executor | None = None) -> Generated:
+def generate(
+    config: Config,
+    *,
+    executor: cf.Executor | None = None,
+    prepared: tuple[dict[str, Any], list[int]] | None = None,
+) -> Generated:
     """Run (or continue) the run `config` describes; see the module docstring.
 
     Args:
         config: the run.
         executor: where shards are computed; default from `config.workers` and
             `config.scheduler`.
+        prepared: what `prepare(config)` returned just before, if the caller
+            called it (drawing a large run's instances twice costs seconds).
     """
-    manifest, todo = prepare(config)
+    manifest, todo = prepare(config) if prepared is None else prepared
     out = config.out
     if not todo and manifest["complete"]:  # finished already: touch nothing ...
         shards.remove_progress(out)  # ... but a log a kill left (the manifest has it)
@@ -525,11 +532,11 @@ def main(argv: Sequence[str] | None = None) -> Generated:
     parser = build_parser()
     config = parse_config(argv)
     try:
-        prepare(config)  # a bad --out stops here, before anything is written
+        prepared = prepare(config)  # a bad --out stops here, before any writing
     except ValueError as error:
         parser.error(str(error))
     try:
-        result = generate(config)
+        result = generate(config, prepared=prepared)
     except OSError as error:  # a scheduler that cannot be reached, a full disk
         parser.exit(1, f"{parser.prog}: error: {error}\n")
     counts = [e["counts"] for e in result.content["shards"]]

@@ -150,6 +150,36 @@ def test_progress_lines_finish_shards_of_an_unfinished_run(run, tmp_path):
     shards.remove_progress(part)  # nothing to remove: no error
 
 
+def test_a_reader_racing_the_final_manifest_reads_it_again(run, tmp_path, monkeypatch):
+    """The run completes (final manifest written, log deleted) between a reader's
+    reading the start's manifest and its log: the reader reads the manifest
+    again, not an unfinished one with nothing logged."""
+    import json
+    import shutil
+
+    whole = shards.read_manifest(run)
+    part = tmp_path / "part"
+    shutil.copytree(run, part)
+    blank = json.loads(json.dumps(whole))
+    blank["complete"] = False
+    for e in blank["shards"]:
+        e.update(sha256=None, counts=None, diverged=[])
+    shards.write_manifest(part, blank)
+    for e in whole["shards"]:
+        shards.append_progress(part, e)
+    read, calls = shards.read_progress, []
+
+    def the_run_completes_meanwhile(directory):
+        calls.append(directory)
+        if len(calls) == 1:
+            shards.write_manifest(part, whole)
+            shards.remove_progress(part)
+        return read(directory)
+
+    monkeypatch.setattr(shards, "read_progress", the_run_completes_meanwhile)
+    assert shards.read_manifest(part) == whole and len(calls) == 2
+
+
 def test_transitions_load_reads_a_run_directory_or_its_manifest(run):
     everything = shards.Dataset(run).load()
     np.testing.assert_array_equal(Transitions.load(run).states, everything.states)
