@@ -238,14 +238,11 @@ def test_a_stale_record_of_a_corrupt_shard_is_redone(reference, tmp_path):
     """A progress line for a shard whose file is later damaged (and a resume
     killed before it cleared the log): the checksum still finds it, and it is
     redone."""
+    from tests.test_shards import unfinished_copy
+
     run = tmp_path / "run"
-    shutil.copytree(reference, run)
-    manifest = shards.read_manifest(run)
-    shards.append_progress(run, manifest["shards"][1])  # as the run recorded it
-    manifest["complete"] = False
-    for entry in manifest["shards"]:
-        entry.update(sha256=None, counts=None, diverged=[])
-    shards.write_manifest(run, manifest)  # as the run wrote it at the start
+    whole = unfinished_copy(reference, run)
+    shards.append_progress(run, whole["shards"][1])  # as the run recorded it
     (run / "shard-00001.npz").write_bytes(b"damaged")
     resumed = generate.main([*RUN, "--out", str(run), "--resume"])
     assert resumed.redone == (0, 1, 2)  # 0 and 2 unrecorded, 1 damaged

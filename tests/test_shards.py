@@ -107,21 +107,28 @@ def test_temporaries_are_removed_and_foreign_manifests_refused(tmp_path):
         shards.Dataset(tmp_path)
 
 
-def test_progress_lines_finish_shards_of_an_unfinished_run(run, tmp_path):
-    """An unfinished run's manifest holds no checksums; its progress log does. A
-    reader sees the logged shards as finished (and loads them, checked), the
-    others as not; a line cut short by a kill, or not a record, is skipped."""
+def unfinished_copy(run, to):
+    """Copy the finished run ``run`` to ``to`` with the manifest its start wrote
+    (nothing finished, nothing logged); returns the finished run's manifest."""
     import json
     import shutil
 
     whole = shards.read_manifest(run)
-    part = tmp_path / "part"
-    shutil.copytree(run, part)
+    shutil.copytree(run, to)
     blank = json.loads(json.dumps(whole))
     blank["complete"] = False
     for e in blank["shards"]:
         e.update(sha256=None, counts=None, diverged=[])
-    shards.write_manifest(part, blank)
+    shards.write_manifest(to, blank)
+    return whole
+
+
+def test_progress_lines_finish_shards_of_an_unfinished_run(run, tmp_path):
+    """An unfinished run's manifest holds no checksums; its progress log does. A
+    reader sees the logged shards as finished (and loads them, checked), the
+    others as not; a line cut short by a kill, or not a record, is skipped."""
+    part = tmp_path / "part"
+    whole = unfinished_copy(run, part)
     assert shards.read_progress(part) == {}
     shards.append_progress(part, whole["shards"][2])
     shards.append_progress(part, whole["shards"][0])
@@ -154,17 +161,8 @@ def test_a_reader_racing_the_final_manifest_reads_it_again(run, tmp_path, monkey
     """The run completes (final manifest written, log deleted) between a reader's
     reading the start's manifest and its log: the reader reads the manifest
     again, not an unfinished one with nothing logged."""
-    import json
-    import shutil
-
-    whole = shards.read_manifest(run)
     part = tmp_path / "part"
-    shutil.copytree(run, part)
-    blank = json.loads(json.dumps(whole))
-    blank["complete"] = False
-    for e in blank["shards"]:
-        e.update(sha256=None, counts=None, diverged=[])
-    shards.write_manifest(part, blank)
+    whole = unfinished_copy(run, part)
     for e in whole["shards"]:
         shards.append_progress(part, e)
     read, calls = shards.read_progress, []
