@@ -121,26 +121,19 @@ def bookkeeping(
     """Median seconds to record one finished shard of a run of ``n_instances``:
     ``"manifest"``, the whole manifest rewritten; ``"progress"``, one line
     appended; both flushed to disk, in a temporary folder under ``where`` (the
-    filesystem matters: on tmpfs a flush costs nothing). A synthetic manifest of
-    the real layout (6 parameters per instance, the acrobot's), so the size is a
-    real run's."""
+    filesystem matters: on tmpfs a flush costs nothing). The manifest is the one
+    ``tasks.generate`` plans for an acrobot run of that size."""
     import tempfile
     from pathlib import Path
 
     from hipmdp import shards
 
-    rng = np.random.default_rng(1)
-    entries = []
-    for index, start in enumerate(range(0, n_instances, shard_size)):
-        ids = list(range(start, min(start + shard_size, n_instances)))
-        entries.append(
-            {
-                "index": index, "file": shards.shard_name(index), "instances": ids,
-                "parameters": rng.uniform(0.5, 1.5, size=(len(ids), 6)).tolist(),
-                "sha256": None, "counts": None, "diverged": [],
-            }
-        )  # fmt: skip
-    manifest = {"format": shards.FORMAT, "shards": entries, "complete": False}
+    config = generate.parse_config(
+        ["--domain", "acrobot", "--instances", str(n_instances),
+         "--shard-size", str(shard_size), "--out", where]
+    )  # fmt: skip
+    manifest = generate.plan(config)  # the run's own manifest, nothing finished
+    entries = manifest["shards"]
     times: dict[str, list[float]] = {"manifest": [], "progress": []}
     with tempfile.TemporaryDirectory(dir=where) as tmp:
         for k in range(min(repeats, len(entries))):

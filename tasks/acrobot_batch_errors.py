@@ -35,6 +35,7 @@ from tasks.acrobot_identified import check_run, load_run
 from tasks.experiment import (
     check_out_file,
     environment,
+    inputs_checked,
     one_blas_thread,
     run_or_exit,
     run_parser,
@@ -68,6 +69,7 @@ def main(run: str | Path, *, fast: float = 10.0, out: str | Path | None = None):
         raise ValueError(f"fast: expected a finite number > 0 (rad/s), got {fast}")
     out_path = run / "batch_errors.json" if out is None else check_out_file(out)
     _, hip, average, batch = load_run(run)
+    inputs_checked()  # the run read; from here on, the work
     K = hip.n_features - 1
     rmse: dict[str, dict[str, list]] = {m: {"fast": [], "slow": []} for m in MODELS}
     shares, parameters = [], []

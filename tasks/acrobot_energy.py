@@ -64,7 +64,6 @@ energy terms (settings × trials), the banded errors, and summaries (the paired
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -84,6 +83,7 @@ from tasks.experiment import (
     check_out_file,
     environment,
     fmt_ci,
+    inputs_checked,
     mean_ci,
     one_blas_thread,
     pool_map,
@@ -508,18 +508,16 @@ def main(
             "noise: expected a σ (--noise) exactly when the models include 'noisy', "
             f"got noise={noise} with models {tuple(names)}"
         )
-    # before load_run, whose refit is work
-    transfer = TransferConfig(
-        **json.loads((run / "config.json").read_text())["transfer"]
-    )
+    config, hip, average, batch = load_run(run)
+    transfer = TransferConfig(**config["transfer"])
     if last > transfer.initial_planning_episodes:
         raise ValueError(
             f"last: expected <= the run's initial_planning_episodes "
             f"({transfer.initial_planning_episodes}), got {last}"
         )
-    config, hip, average, batch = load_run(run)
-    batch_distance = BatchDistance(batch.states)
     settings = run_test_instances(config)
+    inputs_checked()  # the run read and checked; from here on, the trials
+    batch_distance = BatchDistance(batch.states)
     ss_trials, ss_identify = np.random.SeedSequence(seed).spawn(2)
     beliefs = []
     for ss, params in zip(ss_identify.spawn(len(settings)), settings, strict=True):

@@ -46,6 +46,7 @@ from tasks.experiment import (
     check_integer,
     check_out_file,
     environment,
+    inputs_checked,
     one_blas_thread,
     run_or_exit,
     run_parser,
@@ -91,6 +92,7 @@ def main(
     config, hip, average, _ = load_run(run)
     masses = [tuple(m) for m in config["test_masses"]]
     instances = run_test_instances(config)
+    inputs_checked()  # the run read and checked; from here on, the work
     rmse = {m: {k: [] for k in horizons} for m in MODELS}
     p99 = {m: {k: [] for k in horizons} for m in MODELS}
     windows = {k: [] for k in horizons}

@@ -233,7 +233,6 @@ def load_run(run: Path) -> FinishedRun:
     config = json.loads((run / "config.json").read_text())
     hip = hipmdp.load(run / "hipmdp_model.npz")
     batch = hipmdp.Transitions.load(run / "batch.npz")
-    inputs_checked()  # the run's files are read; from here on, work
     ss_avg = run_streams(config["seed"]).average  # as the run did
     fit = hipmdp.FitConfig(**config["fit"])  # runs before `periodic` lack it
     average = baselines.batch_only(
@@ -296,6 +295,7 @@ def main(
     protocol = dataclasses.replace(
         transfer.TransferConfig(**config["transfer"]), n_episodes=episodes
     )
+    inputs_checked()  # the run read and checked; from here on, the trials
     if first_planning is not None:  # every variant: the comparison stays paired
         protocol = dataclasses.replace(protocol, first_planning_episodes=first_planning)
     if initial_planning is not None:

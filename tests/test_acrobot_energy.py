@@ -402,3 +402,23 @@ def test_the_models_are_built_with_their_masses_columns_and_streams(run):
     got = models["train_sampled"]
     for _ in range(20):  # a different stream matches 20 draws by chance rarely
         np.testing.assert_array_equal(got.draw().belief.mean, want.draw().belief.mean)
+
+
+def test_cli_refuses_bad_input_as_usage_and_shows_later_errors_whole(
+    run, monkeypatch, capsys
+):
+    """--last beyond the run's planning is checked against the run's config: a
+    usage error (exit status 2). An error in the trials, after the inputs are
+    checked, keeps its type and traceback."""
+    out = str(run[0])
+    with pytest.raises(SystemExit) as stopped:
+        acrobot_energy.cli([out, "--last", "2", "--workers", "1"])
+    assert stopped.value.code == 2
+    assert "last: expected <= the run's initial" in capsys.readouterr().err
+
+    def failing(*args, **kwargs):
+        raise ValueError("a failure in the trials")
+
+    monkeypatch.setattr(acrobot_energy, "pool_map", failing)
+    with pytest.raises(ValueError, match="a failure in the trials"):
+        acrobot_energy.cli([out, "--last", "1", "--workers", "1", "--trials", "1"])
