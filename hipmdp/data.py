@@ -79,6 +79,13 @@ def atomic_write(path: str | os.PathLike, write) -> Path:
     return path
 
 
+def atomic_temporaries(directory: str | os.PathLike, pattern: str) -> list[Path]:
+    """The temporary files that writes of files matching the glob ``pattern`` in
+    ``directory`` left when killed (:func:`atomic_write` names them
+    ``.<name>.<random>.tmp``), sorted."""
+    return sorted(Path(directory).glob(f".{pattern}.*.tmp"))
+
+
 def load_npz(path: str | os.PathLike | io.IOBase):
     """``np.load(path, allow_pickle=False)`` of an ``.npz`` archive (a path or a
     binary file object), refusing a file that is not one (empty, cut short, or

@@ -46,7 +46,13 @@ from typing import Any
 
 import numpy as np
 
-from hipmdp.data import ParameterTable, Transitions, atomic_write, npz_bytes
+from hipmdp.data import (
+    ParameterTable,
+    Transitions,
+    atomic_temporaries,
+    atomic_write,
+    npz_bytes,
+)
 
 Array = np.ndarray
 
@@ -187,11 +193,8 @@ def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[s
 def remove_temporaries(directory: Path) -> list[Path]:
     """Delete the temporary files a killed `atomic_write` left (`.NAME.*.tmp` for
     the manifest and shards); returns them."""
-    found = [
-        p
-        for p in Path(directory).glob(".*.tmp")
-        if p.name.startswith((f".{MANIFEST}.", ".shard-"))
-    ]
+    found = atomic_temporaries(directory, MANIFEST)
+    found += atomic_temporaries(directory, "shard-*.npz")
     for path in found:
         path.unlink()
     return found

@@ -30,7 +30,7 @@ from scipy import stats
 from threadpoolctl import threadpool_info, threadpool_limits
 
 import hipmdp
-from hipmdp.data import atomic_write
+from hipmdp.data import atomic_temporaries, atomic_write
 
 Array = np.ndarray
 
@@ -221,7 +221,7 @@ def run_dir(
     for file in stale:
         file.unlink()
     for pattern in artefacts:  # what a killed run's atomic writes left behind
-        for tmp in path.glob(f".{pattern}.*.tmp"):
+        for tmp in atomic_temporaries(path, pattern):
             tmp.unlink(missing_ok=True)
     others = sorted(f.name for f in path.iterdir() if not f.name.startswith("."))
     if stale and others:
