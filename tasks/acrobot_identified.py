@@ -211,7 +211,10 @@ class Results(NamedTuple):
 
 
 def check_run(run: Path) -> None:
-    """Raise FileNotFoundError unless ``run`` holds a finished swing-up run."""
+    """Raise FileNotFoundError unless ``run`` holds what the checks read of a
+    swing-up run: its config, batch data and fitted model. A run still in its
+    transfer trials (or killed there) has them all, complete (each is written
+    whole, atomically, before the trials start), so the checks accept it."""
     for name in ("config.json", "hipmdp_model.npz", "batch.npz"):
         if not (run / name).is_file():
             raise FileNotFoundError(f"run: {run} has no {name}; is it a swing-up run?")
