@@ -262,14 +262,13 @@ def main(argv=None) -> None:
         "column is 2 x (2-worker rate per CPU second) / (1-core rate per CPU "
         "second): the scaling with 2 free cores, if the per-CPU rate holds"
     )
-    book = bookkeeping(
-        args.run_instances, args.instances, max(args.repeats, 5), args.dir
-    )
+    n_book = max(args.repeats, 5)  # each repeat is one shard: cheap
+    book = bookkeeping(args.run_instances, args.instances, n_book, args.dir)
     n_shards = int(book["shards"])
     print(
         f"recording a finished shard, a run of {args.run_instances} instances in "
         f"{n_shards} shards of {args.instances} (manifest "
-        f"{book['manifest_bytes'] / 1e6:.1f} MB; median of {max(args.repeats, 5)}; "
+        f"{book['manifest_bytes'] / 1e6:.1f} MB; median of {n_book}; "
         f"in {os.path.abspath(args.dir)}, on {_filesystem(args.dir)}):"
     )
     print(
