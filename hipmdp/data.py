@@ -22,8 +22,11 @@ can travel in the same file.
 
 from __future__ import annotations
 
+import contextlib
+import glob
 import io
 import os
+import shutil
 import tempfile
 import zipfile
 from collections.abc import Iterable, Sequence
@@ -84,6 +87,48 @@ def atomic_temporaries(directory: str | os.PathLike, pattern: str) -> list[Path]
     ``directory`` left when killed (:func:`atomic_write` names them
     ``.<name>.<random>.tmp``), sorted."""
     return sorted(Path(directory).glob(f".{pattern}.*.tmp"))
+
+
+@contextlib.contextmanager
+def atomic_folder(path: str | os.PathLike):
+    """Write a folder's files into a temporary folder beside ``path``, then rename it.
+
+        with atomic_folder(out) as tmp:
+            atomic_write(tmp / "model.npz", ...)
+
+    ``path`` appears, whole, only when the block ends without an error; an error
+    removes the temporary folder and leaves ``path`` as it was. A kill leaves at
+    most a hidden ``.<name>.<random>.tmp`` folder beside it, which the next
+    ``atomic_folder`` on the same ``path`` removes (so two writers of one ``path``
+    must not run at once).
+
+    Raises:
+        ValueError: before anything is written, if ``path`` exists and is not an
+            empty folder.
+    """
+    path = Path(path)
+    if path.exists() and (not path.is_dir() or any(path.iterdir())):
+        raise ValueError(f"{path}: exists and is not an empty folder")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    for stale in atomic_temporaries(path.parent, glob.escape(path.name)):
+        if stale.is_dir():  # a killed writer's
+            shutil.rmtree(stale)
+    tmp = Path(
+        tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    )
+    try:
+        yield tmp
+        # mkdtemp creates 0700; give the folder the mode a plain mkdir would
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o777 & ~umask)
+        if path.is_dir():
+            path.rmdir()  # empty, as checked (os.rename cannot replace a folder
+            # on every system)
+        os.rename(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
 
 
 def load_npz(path: str | os.PathLike | io.IOBase):

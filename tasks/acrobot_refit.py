@@ -10,8 +10,11 @@ settings differ. It writes the folder ``OUT`` in the layout the checks read:
 
 - ``batch.npz``, a copy of the run's;
 - ``hipmdp_model.npz``, the refitted model;
-- ``config.json``, the run's config with the new fit settings, written last (a
-  folder without it is not a finished run, so a killed refit is never read as one).
+- ``config.json``, the run's config with the new fit settings.
+
+The folder appears whole, once the fit and its files are done (they are written
+into a hidden ``.OUT.<random>.tmp`` beside it, then renamed): a failed or killed
+refit leaves no ``OUT`` behind, and the same command can run again.
 
 ``tasks.acrobot_energy``, ``tasks.acrobot_identified`` and ``tasks.acrobot_horizon``
 then run on ``OUT`` exactly as on the run; their average model is refitted as the
@@ -32,7 +35,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 import hipmdp
-from hipmdp.data import atomic_write
+from hipmdp.data import atomic_folder, atomic_write
 from tasks.acrobot_identified import check_run
 from tasks.acrobot_swingup import run_streams
 from tasks.experiment import (
@@ -116,12 +119,12 @@ def main(
     t0 = time.perf_counter()
     model = hipmdp.fit(batch, fit_config, rng=np.random.default_rng(ss_fit))
     seconds = time.perf_counter() - t0
-    # nothing in out until the fit is done: a failed or killed fit leaves no
-    # folder that would refuse the same command again; config.json last
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write(out / "batch.npz", lambda fh: fh.write(data))
-    model.save(out / "hipmdp_model.npz")
-    write_json(out / "config.json", config)
+    # out appears whole or not at all: a failed or killed fit or save leaves no
+    # folder that would refuse the same command again
+    with atomic_folder(out) as tmp:
+        atomic_write(tmp / "batch.npz", lambda fh: fh.write(data))
+        model.save(tmp / "hipmdp_model.npz")
+        write_json(tmp / "config.json", config)
     return Results(out, fit, seconds, model)
 
 

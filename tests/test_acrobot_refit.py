@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -103,6 +104,31 @@ def test_a_failed_fit_leaves_nothing_so_the_same_command_can_run_again(
     monkeypatch.setattr(acrobot_refit.hipmdp, "fit", fit)
     out = acrobot_refit.main(run, tmp_path / "refit", {}, progress=False).out
     assert (out / "batch.npz").read_bytes() == (run / "batch.npz").read_bytes()
+
+
+def test_a_failed_save_or_a_killed_refit_leaves_no_half_folder(
+    run, tmp_path, monkeypatch
+):
+    def dies_saving(self, path):
+        Path(path).write_bytes(b"half a model")
+        raise KeyboardInterrupt
+
+    save = acrobot_refit.hipmdp.HipMDP.save
+    monkeypatch.setattr(acrobot_refit.hipmdp.HipMDP, "save", dies_saving)
+    with pytest.raises(KeyboardInterrupt):
+        acrobot_refit.main(run, tmp_path / "refit", {}, progress=False)
+    assert list(tmp_path.iterdir()) == []
+    monkeypatch.setattr(acrobot_refit.hipmdp.HipMDP, "save", save)
+    killed = tmp_path / ".refit.k1ll.tmp"  # what a kill while saving leaves
+    killed.mkdir()
+    (killed / "batch.npz").write_bytes(b"half a batch")
+    out = acrobot_refit.main(run, tmp_path / "refit", {}, progress=False).out
+    assert [p.name for p in tmp_path.iterdir()] == ["refit"]
+    assert sorted(p.name for p in out.iterdir()) == [
+        "batch.npz",
+        "config.json",
+        "hipmdp_model.npz",
+    ]
 
 
 def test_cli_reports_bad_options(run, tmp_path, capsys):

@@ -169,6 +169,47 @@ def test_failed_write_leaves_old_file_intact(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["d.npz"]  # no temp file left
 
 
+def test_atomic_folder_appears_whole_or_not_at_all(tmp_path):
+    from hipmdp.data import atomic_folder
+
+    out = tmp_path / "run"
+    with pytest.raises(RuntimeError, match="killed"):
+        with atomic_folder(out) as tmp:
+            (tmp / "a.txt").write_text("first file")
+            raise RuntimeError("killed")
+    assert list(tmp_path.iterdir()) == []  # neither out nor the temporary folder
+
+    # a kill (no clean-up) leaves a hidden temporary folder: the next write clears it
+    killed = tmp_path / ".run.x1y2.tmp"
+    killed.mkdir()
+    (killed / "a.txt").write_text("half a run")
+    out.mkdir()  # an empty folder is accepted, as absent
+    with atomic_folder(out) as tmp:
+        assert tmp.parent == tmp_path and tmp.name.startswith(".run.")
+        assert not out.exists() or list(out.iterdir()) == []
+        (tmp / "a.txt").write_text("whole")
+    assert [p.name for p in tmp_path.iterdir()] == ["run"]
+    assert [p.name for p in out.iterdir()] == ["a.txt"]
+    assert (out / "a.txt").read_text() == "whole"
+    umask = os.umask(0)
+    os.umask(umask)
+    assert out.stat().st_mode & 0o777 == 0o777 & ~umask  # as mkdir would make it
+
+
+def test_atomic_folder_refuses_a_folder_with_files_before_writing(tmp_path):
+    from hipmdp.data import atomic_folder
+
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "keep.txt").write_text("a user's file")
+    (tmp_path / "file").write_text("not a folder")
+    for path in (tmp_path / "run", tmp_path / "file"):
+        with pytest.raises(ValueError, match="exists and is not an empty folder"):
+            with atomic_folder(path):
+                raise AssertionError("the block must not run")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "run"]
+    assert (tmp_path / "run" / "keep.txt").read_text() == "a user's file"
+
+
 @pytest.mark.parametrize(
     "kw, match",
     [
