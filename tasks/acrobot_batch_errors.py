@@ -31,7 +31,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 import hipmdp
-from tasks.acrobot_identified import check_run, load_run
+from tasks.acrobot_identified import average_model, check_run, read_run
 from tasks.experiment import (
     check_out_file,
     environment,
@@ -68,8 +68,9 @@ def main(run: str | Path, *, fast: float = 10.0, out: str | Path | None = None):
     if not (np.isfinite(fast) and fast > 0):
         raise ValueError(f"fast: expected a finite number > 0 (rad/s), got {fast}")
     out_path = run / "batch_errors.json" if out is None else check_out_file(out)
-    _, hip, average, batch = load_run(run)
+    config, hip, batch = read_run(run)
     inputs_checked()  # the run read; from here on, the work
+    average = average_model(config, batch)
     K = hip.n_features - 1
     rmse: dict[str, dict[str, list]] = {m: {"fast": [], "slow": []} for m in MODELS}
     shares, parameters = [], []

@@ -74,7 +74,7 @@ from hipmdp.filter import Belief
 from hipmdp.planning import LearnedModel, PlanResult, plan
 from hipmdp.sarsa import init_state
 from tasks import acrobot, agents
-from tasks.acrobot_identified import check_run, load_run
+from tasks.acrobot_identified import average_model, check_run, read_run
 from tasks.acrobot_swingup import run_test_instances
 from tasks.agents import ACROBOT, SimulatorModel, run_episode
 from tasks.experiment import (
@@ -508,7 +508,7 @@ def main(
             "noise: expected a σ (--noise) exactly when the models include 'noisy', "
             f"got noise={noise} with models {tuple(names)}"
         )
-    config, hip, average, batch = load_run(run)
+    config, hip, batch = read_run(run)
     transfer = TransferConfig(**config["transfer"])
     if last > transfer.initial_planning_episodes:
         raise ValueError(
@@ -516,7 +516,8 @@ def main(
             f"({transfer.initial_planning_episodes}), got {last}"
         )
     settings = run_test_instances(config)
-    inputs_checked()  # the run read and checked; from here on, the trials
+    inputs_checked()  # the run read and checked; from here on, the work
+    average = average_model(config, batch)
     batch_distance = BatchDistance(batch.states)
     ss_trials, ss_identify = np.random.SeedSequence(seed).spawn(2)
     beliefs = []

@@ -38,7 +38,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from hipmdp.planning import LearnedModel, open_loop_errors
-from tasks.acrobot_identified import check_run, load_run
+from tasks.acrobot_identified import average_model, check_run, read_run
 from tasks.acrobot_swingup import run_test_instances
 from tasks.agents import ACROBOT
 from tasks.experiment import (
@@ -89,10 +89,11 @@ def main(
     check_counts(identify=identify, evaluate=evaluate)
     check_integer("seed", seed, 0)
     path = run / "horizon.json" if out is None else check_out_file(out)
-    config, hip, average, _ = load_run(run)
+    config, hip, batch = read_run(run)
     masses = [tuple(m) for m in config["test_masses"]]
     instances = run_test_instances(config)
     inputs_checked()  # the run read and checked; from here on, the work
+    average = average_model(config, batch)
     rmse = {m: {k: [] for k in horizons} for m in MODELS}
     p99 = {m: {k: [] for k in horizons} for m in MODELS}
     windows = {k: [] for k in horizons}

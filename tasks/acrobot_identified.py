@@ -220,6 +220,15 @@ def check_run(run: Path) -> None:
             raise FileNotFoundError(f"run: {run} has no {name}; is it a swing-up run?")
 
 
+class RunFiles(NamedTuple):
+    """What :func:`read_run` reads: ``config.json``, the HiP-MDP and the batch
+    data."""
+
+    config: dict[str, Any]
+    hip: Any
+    batch: hipmdp.Transitions
+
+
 class FinishedRun(NamedTuple):
     """What :func:`load_run` reads: ``config.json``, the HiP-MDP, the average model
     and the batch data."""
@@ -230,21 +239,34 @@ class FinishedRun(NamedTuple):
     batch: hipmdp.Transitions
 
 
-def load_run(run: Path) -> FinishedRun:
-    """A finished run's config, its HiP-MDP, its average model refitted exactly as
-    the run fitted it (the same data, seed and size), and its batch data."""
+def read_run(run: Path) -> RunFiles:
+    """A finished run's config, HiP-MDP and batch data, as its files hold them
+    (an error names the file): the checks' input, read before their work."""
     config = json.loads((run / "config.json").read_text())
     hip = hipmdp.load(run / "hipmdp_model.npz")
     batch = hipmdp.Transitions.load(run / "batch.npz")
+    return RunFiles(config, hip, batch)
+
+
+def average_model(config: dict[str, Any], batch: hipmdp.Transitions):
+    """The run's average model, refitted exactly as the run fitted it (the same
+    data, seed and size): seconds of work, so the checks call it after
+    :func:`tasks.experiment.inputs_checked`."""
     ss_avg = run_streams(config["seed"]).average  # as the run did
     fit = hipmdp.FitConfig(**config["fit"])  # runs before `periodic` lack it
-    average = baselines.batch_only(
+    return baselines.batch_only(
         batch,
         rng=np.random.default_rng(ss_avg),
         n_max=config["average_n_max"],
         periodic=fit.periodic_dims(batch),
     )
-    return FinishedRun(config, hip, average, batch)
+
+
+def load_run(run: Path) -> FinishedRun:
+    """A finished run's config, its HiP-MDP, its average model refitted exactly as
+    the run fitted it (:func:`average_model`), and its batch data."""
+    config, hip, batch = read_run(run)
+    return FinishedRun(config, hip, average_model(config, batch), batch)
 
 
 @one_blas_thread
@@ -285,20 +307,18 @@ def main(
     ):
         if value is not None and value < 0:
             raise ValueError(f"{name}: expected >= 0 or None, got {value}")
-    if run_seeds:  # before load_run refits the average model
-        n_run = json.loads((run / "config.json").read_text())["n_trials"]
-        if trials > n_run:
-            raise ValueError(
-                f"trials: expected at most the run's {n_run} trials per setting "
-                f"with run_seeds, got {trials}"
-            )
-
-    config, hip, average, _ = load_run(run)
+    config, hip, batch = read_run(run)
+    if run_seeds and trials > config["n_trials"]:
+        raise ValueError(
+            f"trials: expected at most the run's {config['n_trials']} trials per "
+            f"setting with run_seeds, got {trials}"
+        )
     instances = run_test_instances(config)
     protocol = dataclasses.replace(
         transfer.TransferConfig(**config["transfer"]), n_episodes=episodes
     )
-    inputs_checked()  # the run read and checked; from here on, the trials
+    inputs_checked()  # the run read and checked; from here on, the work
+    average = average_model(config, batch)
     if first_planning is not None:  # every variant: the comparison stays paired
         protocol = dataclasses.replace(protocol, first_planning_episodes=first_planning)
     if initial_planning is not None:

@@ -92,15 +92,39 @@ _BAD_OPTIONS = [
 )
 def test_checks_refuse_bad_options_before_any_work(run, monkeypatch, check, bad, match):
     """Each check on a run refuses a bad seed, worker count or --out before it
-    loads the run (which refits the average model: seconds of work)."""
+    reads the run."""
     module = importlib.import_module(f"tasks.acrobot_{check}")
 
-    def load_run(*args, **kwargs):
-        raise AssertionError("the run was loaded before the options were checked")
+    def read_run(*args, **kwargs):
+        raise AssertionError("the run was read before the options were checked")
 
-    monkeypatch.setattr(module, "load_run", load_run)
+    monkeypatch.setattr(module, "read_run", read_run)
     with pytest.raises(ValueError, match=match):
         module.main(run[0], **bad)
+
+
+@pytest.mark.parametrize(
+    "check, options",
+    [
+        ("identified", []),
+        ("energy", ["--last", "1"]),  # the tiny run plans 1 initial episode
+        ("horizon", []),
+        ("batch_errors", []),
+    ],
+)
+def test_an_error_refitting_the_average_model_is_not_a_usage_error(
+    run, monkeypatch, check, options
+):
+    """The average model is refitted after the inputs are checked: an error there
+    is a failure of the work, shown whole, not reported as bad input (exit 2)."""
+    module = importlib.import_module(f"tasks.acrobot_{check}")
+
+    def failing(*args, **kwargs):
+        raise ValueError("a failure refitting the average model")
+
+    monkeypatch.setattr(module, "average_model", failing)
+    with pytest.raises(ValueError, match="a failure refitting the average model"):
+        module.cli([str(run[0]), *options])
 
 
 def test_rejects_a_folder_that_is_not_a_run_and_unknown_variants(tmp_path, run):

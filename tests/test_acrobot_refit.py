@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import hipmdp
-from tasks import acrobot_energy, acrobot_refit
+from tasks import acrobot_identified, acrobot_refit
 from tasks.acrobot_swingup import main as swingup_main
 from tests.test_acrobot_swingup import TINY
 
@@ -51,7 +51,7 @@ def test_changed_settings_reach_the_model_and_the_checks(run, tmp_path):
     config = json.loads((out / "config.json").read_text())
     assert config["fit"]["periodic"] is True and config["fit"]["n_support"] == 40
     # a check reads the new folder as a run, its average model periodic too
-    finished = acrobot_energy.load_run(out)
+    finished = acrobot_identified.load_run(out)
     assert finished.hip.hyper.periodic == finished.average.hyper.periodic == (0, 1)
 
 
