@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import functools
 import importlib.resources
 import math
 import operator
+from collections.abc import Sequence
 from typing import Any
 
 import mujoco
@@ -38,6 +40,23 @@ def parameter(nominal: float, unit: str, low: float, high: float) -> Any:
     )
 
 
+_REAL = (int, float, np.integer, np.floating)
+
+
+@functools.cache
+def _field_bounds(kind: type) -> tuple[tuple[str, float, float, str, str], ...]:
+    """Per field of the parameter dataclass `kind`: its name, bounds, unit (with a
+    leading space, or empty) and the start of its error message."""
+    out = []
+    for field in dataclasses.fields(kind):
+        low, high = field.metadata["bounds"]
+        # "-" marks a dimensionless parameter: no unit in the message.
+        unit = "" if field.metadata["unit"] == "-" else " " + field.metadata["unit"]
+        where = f"{kind.__name__}.{field.name} must be in [{low}, {high}]{unit}"
+        out.append((field.name, low, high, unit, where))
+    return tuple(out)
+
+
 def validate_parameters(params: Any) -> None:
     """Check every field of a parameter dataclass; store it as a Python float.
 
@@ -45,16 +64,9 @@ def validate_parameters(params: Any) -> None:
         ValueError: naming the field and its bound if a value is not a finite real
             number inside its documented bounds.
     """
-    cls = type(params).__name__
-    for field in dataclasses.fields(params):
-        value = getattr(params, field.name)
-        low, high = field.metadata["bounds"]
-        # "-" marks a dimensionless parameter: no unit in the message.
-        unit = "" if field.metadata["unit"] == "-" else " " + field.metadata["unit"]
-        where = f"{cls}.{field.name} must be in [{low}, {high}]{unit}"
-        if isinstance(value, bool) or not isinstance(
-            value, int | float | np.integer | np.floating
-        ):
+    for name, low, high, unit, where in _field_bounds(type(params)):
+        value = getattr(params, name)
+        if isinstance(value, bool) or not isinstance(value, _REAL):
             raise ValueError(f"{where}, got {value!r} (not a real number)")
         if not math.isfinite(value):
             raise ValueError(f"{where}, got {value!r} (not finite)")
@@ -65,7 +77,7 @@ def validate_parameters(params: Any) -> None:
                 f"{low if value < low else high}{unit})"
             )
         # Frozen dataclass: store plain floats so equality and hashing behave.
-        object.__setattr__(params, field.name, float(value))
+        object.__setattr__(params, name, float(value))
 
 
 def check_params(params: Any, params_type: type) -> Any:
@@ -93,7 +105,22 @@ def parameter_names(params_type: type) -> tuple[str, ...]:
 
 def parameter_values(params: Any) -> Array:
     """Field values of a parameter dataclass as an array, shape `(p,)`."""
-    return np.array(dataclasses.astuple(params), dtype=float)
+    return parameter_matrix([params])[0]
+
+
+def parameter_matrix(instances: Sequence[Any]) -> Array:
+    """Field values of parameter dataclasses of one type, shape `(n, p)`, rows in
+    order (`dataclasses.astuple` per row, without its deep copies: a million
+    instances in a second rather than 25)."""
+    if not instances:
+        raise ValueError("instances: expected at least one parameter dataclass")
+    kind = type(instances[0])
+    if any(type(p) is not kind for p in instances):
+        raise ValueError(f"instances: expected {kind.__name__}s only")
+    names = parameter_names(kind)
+    get = operator.attrgetter(*names)  # a tuple per row, or a value if p = 1
+    rows = [get(p) for p in instances]
+    return np.array(rows, dtype=float).reshape(len(instances), len(names))
 
 
 def load_spec(filename: str) -> mujoco.MjSpec:

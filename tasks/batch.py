@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from hipmdp.data import ParameterTable, Transitions
+from tasks._common import parameter_matrix
 from tasks.collect import collect_sarsa
 from tasks.experiment import pool_map, seed_value
 
@@ -72,7 +73,7 @@ def gather_batch(
 def parameter_table(instances: Sequence[Any]) -> ParameterTable:
     """The parameters of ``instances`` (one domain's dataclasses), ids ``0..B-1``."""
     names = tuple(f.name for f in dataclasses.fields(instances[0]))
-    values = [dataclasses.astuple(p) for p in instances]
+    values = parameter_matrix(instances)
     return ParameterTable(
         instances=np.arange(len(instances)), names=names, values=values
     )

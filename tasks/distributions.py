@@ -39,6 +39,8 @@ from typing import Any, NamedTuple
 import numpy as np
 from scipy import special
 
+from tasks._common import parameter_matrix
+
 Array = np.ndarray
 
 KINDS = ("grid", "uniform", "relative-normal")
@@ -198,7 +200,7 @@ def draw(
         distribution.params_type(**dict(zip(distribution.names, row, strict=True)))
         for row in varied
     ]
-    values = np.array([dataclasses.astuple(p) for p in params], dtype=float)
+    values = parameter_matrix(params)
     return Instances(params, values, varied)
 
 

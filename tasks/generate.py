@@ -56,6 +56,7 @@ import numpy as np
 from tqdm import tqdm
 
 from hipmdp import shards
+from tasks._common import parameter_matrix
 from tasks.acrobot import AcrobotParams, book_inertia_range, with_book_inertia
 from tasks.collect import DOMAINS, collect, collect_sarsa, get_domain
 from tasks.distributions import KINDS, SPLITS, Distribution, draw
@@ -318,17 +319,17 @@ def plan(config: Config) -> dict[str, Any]:
     spec = get_domain(config.domain)
     if config.book_inertia:
         booked = [with_book_inertia(p) for p in drawn.params]
-        values = np.array([dataclasses.astuple(p) for p in booked], dtype=float)
+        values = parameter_matrix(booked)
         drawn = drawn._replace(params=booked, values=values)
     entries = []
     for index, start in enumerate(range(0, len(drawn.params), config.shard_size)):
-        block = range(start, min(start + config.shard_size, len(drawn.params)))
+        stop = min(start + config.shard_size, len(drawn.params))
         entries.append(
             {
                 "index": index,
                 "file": shards.shard_name(index),
-                "instances": list(block),
-                "parameters": drawn.values[list(block)].tolist(),
+                "instances": list(range(start, stop)),
+                "parameters": drawn.values[start:stop].tolist(),
                 "sha256": None,
                 "counts": None,
                 "diverged": [],
@@ -336,13 +337,14 @@ def plan(config: Config) -> dict[str, Any]:
         )
     manifest = {
         "format": shards.FORMAT,
-        "config": config.manifest_config(),
+        # as read back: lists, exact floats (the entries are built so)
+        "config": json.loads(json.dumps(config.manifest_config())),
         "parameter_names": [f.name for f in dataclasses.fields(spec.params_type)],
         "angle_dims": list(spec.angle_dims),
         "shards": entries,
         "complete": False,
     }
-    return json.loads(json.dumps(manifest))  # as read back: lists, exact floats
+    return manifest
 
 
 def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:

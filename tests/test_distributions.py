@@ -4,10 +4,13 @@ ranges stop with a message."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy import stats
 
+from tasks._common import parameter_matrix
 from tasks.acrobot import AcrobotParams
 from tasks.cartpole import CartpoleParams
 from tasks.distributions import Distribution, draw, in_box
@@ -101,6 +104,30 @@ def test_same_rng_same_draws_and_a_degenerate_range_stays_put():
     for kind in ("uniform", "relative-normal"):
         v = draw(dist(kind=kind, vary=fixed), 20, rng=np.random.default_rng(0)).varied
         np.testing.assert_array_equal(v[:, 0], 1.1)
+
+
+@pytest.mark.parametrize("params_type", [AcrobotParams, CartpoleParams])
+def test_values_are_every_field_of_every_instance_in_order(params_type):
+    """`values` against the plain reference, `dataclasses.astuple` per row."""
+    names = [f.name for f in dataclasses.fields(params_type)]
+    vary = {names[0]: (0.7, 1.3), names[-1]: (0.9, 1.1)}
+    drawn = draw(Distribution(params_type, vary), 50, rng=np.random.default_rng(3))
+    want = np.array([dataclasses.astuple(p) for p in drawn.params], dtype=float)
+    np.testing.assert_array_equal(drawn.values, want)
+    assert drawn.values.shape == (50, len(names))
+    assert len(np.unique(drawn.values[:, -1])) == 50  # the varied fields, not copies
+
+
+def test_parameter_matrix_takes_one_type_and_any_field_count():
+    @dataclasses.dataclass(frozen=True)
+    class One:
+        mass: float = 1.0
+
+    np.testing.assert_array_equal(parameter_matrix([One(2.0), One(3.0)]), [[2], [3]])
+    with pytest.raises(ValueError, match="expected Ones only"):
+        parameter_matrix([One(), AcrobotParams()])
+    with pytest.raises(ValueError, match="at least one"):
+        parameter_matrix([])
 
 
 @pytest.mark.parametrize(

@@ -64,6 +64,23 @@ def random_policy_shard(entry: dict, *, seed: int) -> Transitions:
     ).transitions
 
 
+@pytest.mark.parametrize("book", [[], ["--book-inertia"]])
+def test_plan_is_the_manifest_as_json_reads_it_back(tmp_path, book):
+    """`prepare` compares the plan with a manifest read from disk: the plan must
+    hold only what JSON gives back (lists, not tuples; exact floats)."""
+    config = generate.parse_config(
+        ["--domain", "acrobot", "--instances", "7", "--shard-size", "3",
+         "--out", str(tmp_path), *book]
+    )  # fmt: skip
+    manifest = generate.plan(config)
+    assert manifest == json.loads(json.dumps(manifest))
+    assert [e["instances"] for e in manifest["shards"]] == [[0, 1, 2], [3, 4, 5], [6]]
+    params = [
+        AcrobotParams(*row) for e in manifest["shards"] for row in e["parameters"]
+    ]
+    assert len(set(params)) == 7
+
+
 def test_shard_is_the_random_policy_on_its_instances_with_the_shard_stream(tmp_path):
     """A shard holds exactly what `collect` gathers on its instances with the
     stream `SeedSequence(seed, spawn_key=(1, split, shard))`."""
