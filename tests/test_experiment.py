@@ -6,6 +6,7 @@ import argparse
 import importlib
 import json
 import re
+import time
 from pathlib import Path
 
 import numpy as np
@@ -209,6 +210,33 @@ def test_pool_jobs_run_one_blas_thread_after_the_initializer(two_blas_threads, w
         initializer=_install, initargs=("models",),
     )  # fmt: skip
     assert got == [([1], ["models"])] * 3
+
+
+def _fail_or_mark(job: tuple[str, str]) -> None:
+    """Job ("fail", _) raises at once; ("mark", path) writes path, then waits."""
+    kind, path = job
+    if kind == "fail":
+        raise RuntimeError("the first job failed")
+    Path(path).write_text("ran")
+    time.sleep(0.1)
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_failed_job_stops_the_pool_without_running_the_queued_ones(tmp_path, workers):
+    """40 jobs of 0.1 s queued behind one that fails: the pool raises its error
+    and drops the queue (were the queue run, each of the 40 would write its
+    file). ``Executor.map`` cancels its pending jobs when its result fails;
+    ``pool_map``'s own cancel is for an interrupt outside it (untested here)."""
+    marks = [("mark", str(tmp_path / f"{i}.ran")) for i in range(40)]
+    with pytest.raises(RuntimeError, match="the first job failed"):
+        pool_map(
+            _fail_or_mark, [("fail", ""), *marks], workers=workers, desc="",
+            progress=False,
+        )  # fmt: skip
+    ran = len(list(tmp_path.glob("*.ran")))
+    assert ran < len(marks)  # at most the jobs already handed to a worker
+    if workers == 1:
+        assert ran == 0
 
 
 @pytest.mark.parametrize(
