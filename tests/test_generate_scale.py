@@ -187,6 +187,21 @@ def test_dask_cluster_gives_the_same_bytes(reference, tmp_path):
     assert files(tmp_path) == files(reference)
 
 
+def test_a_scheduler_that_does_not_answer_stops_the_run_before_any_file(
+    tmp_path, capsys
+):
+    pytest.importorskip("distributed")
+    import dask
+
+    out = tmp_path / "run"
+    with dask.config.set({"distributed.comm.timeouts.connect": "1s"}):
+        with pytest.raises(SystemExit) as stopped:
+            generate.main([*RUN, "--out", str(out), "--scheduler", "tcp://127.0.0.1:1"])
+    assert stopped.value.code == 1
+    assert "tcp://127.0.0.1:1" in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_shards_without_a_manifest_are_refused_untouched(reference, tmp_path, capsys):
     run = tmp_path / "run"
     shutil.copytree(reference, run)
