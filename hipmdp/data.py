@@ -23,9 +23,9 @@ can travel in the same file.
 from __future__ import annotations
 
 import contextlib
-import glob
 import io
 import os
+import re
 import shutil
 import tempfile
 import zipfile
@@ -56,6 +56,35 @@ def gaussian_loglik(observed: Array, mean: Array, var: Array) -> float:
     return float(-0.5 * np.sum(r * r / var + np.log(2 * np.pi * var)))
 
 
+def _umask() -> int:
+    """The process's umask: from ``/proc`` where there is one (no change to the
+    process state, so safe beside other threads), else set and restored."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except OSError:
+        pass
+    umask = os.umask(0)
+    os.umask(umask)
+    return umask
+
+
+def _fsync_folder(path: Path) -> None:
+    """Make a rename in the folder ``path`` durable (POSIX; a no-op elsewhere)."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:  # e.g. Windows, where folders cannot be opened
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
 def atomic_write(path: str | os.PathLike, write) -> Path:
     """Call ``write(file_object)`` on a temporary file beside ``path``, then rename.
 
@@ -70,15 +99,13 @@ def atomic_write(path: str | os.PathLike, write) -> Path:
             write(fh)
             fh.flush()
             os.fsync(fh.fileno())
-        # mkstemp creates 0600; give the file the mode a plain open() would
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp's 0600 -> what open() would give
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+    _fsync_folder(path.parent)
     return path
 
 
@@ -87,6 +114,25 @@ def atomic_temporaries(directory: str | os.PathLike, pattern: str) -> list[Path]
     ``directory`` left when killed (:func:`atomic_write` names them
     ``.<name>.<random>.tmp``), sorted."""
     return sorted(Path(directory).glob(f".{pattern}.*.tmp"))
+
+
+def check_empty_folder(path: str | os.PathLike, name: str = "path") -> Path:
+    """``path`` if it is absent or an empty folder; else a ``ValueError`` naming
+    ``name``."""
+    path = Path(path)
+    if path.exists() and (not path.is_dir() or any(path.iterdir())):
+        raise ValueError(f"{name}: {path} exists and is not an empty folder")
+    return path
+
+
+def _folder_temporaries(path: Path) -> list[Path]:
+    """The temporary folders :func:`atomic_folder` made for ``path`` (exactly
+    ``tempfile.mkdtemp``'s names: 8 random characters, never a dot, so those of
+    a neighbour such as ``path.old`` do not match)."""
+    name = re.compile(rf"\.{re.escape(path.name)}\.[a-z0-9_]{{8}}\.tmp")
+    return sorted(
+        p for p in path.parent.iterdir() if name.fullmatch(p.name) and p.is_dir()
+    )
 
 
 @contextlib.contextmanager
@@ -100,28 +146,23 @@ def atomic_folder(path: str | os.PathLike):
     removes the temporary folder and leaves ``path`` as it was. A kill leaves at
     most a hidden ``.<name>.<random>.tmp`` folder beside it, which the next
     ``atomic_folder`` on the same ``path`` removes (so two writers of one ``path``
-    must not run at once).
+    must not run at once). A symbolic link is followed: the folder is made where
+    it points.
 
     Raises:
         ValueError: before anything is written, if ``path`` exists and is not an
             empty folder.
     """
-    path = Path(path)
-    if path.exists() and (not path.is_dir() or any(path.iterdir())):
-        raise ValueError(f"{path}: exists and is not an empty folder")
+    path = check_empty_folder(Path(path).resolve())
     path.parent.mkdir(parents=True, exist_ok=True)
-    for stale in atomic_temporaries(path.parent, glob.escape(path.name)):
-        if stale.is_dir():  # a killed writer's
-            shutil.rmtree(stale)
+    for stale in _folder_temporaries(path):  # a killed writer's
+        shutil.rmtree(stale)
     tmp = Path(
         tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     )
     try:
         yield tmp
-        # mkdtemp creates 0700; give the folder the mode a plain mkdir would
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o777 & ~umask)
+        os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp's 0700 -> what mkdir would give
         if path.is_dir():
             path.rmdir()  # empty, as checked (os.rename cannot replace a folder
             # on every system)
@@ -129,6 +170,7 @@ def atomic_folder(path: str | os.PathLike):
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    _fsync_folder(path.parent)
 
 
 def load_npz(path: str | os.PathLike | io.IOBase):

@@ -110,13 +110,18 @@ def parameter_values(params: Any) -> Array:
 
 def parameter_matrix(instances: Sequence[Any]) -> Array:
     """Field values of parameter dataclasses of one type, shape `(n, p)`, rows in
-    order (`dataclasses.astuple` per row, without its deep copies: a million
-    instances in a second rather than 25)."""
+    order: `dataclasses.astuple` per row, without its deep copies (about 10
+    times faster: 0.4 s for a million acrobot instances against 4.7 s, with the
+    experiments' runs beside it)."""
     if not instances:
         raise ValueError("instances: expected at least one parameter dataclass")
     kind = type(instances[0])
-    if any(type(p) is not kind for p in instances):
-        raise ValueError(f"instances: expected {kind.__name__}s only")
+    for i, p in enumerate(instances):
+        if type(p) is not kind:
+            raise ValueError(
+                f"instances: expected only {kind.__name__}, got "
+                f"{type(p).__name__} at index {i}"
+            )
     names = parameter_names(kind)
     get = operator.attrgetter(*names)  # a tuple per row, or a value if p = 1
     rows = [get(p) for p in instances]

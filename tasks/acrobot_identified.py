@@ -240,26 +240,39 @@ class FinishedRun(NamedTuple):
 
 
 def read_run(run: Path) -> RunFiles:
-    """A finished run's config, HiP-MDP and batch data, as its files hold them
-    (an error names the file): the checks' input, read before their work."""
+    """A finished run's config, HiP-MDP and batch data, as its files hold them,
+    and the config's settings for the average model checked (an error names the
+    file): the checks' input, read before their work."""
     config = json.loads((run / "config.json").read_text())
     hip = hipmdp.load(run / "hipmdp_model.npz")
     batch = hipmdp.Transitions.load(run / "batch.npz")
+    try:
+        _average_settings(config, batch)
+    except (KeyError, TypeError, ValueError) as err:
+        raise ValueError(
+            f"{run / 'config.json'}: not a swing-up run's config "
+            f"({type(err).__name__}: {err})"
+        ) from err
     return RunFiles(config, hip, batch)
+
+
+def _average_settings(config: dict[str, Any], batch: hipmdp.Transitions) -> dict:
+    """:func:`average_model`'s arguments to ``baselines.batch_only``, from the
+    run's config as the run derived them."""
+    fit = hipmdp.FitConfig(**config["fit"])  # runs before `periodic` lack it
+    check_integer("average_n_max", config["average_n_max"], 1)
+    return {
+        "rng": np.random.default_rng(run_streams(config["seed"]).average),
+        "n_max": config["average_n_max"],
+        "periodic": fit.periodic_dims(batch),
+    }
 
 
 def average_model(config: dict[str, Any], batch: hipmdp.Transitions):
     """The run's average model, refitted exactly as the run fitted it (the same
     data, seed and size): seconds of work, so the checks call it after
     :func:`tasks.experiment.inputs_checked`."""
-    ss_avg = run_streams(config["seed"]).average  # as the run did
-    fit = hipmdp.FitConfig(**config["fit"])  # runs before `periodic` lack it
-    return baselines.batch_only(
-        batch,
-        rng=np.random.default_rng(ss_avg),
-        n_max=config["average_n_max"],
-        periodic=fit.periodic_dims(batch),
-    )
+    return baselines.batch_only(batch, **_average_settings(config, batch))
 
 
 def load_run(run: Path) -> FinishedRun:

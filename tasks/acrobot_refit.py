@@ -35,7 +35,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 import hipmdp
-from hipmdp.data import atomic_folder, atomic_write
+from hipmdp.data import atomic_folder, atomic_write, check_empty_folder
 from tasks.acrobot_identified import check_run
 from tasks.acrobot_swingup import run_streams
 from tasks.experiment import (
@@ -104,8 +104,7 @@ def main(
     if out.resolve() == run.resolve():
         raise ValueError(f"out: expected a folder other than the run ({run})")
     check_folder_out(out)
-    if out.exists() and any(out.iterdir()):
-        raise ValueError(f"out: {out} exists and is not empty")
+    check_empty_folder(out, "out")
     config = json.loads((run / "config.json").read_text())
     # every check happens here, before any work (FitConfig validates the values)
     fit_config = hipmdp.FitConfig(**{**config["fit"], **fit, "progress": progress})

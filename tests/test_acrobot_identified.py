@@ -127,6 +127,32 @@ def test_an_error_refitting_the_average_model_is_not_a_usage_error(
         module.cli([str(run[0]), *options])
 
 
+@pytest.mark.parametrize(
+    "damage, match",
+    [
+        (lambda c: c.pop("average_n_max"), "KeyError: 'average_n_max'"),
+        (lambda c: c.update(average_n_max=0), "average_n_max: expected >= 1, got 0"),
+        (lambda c: c["fit"].update(n_support=0), "FitConfig.n_support"),
+        (lambda c: c.update(seed=-1), "ValueError"),
+    ],
+)
+def test_a_damaged_run_config_is_a_usage_error_naming_the_file(
+    run, tmp_path, capsys, damage, match
+):
+    """What the average model is refitted from is checked as the run is read,
+    before the work: a usage error (exit 2) naming config.json."""
+    copy = tmp_path / "run"
+    shutil.copytree(run[0], copy)
+    config = json.loads((copy / "config.json").read_text())
+    damage(config)
+    (copy / "config.json").write_text(json.dumps(config))
+    with pytest.raises(SystemExit) as stopped:
+        acrobot_identified.cli([str(copy)])
+    assert stopped.value.code == 2
+    err = capsys.readouterr().err
+    assert "config.json: not a swing-up run's config" in err and match in err
+
+
 def test_rejects_a_folder_that_is_not_a_run_and_unknown_variants(tmp_path, run):
     with pytest.raises(FileNotFoundError, match="has no config.json"):
         acrobot_identified.main(tmp_path)

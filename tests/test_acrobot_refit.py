@@ -75,7 +75,7 @@ def test_bad_folders_and_values_fail_before_any_file_is_written(run, tmp_path):
     full = tmp_path / "full"
     full.mkdir()
     (full / "x").write_text("")
-    with pytest.raises(ValueError, match="not empty"):
+    with pytest.raises(ValueError, match="^out: .* exists and is not an empty folder"):
         acrobot_refit.main(run, full, {})
     with pytest.raises(FileNotFoundError, match="config.json"):
         acrobot_refit.main(tmp_path / "none", tmp_path / "o", {})
@@ -119,7 +119,7 @@ def test_a_failed_save_or_a_killed_refit_leaves_no_half_folder(
         acrobot_refit.main(run, tmp_path / "refit", {}, progress=False)
     assert list(tmp_path.iterdir()) == []
     monkeypatch.setattr(acrobot_refit.hipmdp.HipMDP, "save", save)
-    killed = tmp_path / ".refit.k1ll.tmp"  # what a kill while saving leaves
+    killed = tmp_path / ".refit.k1ll_2x9.tmp"  # what a kill while saving leaves
     killed.mkdir()
     (killed / "batch.npz").write_bytes(b"half a batch")
     out = acrobot_refit.main(run, tmp_path / "refit", {}, progress=False).out

@@ -180,20 +180,38 @@ def test_atomic_folder_appears_whole_or_not_at_all(tmp_path):
     assert list(tmp_path.iterdir()) == []  # neither out nor the temporary folder
 
     # a kill (no clean-up) leaves a hidden temporary folder: the next write clears it
-    killed = tmp_path / ".run.x1y2.tmp"
+    killed = tmp_path / ".run.x1y2_z3w.tmp"
     killed.mkdir()
     (killed / "a.txt").write_text("half a run")
+    # a neighbour's temporary folder, perhaps still being written: left alone
+    neighbour = tmp_path / ".run.old.ab12cd34.tmp"
+    neighbour.mkdir()
     out.mkdir()  # an empty folder is accepted, as absent
     with atomic_folder(out) as tmp:
         assert tmp.parent == tmp_path and tmp.name.startswith(".run.")
         assert not out.exists() or list(out.iterdir()) == []
         (tmp / "a.txt").write_text("whole")
-    assert [p.name for p in tmp_path.iterdir()] == ["run"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [neighbour.name, "run"]
     assert [p.name for p in out.iterdir()] == ["a.txt"]
     assert (out / "a.txt").read_text() == "whole"
     umask = os.umask(0)
     os.umask(umask)
     assert out.stat().st_mode & 0o777 == 0o777 & ~umask  # as mkdir would make it
+
+
+def test_atomic_folder_follows_a_symbolic_link(tmp_path):
+    from hipmdp.data import atomic_folder
+
+    for target in (tmp_path / "empty", tmp_path / "absent"):  # a dangling link too
+        if target.name == "empty":
+            target.mkdir()
+        link = tmp_path / f"link_to_{target.name}"
+        link.symlink_to(target, target_is_directory=True)
+        with atomic_folder(link) as tmp:
+            (tmp / "a.txt").write_text(target.name)
+        assert link.is_symlink()
+        assert (link / "a.txt").read_text() == target.name
+        assert (target / "a.txt").read_text() == target.name
 
 
 def test_atomic_folder_refuses_a_folder_with_files_before_writing(tmp_path):

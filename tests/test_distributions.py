@@ -124,7 +124,9 @@ def test_parameter_matrix_takes_one_type_and_any_field_count():
         mass: float = 1.0
 
     np.testing.assert_array_equal(parameter_matrix([One(2.0), One(3.0)]), [[2], [3]])
-    with pytest.raises(ValueError, match="expected Ones only"):
+    with pytest.raises(
+        ValueError, match="expected only One, got AcrobotParams at index 1"
+    ):
         parameter_matrix([One(), AcrobotParams()])
     with pytest.raises(ValueError, match="at least one"):
         parameter_matrix([])

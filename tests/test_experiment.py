@@ -234,7 +234,9 @@ def test_a_failed_job_stops_the_pool_without_running_the_queued_ones(tmp_path, w
             progress=False,
         )  # fmt: skip
     ran = len(list(tmp_path.glob("*.ran")))
-    assert ran < len(marks)  # at most the jobs already handed to a worker
+    # the jobs already handed to a worker ran (about 2 per worker); the queue
+    # did not (a margin of 20 for a slow main process: 1 s of work at 2 workers)
+    assert ran <= len(marks) // 2
     if workers == 1:
         assert ran == 0
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 
@@ -194,11 +195,14 @@ def test_a_scheduler_that_does_not_answer_stops_the_run_before_any_file(
     import dask
 
     out = tmp_path / "run"
-    with dask.config.set({"distributed.comm.timeouts.connect": "1s"}):
-        with pytest.raises(SystemExit) as stopped:
-            generate.main([*RUN, "--out", str(out), "--scheduler", "tcp://127.0.0.1:1"])
+    with socket.socket() as taken:  # a port bound but not listening: refused
+        taken.bind(("127.0.0.1", 0))
+        address = f"tcp://127.0.0.1:{taken.getsockname()[1]}"
+        with dask.config.set({"distributed.comm.timeouts.connect": "1s"}):
+            with pytest.raises(SystemExit) as stopped:
+                generate.main([*RUN, "--out", str(out), "--scheduler", address])
     assert stopped.value.code == 1
-    assert "tcp://127.0.0.1:1" in capsys.readouterr().err
+    assert address in capsys.readouterr().err
     assert not out.exists()
 
 
