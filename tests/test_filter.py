@@ -14,7 +14,7 @@ from hipmdp.gp import HyperSet
 from hipmdp.kernels import se_kernel
 from hipmdp.model import HipMDP
 
-A, D, M, K = 2, 2, 15, 3
+A, D, M, K = 3, 2, 15, 3  # A ≠ D: a swapped (action, dimension) index fails
 
 
 def _model(seed=0):
@@ -96,8 +96,8 @@ def test_basis_matches_dense_interpolation():
 
 
 WITH_ERROR_TERMS = {
-    "residual_var": np.array([[1e-3, 4e-3], [2e-3, 0.0]]),
-    "interp_var_scale": np.array([[1.0, 3.0], [10.0, 2.0]]),
+    "residual_var": np.array([[1e-3, 4e-3], [2e-3, 0.0], [0.0, 5e-3]]),
+    "interp_var_scale": np.array([[1.0, 3.0], [10.0, 2.0], [4.0, 1.0]]),
 }
 
 
@@ -202,8 +202,9 @@ def test_filter_is_calibrated_on_data_from_its_own_likelihood():
     # truth 95% of the time (400 trials: sd 1.1%; the bounds are ±4 sd). This
     # checks the update end to end (prior, noise and region together), not
     # whether the model-error terms match a real model's errors (README,
-    # coverage, measures that). The paper's filter trusts σ² alone, 2-400×
-    # (median 19×) too small here, and its regions miss far more often.
+    # coverage, measures that). The paper's filter trusts σ² alone, 2-900×
+    # (median 36×) too small here, and its regions miss far more often (93.5% and
+    # 3.5% here, as README quotes).
     model = dataclasses.replace(_model(5), **WITH_ERROR_TERMS)
     assert 0.906 <= _coverage(model, 400, 30, seed=6) <= 0.994
     assert _coverage(model, 400, 30, seed=6, model_error=False) < 0.8
