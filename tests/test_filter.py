@@ -168,6 +168,29 @@ def test_batch_update_equals_single_updates_and_conjugate_posterior(terms):
     assert np.all(v > 0)  # the term is really exercised
 
 
+def test_a_model_without_latent_features_predicts_its_mean_dynamics():
+    """K = 1 (the sampler found no feature): the belief is empty, filtering
+    leaves it so, and the prediction is feature 0 with variance
+    σ² + c·v + r0 (dense, one state at a time)."""
+    full = dataclasses.replace(_model(2), **WITH_ERROR_TERMS)
+    model = dataclasses.replace(
+        full, z=full.z[:1], f=full.f[:1], weights=full.weights[:1], mu_w=full.mu_w[:1]
+    )
+    rng = np.random.default_rng(3)
+    data = _data(model, np.zeros(0), 12, rng)
+    belief = model.update(model.prior(), data)
+    assert belief.mean.shape == (0,) and belief.cov.shape == (0, 0)
+    mean, var = model.predict(data.states, data.actions, belief)
+    for i, (s, a) in enumerate(zip(data.states, data.actions, strict=True)):
+        np.testing.assert_allclose(mean[i], _dense_basis(model, s, a)[:, 0], atol=1e-12)
+        want = (
+            model.hyper.noise_var[a]
+            + model.interp_var_scale[a] * _dense_interpolation_var(model, s, a)
+            + model.residual_var[a]
+        )
+        np.testing.assert_allclose(var[i], want, rtol=1e-9)
+
+
 def test_paper_filter_uses_the_fitted_noise_alone():
     model = dataclasses.replace(_model(), **WITH_ERROR_TERMS)
     data = _data(model, np.array([0.3, -0.7]), 12, np.random.default_rng(2))
