@@ -7,14 +7,13 @@ Each (instance, repetition) is one job with its own seed spawned from one
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
 from hipmdp.data import ParameterTable, Transitions
-from tasks._common import parameter_matrix
+from tasks._common import parameter_matrix, parameter_names
 from tasks.collect import collect_sarsa
 from tasks.experiment import pool_map, seed_value
 
@@ -72,7 +71,7 @@ def gather_batch(
 
 def parameter_table(instances: Sequence[Any]) -> ParameterTable:
     """The parameters of ``instances`` (one domain's dataclasses), ids ``0..B-1``."""
-    names = tuple(f.name for f in dataclasses.fields(instances[0]))
+    names = parameter_names(type(instances[0]))
     values = parameter_matrix(instances)
     return ParameterTable(
         instances=np.arange(len(instances)), names=names, values=values

@@ -41,7 +41,7 @@ def _model(seed=0):
 
 def _dense_basis(model, s, a):
     """F[d, k] = z[k,a,d] k(s, S*) (K + σ² I)⁻¹ f[k,a,d], one state at a time."""
-    out = np.zeros((D, K))
+    out = np.zeros((D, model.f.shape[0]))  # the model's features (K, or 1)
     for d in range(D):
         h = model.hyper.get(a, d)
         Kss = se_kernel(model.support, model.support, h.lengthscales, h.signal_var)
