@@ -43,14 +43,17 @@ Filtering with the model error. The filter's likelihood for one (transition, dim
 row is N(Δ; f_1 + F w, τ²), and τ² must be the model's error given the weights, not
 σ² alone: with σ² ~ 1e-8 against real errors ~ 1e-4 the belief collapses after a few
 transitions onto whichever weights fit them, and its covariance means nothing. `update`
-uses the variance above without the weight-uncertainty term, with the weights at their
-prior mean μ_w:
+uses the variance above without the weight-uncertainty term, with the squared weights
+averaged over the training instances b, as c was calibrated with each training
+instance's own weights (`hipmdp.fitting.model_error`):
 
-    τ²[i,d] = σ²[a,d] + c[a,d] v_ad(s_i) (1 + Σ_{k>1} z[k,a,d] μ_w[k]²) + r0[a,d].
+    τ²[i,d] = σ² + c[a,d] v_ad(s_i) (1 + Σ_{k>1} z[k,a,d] mean_b w[k,b]²) + r0[a,d].
 
-Because τ² does not depend on the belief, the update stays linear-Gaussian: one update
-with n transitions still equals n single ones. `update(..., model_error=False)` is the
-paper's filter (τ² = σ²).
+The weights at their prior mean μ_w (the mean training weight) would drop their spread,
+mean_b w² = μ_w² + var_b w: on the acrobot that made the factor 17-36× smaller than
+the calibrated one and the belief overconfident. Because τ² does not depend on the
+belief, the update stays linear-Gaussian: one update with n transitions still equals
+n single ones. `update(..., model_error=False)` is the paper's filter (τ² = σ²).
 """
 
 from __future__ import annotations
@@ -297,7 +300,8 @@ class HipMDP:
         noise = self.hyper.noise_var[actions]
         if v is None:
             return noise
-        m2 = np.concatenate([[1.0], self.mu_w[1:] ** 2])
+        # mean_b w[k,b]² over the training instances; feature 0 has w = 1
+        m2 = np.concatenate([[1.0], np.mean(self.weights[1:] ** 2, axis=1)])
         scale = np.einsum("kad,k->ad", self.z, m2)
         if self.interp_var_scale is not None:
             scale = scale * self.interp_var_scale

@@ -31,10 +31,12 @@ def _model(seed=0):
         hyper=hyper,
         z=z,
         f=rng.normal(size=(K, A, D, M)),
-        weights=np.ones((K, 3)),
+        # B = 4 training instances (≠ K), weights spread around their mean, so the
+        # filter's mean_b w² differs from μ_w²
+        weights=np.concatenate([np.ones((1, 4)), rng.normal(size=(K - 1, 4))]),
         mu_w=np.array([1.0, 0.5, -1.0]),
         sigma_w=2.0,
-        instance_ids=np.arange(3),
+        instance_ids=np.arange(4),
         info={},
     )
 
@@ -63,14 +65,17 @@ def _dense_interpolation_var(model, s, a):
 
 
 def _dense_filter_noise(model, s, a):
-    """τ²[d] = σ² + c v(s) (1 + Σ_{k>1} z[k,a,d] μ_w[k]²) + r0, one state at a time
-    (c = 1, r0 = 0 when the model has no error terms)."""
+    """τ²[d] = σ² + c v(s) (1 + Σ_{k>1} z[k,a,d] mean_b w[k,b]²) + r0, one state at a
+    time (c = 1, r0 = 0 when the model has no error terms)."""
     c = np.ones(D) if model.interp_var_scale is None else model.interp_var_scale[a]
     r0 = np.zeros(D) if model.residual_var is None else model.residual_var[a]
     v = _dense_interpolation_var(model, s, a)
     out = np.zeros(D)
     for d in range(D):
-        m2 = 1.0 + sum(model.z[k, a, d] * model.mu_w[k] ** 2 for k in range(1, K))
+        m2 = 1.0
+        for k in range(1, model.f.shape[0]):
+            w = model.weights[k]
+            m2 += model.z[k, a, d] * sum(wb * wb for wb in w) / len(w)
         out[d] = model.hyper.noise_var[a, d] + c[d] * v[d] * m2 + r0[d]
     return out
 

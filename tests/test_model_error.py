@@ -89,14 +89,25 @@ def test_predict_and_the_filter_add_the_terms(fitted):  # noqa: F811
     data = _instance(7, np.array([0.5, -0.5]), 40, np.random.default_rng(4))
     a = data.actions
     v = fitted.interpolation_var(data.states, data.actions)
-    # the filter: the same terms, with the weights at their prior mean
-    m2 = np.concatenate([[1.0], fitted.mu_w[1:] ** 2])
-    prior_interp = v * np.einsum("kad,k->ad", fitted.z, m2)[a]
-    np.testing.assert_allclose(
-        both.filter_noise(data.states, a),
-        plain.filter_noise(data.states, a) + (c[a] - 1) * prior_interp + r0[a],
-        rtol=1e-10,
-    )
+    # the filter: the variance the terms were calibrated as (model_error's
+    # σ² + c u + r0, u = v Σ_k z w[k,b]²), averaged over the training instances b
+    assert np.all(fitted.weights[0] == 1.0)  # feature 0, the mean dynamics
+
+    def calibrated(c, r0):
+        return np.mean(
+            [
+                fitted.hyper.noise_var[a]
+                + c[a] * v * np.einsum("k,knd->nd", w**2, fitted.z[:, a])
+                + r0[a]
+                for w in fitted.weights.T
+            ],
+            axis=0,
+        )
+
+    for model, terms in [(both, (c, r0)), (plain, (np.ones_like(c), 0 * r0))]:
+        np.testing.assert_allclose(
+            model.filter_noise(data.states, a), calibrated(*terms), rtol=1e-10
+        )
     # the paper's filter ignores them
     b_plain = plain.update(plain.prior(), data, model_error=False)
     b_both = both.update(both.prior(), data, model_error=False)
