@@ -9,7 +9,7 @@ from hipmdp.filter import Belief
 from hipmdp.fitting import FitConfig, fit
 from hipmdp.fourier import FourierBasis
 from hipmdp.gibbs import GibbsData, GibbsPriors, GibbsState, run_chains
-from hipmdp.model import HipMDP, load
+from hipmdp.model import FILTER_WEIGHTS, HipMDP, load
 from hipmdp.planning import (
     DynamicsModel,
     LearnedModel,
@@ -22,6 +22,7 @@ from hipmdp.planning import (
 from hipmdp.sarsa import SarsaConfig, SarsaState, init_state
 
 __all__ = [
+    "FILTER_WEIGHTS",
     "Belief",
     "DynamicsModel",
     "FitConfig",

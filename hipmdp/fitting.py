@@ -32,7 +32,7 @@ from hipmdp.filter import prior_belief, update_belief
 from hipmdp.gibbs import GibbsData, GibbsPriors, run_chains
 from hipmdp.gp import HyperSet, condition, fit_hyper_set, subsample
 from hipmdp.kernels import se_kernel
-from hipmdp.model import HipMDP
+from hipmdp.model import FILTER_WEIGHTS, HipMDP
 from hipmdp.support import select_support
 
 Array = np.ndarray
@@ -42,25 +42,34 @@ Array = np.ndarray
 class FitConfig:
     """Settings of `fit`.
 
-    | name         | meaning                                        | default | range |
-    |--------------|------------------------------------------------|---------|-------|
-    | n_support    | m, number of support points S*                 | 750     | >= 1  |
-    | n_sweeps     | Gibbs sweeps per chain                         | 250     | >= 1  |
-    | n_chains     | independent chains; the best sample is kept    | 2       | >= 1  |
-    | alpha        | IBP concentration α                            | 2.0     | > 0   |
-    | sigma_w      | σ_w, w[k,b] ~ N(μ_w[k], σ_w²)                  | 4.0     | > 0   |
-    | sigma_w0     | σ_w0, μ_w[k] ~ N(0, σ_w0²)                     | 4.0     | > 0   |
-    | n_w          | N_w importance draws of a new feature's w      | 1000    | >= 1  |
-    | n_hyper      | transitions per action, hyperparameter fit     | 1000    | >= 2  |
-    | n_candidates | candidate states for the support selection     | 3000    | >= m  |
-    | n_smooth     | transitions per (instance, action), smoothing  | 1000    | >= 1  |
-    | n_residual   | transitions per action, model-error variance   | 2000    | >= 1  |
-    | periodic     | kernels periodic in data.angle_dims            | False   |       |
-    | progress     | show progress bars                             | True    |       |
+    | name           | meaning                                    | default    | range |
+    |----------------|--------------------------------------------|------------|-------|
+    | n_support      | m, number of support points S*             | 750        | >= 1  |
+    | n_sweeps       | Gibbs sweeps per chain                     | 250        | >= 1  |
+    | n_chains       | independent chains; the best one is kept  | 2          | >= 1  |
+    | alpha          | IBP concentration α                        | 2.0        | > 0   |
+    | sigma_w        | σ_w, w[k,b] ~ N(μ_w[k], σ_w²)              | 4.0        | > 0   |
+    | sigma_w0       | σ_w0, μ_w[k] ~ N(0, σ_w0²)                 | 4.0        | > 0   |
+    | n_w            | N_w importance draws of a new feature's w  | 1000       | >= 1  |
+    | n_hyper        | transitions per action, hyperparameter fit | 1000       | >= 2  |
+    | n_candidates   | candidate states for the support selection | 3000       | >= m  |
+    | n_smooth       | transitions per (instance, action), smooth | 1000       | >= 1  |
+    | n_residual     | transitions per action, model-error fit    | 2000       | >= 1  |
+    | periodic       | kernels periodic in data.angle_dims        | False      |       |
+    | filter_weights | the filter's model-error weights (below)   | "training" | below |
+    | progress       | show progress bars                         | True       |       |
 
     `periodic`: every kernel measures an angle difference by its chord
     `2 sin(Δθ / 2)` (`hipmdp.kernels`), so states either side of `θ = ±π` are
     neighbours; without it they are `2π` apart.
+
+    `filter_weights`: the weights at which `HipMDP.update` takes the factor
+    (1 + Σ_k z w_k²) of its model-error variance τ² (`hipmdp.model`, "Filtering
+    with the model error"). "training": the squared weights averaged over the
+    training instances, as `model_error` calibrated c. "prior_mean": the prior
+    mean weights μ_w, as every model fitted before 2026-12-03 did; that factor
+    leaves out the weights' spread (17-36× smaller on the acrobot) and the belief
+    is overconfident. It changes only the filter, not the fit.
 
     The paper's cartpole run: n_support=750, n_sweeps=250, alpha=2, sigma_w=4.
     """
@@ -77,6 +86,7 @@ class FitConfig:
     n_smooth: int = 1000
     n_residual: int = 2000
     periodic: bool = False
+    filter_weights: str = "training"
     progress: bool = True
 
     def __post_init__(self) -> None:
@@ -110,6 +120,11 @@ class FitConfig:
             raise ValueError(
                 f"FitConfig.n_candidates: expected >= n_support={self.n_support}, "
                 f"got {self.n_candidates}"
+            )
+        if self.filter_weights not in FILTER_WEIGHTS:
+            raise ValueError(
+                f"FitConfig.filter_weights: expected one of {FILTER_WEIGHTS}, got "
+                f"{self.filter_weights!r}"
             )
         for name in ("periodic", "progress"):
             if not isinstance(getattr(self, name), bool):
@@ -331,6 +346,7 @@ def fit(data: Transitions, config: FitConfig, *, rng: np.random.Generator) -> Hi
         sigma_w=float(config.sigma_w),
         instance_ids=data.instance_ids,
         info=info,
+        filter_weights=config.filter_weights,
     )
     sub = np.concatenate(
         [

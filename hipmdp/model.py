@@ -49,11 +49,14 @@ instance's own weights (`hipmdp.fitting.model_error`):
 
     τ²[i,d] = σ² + c[a,d] v_ad(s_i) (1 + Σ_{k>1} z[k,a,d] mean_b w[k,b]²) + r0[a,d].
 
-The weights at their prior mean μ_w (the mean training weight) would drop their spread,
-mean_b w² = μ_w² + var_b w: on the acrobot that made the factor 17-36× smaller than
-the calibrated one and the belief overconfident. Because τ² does not depend on the
-belief, the update stays linear-Gaussian: one update with n transitions still equals
-n single ones. `update(..., model_error=False)` is the paper's filter (τ² = σ²).
+With `filter_weights="prior_mean"` (every model before 2026-12-03) the factor takes
+the weights at their prior mean μ_w, the mean training weight, instead; that drops
+their spread, mean_b w² = μ_w² + var_b w: on the acrobot the factor is 17-36×
+smaller than the calibrated one and the belief overconfident.
+
+Because τ² does not depend on the belief, the update stays linear-Gaussian: one update
+with n transitions still equals n single ones. `update(..., model_error=False)` is the
+paper's filter (τ² = σ²).
 """
 
 from __future__ import annotations
@@ -81,6 +84,11 @@ from hipmdp.kernels import KernelMeans, se_kernel
 Array = np.ndarray
 
 FORMAT_VERSION = 1
+
+#: Where `HipMDP.update` takes its model-error factor's weights: the squared
+#: training weights' mean (as c was calibrated), or the prior mean μ_w (before
+#: 2026-12-03). Model files without the field were written with "prior_mean".
+FILTER_WEIGHTS = ("training", "prior_mean")
 _ARRAYS = (
     "support",
     "lengthscales",
@@ -127,6 +135,9 @@ class HipMDP:
         info: JSON-serialisable metadata (config, log joint, ...).
         residual_var, interp_var_scale: the model-error terms r0 and c of the
             predictive variance (module docstring), each (A, D), or None.
+        filter_weights: the weights of the filter's model-error factor,
+            "training" (mean_b w[k,b]², module docstring) or "prior_mean" (μ_w²,
+            as before 2026-12-03; see `hipmdp.FitConfig`).
     """
 
     support: Array
@@ -140,6 +151,7 @@ class HipMDP:
     info: dict
     residual_var: Array | None = None
     interp_var_scale: Array | None = None
+    filter_weights: str = "training"
 
     def __post_init__(self) -> None:
         if np.ndim(self.f) != 4:
@@ -170,6 +182,11 @@ class HipMDP:
                         f"{name}: expected finite values >= 0 of shape ({A}, {D})"
                     )
                 object.__setattr__(self, name, r)
+        if self.filter_weights not in FILTER_WEIGHTS:
+            raise ValueError(
+                f"filter_weights: expected one of {FILTER_WEIGHTS}, got "
+                f"{self.filter_weights!r}"
+            )
         if self.support.shape != (m, D):
             raise ValueError(
                 f"support: expected shape ({m}, {D}), got {self.support.shape}"
@@ -300,8 +317,11 @@ class HipMDP:
         noise = self.hyper.noise_var[actions]
         if v is None:
             return noise
-        # mean_b w[k,b]² over the training instances; feature 0 has w = 1
-        m2 = np.concatenate([[1.0], np.mean(self.weights[1:] ** 2, axis=1)])
+        # feature 0 has w = 1
+        if self.filter_weights == "training":  # mean_b w[k,b]²
+            m2 = np.concatenate([[1.0], np.mean(self.weights[1:] ** 2, axis=1)])
+        else:  # μ_w[k]²
+            m2 = np.concatenate([[1.0], self.mu_w[1:] ** 2])
         scale = np.einsum("kad,k->ad", self.z, m2)
         if self.interp_var_scale is not None:
             scale = scale * self.interp_var_scale
@@ -408,6 +428,7 @@ class HipMDP:
         meta = {
             "format_version": FORMAT_VERSION,
             "sigma_w": self.sigma_w,
+            "filter_weights": self.filter_weights,
             "info": self.info,
         }
         arrays["meta_json"] = np.array(json.dumps(meta))
@@ -455,6 +476,8 @@ def load(path: str | os.PathLike) -> HipMDP:
             sigma_w=float(meta["sigma_w"]),
             instance_ids=arr["instance_ids"],
             info=meta["info"],
+            # files written before the field existed filtered at μ_w
+            filter_weights=meta.get("filter_weights", "prior_mean"),
             **optional,
         )
     except (ValueError, TypeError) as err:

@@ -87,6 +87,7 @@ from tasks.experiment import (
     run_parser,
     to_jsonable,
     trial_seeds,
+    with_added_fields,
     write_json,
 )
 from tasks.prediction import gather_split
@@ -259,7 +260,7 @@ def read_run(run: Path) -> RunFiles:
 def _average_settings(config: dict[str, Any], batch: hipmdp.Transitions) -> dict:
     """:func:`average_model`'s arguments to ``baselines.batch_only``, from the
     run's config as the run derived them."""
-    fit = hipmdp.FitConfig(**config["fit"])  # runs before `periodic` lack it
+    fit = hipmdp.FitConfig(**with_added_fields(config)["fit"])
     check_integer("average_n_max", config["average_n_max"], 1)
     return {
         "rng": np.random.default_rng(run_streams(config["seed"]).average),

@@ -45,6 +45,7 @@ from tasks.experiment import (
     one_blas_thread,
     run_or_exit,
     run_parser,
+    with_added_fields,
     write_json,
 )
 
@@ -107,7 +108,8 @@ def main(
     check_empty_folder(out, "out")
     config = json.loads((run / "config.json").read_text())
     # every check happens here, before any work (FitConfig validates the values)
-    fit_config = hipmdp.FitConfig(**{**config["fit"], **fit, "progress": progress})
+    old = with_added_fields(config)["fit"]  # as the run fitted
+    fit_config = hipmdp.FitConfig(**{**old, **fit, "progress": progress})
     config["fit"] = {**dataclasses.asdict(fit_config), "progress": False}
     config["refit"] = {"from": str(run), "changes": fit, "environment": machine}
 

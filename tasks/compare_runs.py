@@ -39,7 +39,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from hipmdp.data import load_npz
-from tasks.experiment import ADDED_FIELDS, check_out_file, write_json
+from tasks.experiment import check_out_file, with_added_fields, write_json
 
 #: Metrics that say how long a run took, never what it found.
 IGNORED_METRICS = ("seconds",)
@@ -109,12 +109,13 @@ def _read_json(run: Path, name: str, required: bool = True) -> dict:
 
 def read_run(run: Path) -> tuple[dict, dict, dict | None]:
     """``(config, metrics, environment)`` of a run folder; an experiment's config
-    lacking fields added since (``ADDED_FIELDS``) gets their old values. A refit folder
-    (``tasks.acrobot_refit``) has no metrics.json and keeps its environment in
-    ``config["refit"]``; timings and the environment are taken out of both."""
+    lacking fields added since gets their old values (``with_added_fields``). A
+    refit folder (``tasks.acrobot_refit``) has no metrics.json and keeps its
+    environment in ``config["refit"]``; timings and the environment are taken out
+    of both."""
     config = _read_json(run, "config.json")
     if "seed" in config and "fit" in config:  # an experiment's, as its fields say
-        config = {**ADDED_FIELDS, **config}  # what an older run's missing ones were
+        config = with_added_fields(config)  # what an older run's missing ones were
     metrics = _read_json(run, "metrics.json", required="refit" not in config)
     env = metrics.pop("environment", None)
     if "refit" in config:

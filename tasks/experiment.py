@@ -612,6 +612,14 @@ def common_parser(prog: str, doc: str, presets: Sequence[str], out_default: str)
         default=None,
         help="worker processes (default: the preset's, 2); results do not depend on it",
     )
+    parser.add_argument(
+        "--filter-weights",
+        choices=hipmdp.FILTER_WEIGHTS,
+        default=None,
+        help="where the filter takes its model-error factor's weights: prior_mean "
+        "(default; README's results were measured so) or training (as the factor "
+        "was calibrated; hipmdp.FitConfig)",
+    )
     parser.add_argument("--no-record", action="store_true", help="no .rrd recording")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     return parser
@@ -622,6 +630,21 @@ def common_parser(prog: str, doc: str, presets: Sequence[str], out_default: str)
 #: ``--split``, every split was random; before ``--method``, no method was
 #: added). ``tasks.seed_spread`` and ``tasks.compare_runs`` read old runs so.
 ADDED_FIELDS = {"split": "random", "methods": []}
+
+#: The same for the fields of the config's ``fit`` (``hipmdp.FitConfig``): before
+#: ``periodic`` no kernel was periodic; before ``filter_weights`` the filter took
+#: its model-error factor at the prior mean weights.
+ADDED_FIT_FIELDS = {"periodic": False, "filter_weights": "prior_mean"}
+
+
+def with_added_fields(config: dict[str, Any]) -> dict[str, Any]:
+    """An experiment's config (as in its config.json) with the ADDED_FIELDS and
+    ADDED_FIT_FIELDS an older run lacks, at the values it ran with."""
+    out = {**ADDED_FIELDS, **config}
+    if isinstance(config.get("fit"), dict):
+        out["fit"] = {**ADDED_FIT_FIELDS, **config["fit"]}
+    return out
+
 
 #: The command-line flag of each config field the flags set, for error messages.
 FLAGS = {
@@ -646,6 +669,10 @@ def apply_common(
     changes["seed"] = args.seed
     if args.workers is not None:
         changes["workers"] = args.workers
+    if args.filter_weights is not None:
+        changes["fit"] = dataclasses.replace(
+            preset.fit, filter_weights=args.filter_weights
+        )
     if args.no_record:
         changes["record"] = False
     if args.no_progress:

@@ -43,12 +43,12 @@ from scipy import stats
 
 from tasks.compare_runs import PRESENTATION, differences, read_run
 from tasks.experiment import (
-    ADDED_FIELDS,
     check_out_file,
     fmt_ci,
     fmt_value,
     markdown_table,
     mean_ci,
+    with_added_fields,
     write_json,
 )
 from tasks.prediction import best_baseline
@@ -56,8 +56,6 @@ from tasks.prediction import best_baseline
 #: Top-level config keys that may differ between the runs, besides PRESENTATION:
 #: the seed, and the run's label.
 LABELS = ("seed", "name")
-#: Config fields an older run lacks, and what they stood for.
-ADDED = ADDED_FIELDS
 
 
 class Headline(NamedTuple):
@@ -187,14 +185,15 @@ def experiment_of(metrics: dict) -> str | None:
 
 
 def _settings(config: dict) -> dict[str, Any]:
-    """A config without its LABELS, with the ADDED fields it lacks."""
-    return {k: v for k, v in {**ADDED, **config}.items() if k not in LABELS}
+    """A config without its LABELS, with the fields an older run lacks
+    (``with_added_fields``)."""
+    return {k: v for k, v in with_added_fields(config).items() if k not in LABELS}
 
 
 def read_runs(runs: Sequence[str | Path]) -> tuple[str, list[dict], list[dict]]:
     """``(experiment, configs, metrics)`` of the run folders, checked to be seeds
     of one experiment: the same experiment, configs equal but for LABELS and
-    PRESENTATION (an ADDED field an older run lacks counts as its old value),
+    PRESENTATION (a field an older run lacks counts as its old value),
     distinct seeds. Raises ValueError naming what differs."""
     if len(runs) < 2:
         raise ValueError(f"runs: expected at least 2 run folders, got {len(runs)}")

@@ -55,9 +55,40 @@ def test_changed_settings_reach_the_model_and_the_checks(run, tmp_path):
     assert finished.hip.hyper.periodic == finished.average.hyper.periodic == (0, 1)
 
 
+def test_a_run_without_filter_weights_refits_with_the_filter_it_ran(run, tmp_path):
+    # a run written before FitConfig.filter_weights filtered at μ_w: a refit
+    # keeps that, and changing only the filter leaves every fitted array as it was
+    old = tmp_path / "old"
+    old.mkdir()
+    for name in ("batch.npz", "config.json", "hipmdp_model.npz"):
+        (old / name).write_bytes((run / name).read_bytes())
+    config = json.loads((old / "config.json").read_text())
+    assert config["fit"].pop("filter_weights") == "training"  # TINY's, the default
+    (old / "config.json").write_text(json.dumps(config))
+    same = acrobot_refit.main(old, tmp_path / "same", {}, progress=False).model
+    assert same.filter_weights == "prior_mean"
+    res = acrobot_refit.main(
+        old, tmp_path / "new", {"filter_weights": "training"}, progress=False
+    )
+    assert res.model.filter_weights == "training"
+    config = json.loads((tmp_path / "new" / "config.json").read_text())
+    assert config["fit"]["filter_weights"] == "training"
+    want = _arrays(run / "hipmdp_model.npz")
+    got = _arrays(tmp_path / "new" / "hipmdp_model.npz")
+    for k in want:
+        np.testing.assert_array_equal(got[k], want[k], err_msg=k)
+
+
 def test_parse_fit_types_and_errors():
-    got = acrobot_refit.parse_fit(["n_smooth=4000", "alpha=1.5", "periodic=TRUE"])
-    assert got == {"n_smooth": 4000, "alpha": 1.5, "periodic": True}
+    got = acrobot_refit.parse_fit(
+        ["n_smooth=4000", "alpha=1.5", "periodic=TRUE", "filter_weights=training"]
+    )
+    assert got == {
+        "n_smooth": 4000,
+        "alpha": 1.5,
+        "periodic": True,
+        "filter_weights": "training",
+    }
     for item, match in [
         ("n_smooth", "expected name=value"),
         ("nope=1", "expected name=value with name in n_support"),
@@ -87,6 +118,8 @@ def test_bad_folders_and_values_fail_before_any_file_is_written(run, tmp_path):
         acrobot_refit.main(run, file / "sub", {})
     with pytest.raises(ValueError, match="FitConfig.n_support"):
         acrobot_refit.main(run, tmp_path / "bad", {"n_support": 0})
+    with pytest.raises(ValueError, match="FitConfig.filter_weights: expected one"):
+        acrobot_refit.main(run, tmp_path / "bad", {"filter_weights": "mean"})
     assert not (tmp_path / "bad").exists()
 
 

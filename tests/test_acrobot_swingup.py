@@ -209,6 +209,17 @@ def test_cli_presets_and_bad_options(capsys):
         SwingupConfig(final_window=50)
     assert parse_args(["--split", "time"])[0].split == "time"
     assert PRESETS["quick"].split == PRESETS["paper"].split == "random"
+    # the presets filter as README's results were measured; the flag changes
+    # only that field of the fit
+    for name in ("quick", "paper"):
+        assert PRESETS[name].fit.filter_weights == "prior_mean"
+        config, _ = parse_args(["--preset", name, "--filter-weights", "training"])
+        assert config.fit == dataclasses.replace(
+            PRESETS[name].fit, filter_weights="training"
+        )
+    with pytest.raises(SystemExit):
+        parse_args(["--filter-weights", "mean"])
+    assert "--filter-weights: invalid choice: 'mean'" in capsys.readouterr().err
     with pytest.raises(ValueError, match="split: expected one of"):
         SwingupConfig(split="episodes")
 

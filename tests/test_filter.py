@@ -66,7 +66,8 @@ def _dense_interpolation_var(model, s, a):
 
 def _dense_filter_noise(model, s, a):
     """τ²[d] = σ² + c v(s) (1 + Σ_{k>1} z[k,a,d] mean_b w[k,b]²) + r0, one state at a
-    time (c = 1, r0 = 0 when the model has no error terms)."""
+    time (c = 1, r0 = 0 when the model has no error terms; μ_w[k]² for mean_b w[k,b]²
+    with filter_weights="prior_mean")."""
     c = np.ones(D) if model.interp_var_scale is None else model.interp_var_scale[a]
     r0 = np.zeros(D) if model.residual_var is None else model.residual_var[a]
     v = _dense_interpolation_var(model, s, a)
@@ -75,7 +76,10 @@ def _dense_filter_noise(model, s, a):
         m2 = 1.0
         for k in range(1, model.f.shape[0]):
             w = model.weights[k]
-            m2 += model.z[k, a, d] * sum(wb * wb for wb in w) / len(w)
+            if model.filter_weights == "training":
+                m2 += model.z[k, a, d] * sum(wb * wb for wb in w) / len(w)
+            else:
+                m2 += model.z[k, a, d] * model.mu_w[k] ** 2
         out[d] = model.hyper.noise_var[a, d] + c[d] * v[d] * m2 + r0[d]
     return out
 
@@ -106,7 +110,11 @@ WITH_ERROR_TERMS = {
 }
 
 
-@pytest.mark.parametrize("terms", [{}, WITH_ERROR_TERMS], ids=["plain", "terms"])
+@pytest.mark.parametrize(
+    "terms",
+    [{}, WITH_ERROR_TERMS, {**WITH_ERROR_TERMS, "filter_weights": "prior_mean"}],
+    ids=["plain", "terms", "terms-prior-mean"],
+)
 def test_batch_update_equals_single_updates_and_conjugate_posterior(terms):
     model = dataclasses.replace(_model(), **terms)
     rng = np.random.default_rng(2)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 
 import numpy as np
@@ -171,6 +172,34 @@ def test_save_load_identical_predictions(fitted, tmp_path):
     ):
         np.testing.assert_array_equal(x, y)
     assert loaded.info == fitted.info
+
+
+def test_the_filter_weights_setting_is_fitted_saved_and_loaded(fitted, tmp_path):
+    """fit gives the model FitConfig.filter_weights; the file keeps it; a file
+    written before the setting existed loads as it filtered, at μ_w."""
+    assert fitted.filter_weights == CONFIG.filter_weights == "training"
+    old = dataclasses.replace(fitted, filter_weights="prior_mean")
+    data = _instance(7, np.array([0.5, 0.5]), 30, np.random.default_rng(3))
+    # the two settings filter differently on this model (its weights spread)
+    assert not np.allclose(
+        old.filter_noise(data.states, data.actions),
+        fitted.filter_noise(data.states, data.actions),
+    )
+    for model in (fitted, old):
+        loaded = load(model.save(tmp_path / "model.npz"))
+        assert loaded.filter_weights == model.filter_weights
+    path = old.save(tmp_path / "old.npz")
+    with np.load(path, allow_pickle=False) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    meta = json.loads(str(arrays["meta_json"]))
+    del meta["filter_weights"]
+    arrays["meta_json"] = np.array(json.dumps(meta))
+    np.savez(path, **arrays)
+    assert load(path).filter_weights == "prior_mean"
+    with pytest.raises(ValueError, match="filter_weights: expected one of"):
+        dataclasses.replace(fitted, filter_weights="mean")
+    with pytest.raises(ValueError, match="FitConfig.filter_weights: expected one of"):
+        dataclasses.replace(CONFIG, filter_weights="prior")
 
 
 def test_save_is_atomic(fitted, tmp_path, monkeypatch):
