@@ -238,9 +238,9 @@ def test_filter_is_calibrated_on_data_from_its_own_likelihood():
     # truth 95% of the time (400 trials: sd 1.1%; the bounds are ±4 sd). This
     # checks the update end to end (prior, noise and region together), not
     # whether the model-error terms match a real model's errors (README,
-    # coverage, measures that). The paper's filter trusts σ² alone, 2-900×
-    # (median 36×) too small here, and its regions miss far more often (93.5% and
-    # 3.5% here, as README quotes).
+    # coverage, measures that). The paper's filter trusts σ² alone, 2-1,300×
+    # (median 39×) too small here, and its regions miss far more often (93% and
+    # 3.25% here, as README quotes).
     model = dataclasses.replace(_model(5), **WITH_ERROR_TERMS)
     assert 0.906 <= _coverage(model, 400, 30, seed=6) <= 0.994
     assert _coverage(model, 400, 30, seed=6, model_error=False) < 0.8
