@@ -39,7 +39,12 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from hipmdp.data import load_npz
-from tasks.experiment import check_out_file, with_added_fields, write_json
+from tasks.experiment import (
+    ADDED_FIT_FIELDS,
+    check_out_file,
+    with_added_fields,
+    write_json,
+)
 
 #: Metrics that say how long a run took, never what it found.
 IGNORED_METRICS = ("seconds",)
@@ -138,6 +143,7 @@ def compare_arrays(a: np.ndarray, b: np.ndarray) -> Any:
         except json.JSONDecodeError:
             ja, jb = str(a), str(b)
         if isinstance(ja, dict) and isinstance(jb, dict):
+            ja, jb = _model_meta(ja), _model_meta(jb)
             diff = differences(ja, jb, PRESENTATION)
             return "identical" if not diff else {"json": diff}
     numeric = a.dtype.kind in "iufcb" and b.dtype.kind in "iufcb"
@@ -154,6 +160,19 @@ def compare_arrays(a: np.ndarray, b: np.ndarray) -> Any:
         both = ~(np.isnan(x) | np.isnan(y))
         diff = np.abs(x[both] - y[both])
         out = {"max_abs_diff": float(diff.max()) if diff.size else 0.0} | out
+    return out
+
+
+def _model_meta(meta: dict) -> dict:
+    """A HiP-MDP model file's metadata (``HipMDP.save``) with the fields an older
+    model lacks at the values it ran with, as ``hipmdp.load`` reads them; any
+    other JSON as it is."""
+    if "format_version" not in meta or not isinstance(meta.get("info"), dict):
+        return meta
+    out = {"filter_weights": ADDED_FIT_FIELDS["filter_weights"], **meta}
+    config = meta["info"].get("config")
+    if isinstance(config, dict):
+        out["info"] = {**meta["info"], "config": {**ADDED_FIT_FIELDS, **config}}
     return out
 
 

@@ -58,6 +58,33 @@ def test_an_experiment_older_than_a_field_counts_as_its_old_behaviour(tmp_path):
     }
 
 
+def test_a_model_older_than_a_field_counts_as_its_old_behaviour():
+    """A model file written before ``filter_weights`` (and its fit config before
+    ``periodic``) filtered at μ_w with kernels not periodic."""
+
+    def meta(**new):
+        return np.array(
+            json.dumps(
+                {
+                    "format_version": 1,
+                    "info": {"config": {"n_support": 5, **new}},
+                    **({"filter_weights": new["filter_weights"]} if new else {}),
+                }
+            )
+        )
+
+    old = meta()
+    assert compare_arrays(old, meta(filter_weights="prior_mean", periodic=False)) == (
+        "identical"
+    )
+    assert compare_arrays(old, meta(filter_weights="training", periodic=False)) == {
+        "json": {
+            "filter_weights": ["prior_mean", "training"],
+            "info.config.filter_weights": ["prior_mean", "training"],
+        }
+    }
+
+
 def test_differences_are_located_and_counted(tmp_path):
     a = _run(tmp_path / "a")
     returns = np.arange(12.0).reshape(3, 4)
