@@ -56,7 +56,7 @@ class FitConfig:
     | n_smooth       | transitions per (instance, action), smooth | 1000       | >= 1  |
     | n_residual     | transitions per action, model-error fit    | 2000       | >= 1  |
     | periodic       | kernels periodic in data.angle_dims        | False      |       |
-    | filter_weights | the filter's model-error weights (below)   | "training" | below |
+    | filter_weights | the filter's model-error weights (below)   | prior_mean | below |
     | progress       | show progress bars                         | True       |       |
 
     `periodic`: every kernel measures an angle difference by its chord
@@ -65,11 +65,11 @@ class FitConfig:
 
     `filter_weights`: the weights at which `HipMDP.update` takes the factor
     (1 + Σ_k z w_k²) of its model-error variance τ² (`hipmdp.model`, "Filtering
-    with the model error"). "training": the squared weights averaged over the
-    training instances, as `model_error` calibrated c. "prior_mean": the prior
-    mean weights μ_w, as every model fitted before 2026-12-03 did; that factor
-    leaves out the weights' spread (17-36× smaller on the acrobot) and the belief
-    is overconfident. It changes only the filter, not the fit.
+    with the model error"). "prior_mean": the prior mean weights μ_w. "training":
+    the squared weights averaged over the training instances, as `model_error`
+    calibrated c; that keeps the weights' spread (a factor 17-36× larger on the
+    acrobot), but measured it predicted no better (README, "The filter's
+    model-error weights"). It changes only the filter, not the fit.
 
     The paper's cartpole run: n_support=750, n_sweeps=250, alpha=2, sigma_w=4.
     """
@@ -86,7 +86,7 @@ class FitConfig:
     n_smooth: int = 1000
     n_residual: int = 2000
     periodic: bool = False
-    filter_weights: str = "training"
+    filter_weights: str = "prior_mean"
     progress: bool = True
 
     def __post_init__(self) -> None:

@@ -174,14 +174,8 @@ class SwingupConfig:
     batch_repetitions: int = 2
     batch_episodes: int = 20
     batch_max_steps: int = 500
-    # the filter as README's results were measured (--filter-weights training for
-    # the calibrated one; hipmdp.FitConfig)
     fit: hipmdp.FitConfig = hipmdp.FitConfig(
-        n_support=500,
-        n_sweeps=60,
-        n_chains=1,
-        filter_weights="prior_mean",
-        progress=False,
+        n_support=500, n_sweeps=60, n_chains=1, progress=False
     )
     average_n_max: int = 1500
     # 12 trials of 6 episodes rather than 6 of 8 (about the same time): returns
@@ -249,13 +243,7 @@ PRESETS: dict[str, SwingupConfig] = {
         test_masses=TEST_MASSES,
         batch_repetitions=5,
         batch_episodes=30,
-        fit=hipmdp.FitConfig(
-            n_support=1000,
-            n_sweeps=250,
-            n_chains=3,
-            filter_weights="prior_mean",
-            progress=False,
-        ),
+        fit=hipmdp.FitConfig(n_support=1000, n_sweeps=250, n_chains=3, progress=False),
         average_n_max=3000,
         n_trials=30,
         transfer=TransferConfig(

@@ -112,14 +112,8 @@ class PredictionConfig:
     batch_episodes: int = 15
     batch_max_steps: int = 300
     n_runs: int = 2
-    # the filter as README's results were measured (--filter-weights training for
-    # the calibrated one; hipmdp.FitConfig)
     fit: hipmdp.FitConfig = hipmdp.FitConfig(
-        n_support=300,
-        n_sweeps=60,
-        n_chains=1,
-        filter_weights="prior_mean",
-        progress=False,
+        n_support=300, n_sweeps=60, n_chains=1, progress=False
     )
     average_n_max: int = 1000
     n_train: int = 50
@@ -159,13 +153,7 @@ PRESETS = {
         batch_repetitions=5,
         batch_episodes=30,
         n_runs=5,
-        fit=hipmdp.FitConfig(
-            n_support=750,
-            n_sweeps=250,
-            n_chains=1,
-            filter_weights="prior_mean",
-            progress=False,
-        ),
+        fit=hipmdp.FitConfig(n_support=750, n_sweeps=250, n_chains=1, progress=False),
         average_n_max=3000,
     ),
 }

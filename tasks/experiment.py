@@ -616,9 +616,8 @@ def common_parser(prog: str, doc: str, presets: Sequence[str], out_default: str)
         "--filter-weights",
         choices=hipmdp.FILTER_WEIGHTS,
         default=None,
-        help="where the filter takes its model-error factor's weights: prior_mean "
-        "(default; README's results were measured so) or training (as the factor "
-        "was calibrated; hipmdp.FitConfig)",
+        help="the weights of the filter's model-error factor: prior_mean "
+        "(default) or training (as the factor was calibrated; hipmdp.FitConfig)",
     )
     parser.add_argument("--no-record", action="store_true", help="no .rrd recording")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")

@@ -63,7 +63,7 @@ def test_a_run_without_filter_weights_refits_with_the_filter_it_ran(run, tmp_pat
     for name in ("batch.npz", "config.json", "hipmdp_model.npz"):
         (old / name).write_bytes((run / name).read_bytes())
     config = json.loads((old / "config.json").read_text())
-    assert config["fit"].pop("filter_weights") == "training"  # TINY's, the default
+    assert config["fit"].pop("filter_weights") == "prior_mean"  # TINY's
     (old / "config.json").write_text(json.dumps(config))
     same = acrobot_refit.main(old, tmp_path / "same", {}, progress=False).model
     assert same.filter_weights == "prior_mean"

@@ -209,8 +209,7 @@ def test_cli_presets_and_bad_options(capsys):
         SwingupConfig(final_window=50)
     assert parse_args(["--split", "time"])[0].split == "time"
     assert PRESETS["quick"].split == PRESETS["paper"].split == "random"
-    # the presets filter as README's results were measured; the flag changes
-    # only that field of the fit
+    # the flag changes only that field of the fit
     for name in ("quick", "paper"):
         assert PRESETS[name].fit.filter_weights == "prior_mean"
         config, _ = parse_args(["--preset", name, "--filter-weights", "training"])

@@ -65,9 +65,9 @@ def _dense_interpolation_var(model, s, a):
 
 
 def _dense_filter_noise(model, s, a):
-    """τ²[d] = σ² + c v(s) (1 + Σ_{k>1} z[k,a,d] mean_b w[k,b]²) + r0, one state at a
-    time (c = 1, r0 = 0 when the model has no error terms; μ_w[k]² for mean_b w[k,b]²
-    with filter_weights="prior_mean")."""
+    """τ²[d] = σ² + c v(s) (1 + Σ_{k>1} z[k,a,d] μ_w[k]²) + r0, one state at a time
+    (c = 1, r0 = 0 when the model has no error terms; mean_b w[k,b]² for μ_w[k]²
+    with filter_weights="training")."""
     c = np.ones(D) if model.interp_var_scale is None else model.interp_var_scale[a]
     r0 = np.zeros(D) if model.residual_var is None else model.residual_var[a]
     v = _dense_interpolation_var(model, s, a)
@@ -112,8 +112,8 @@ WITH_ERROR_TERMS = {
 
 @pytest.mark.parametrize(
     "terms",
-    [{}, WITH_ERROR_TERMS, {**WITH_ERROR_TERMS, "filter_weights": "prior_mean"}],
-    ids=["plain", "terms", "terms-prior-mean"],
+    [{}, WITH_ERROR_TERMS, {**WITH_ERROR_TERMS, "filter_weights": "training"}],
+    ids=["plain", "terms", "terms-training"],
 )
 def test_batch_update_equals_single_updates_and_conjugate_posterior(terms):
     model = dataclasses.replace(_model(), **terms)
@@ -238,9 +238,9 @@ def test_filter_is_calibrated_on_data_from_its_own_likelihood():
     # truth 95% of the time (400 trials: sd 1.1%; the bounds are ±4 sd). This
     # checks the update end to end (prior, noise and region together), not
     # whether the model-error terms match a real model's errors (README,
-    # coverage, measures that). The paper's filter trusts σ² alone, 2-1,300×
-    # (median 39×) too small here, and its regions miss far more often (93% and
-    # 3.25% here, as README quotes).
+    # coverage, measures that). The paper's filter trusts σ² alone, 2-900×
+    # (median 36×) too small here, and its regions miss far more often (93.5% and
+    # 3.5% here, as README quotes).
     model = dataclasses.replace(_model(5), **WITH_ERROR_TERMS)
     assert 0.906 <= _coverage(model, 400, 30, seed=6) <= 0.994
     assert _coverage(model, 400, 30, seed=6, model_error=False) < 0.8

@@ -177,8 +177,17 @@ def test_save_load_identical_predictions(fitted, tmp_path):
 def test_the_filter_weights_setting_is_fitted_saved_and_loaded(fitted, tmp_path):
     """fit gives the model FitConfig.filter_weights; the file keeps it; a file
     written before the setting existed loads as it filtered, at μ_w."""
-    assert fitted.filter_weights == CONFIG.filter_weights == "training"
-    old = dataclasses.replace(fitted, filter_weights="prior_mean")
+    assert fitted.filter_weights == CONFIG.filter_weights == "prior_mean"
+    new = fitted
+    fitted = fit(
+        _batch(),
+        dataclasses.replace(CONFIG, filter_weights="training"),
+        rng=np.random.default_rng(1),
+    )
+    assert fitted.filter_weights == "training"
+    for k in ("z", "f", "weights", "mu_w", "support"):  # only the filter differs
+        np.testing.assert_array_equal(getattr(fitted, k), getattr(new, k))
+    old = new
     data = _instance(7, np.array([0.5, 0.5]), 30, np.random.default_rng(3))
     # the two settings filter differently on this model (its weights spread)
     assert not np.allclose(

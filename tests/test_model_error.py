@@ -90,24 +90,24 @@ def test_predict_and_the_filter_add_the_terms(fitted):  # noqa: F811
     a = data.actions
     v = fitted.interpolation_var(data.states, data.actions)
     # the filter: the variance the terms were calibrated as (model_error's
-    # σ² + c u + r0, u = v Σ_k z w[k,b]²), averaged over the training instances b
+    # σ² + c u + r0, u = v Σ_k z w[k,b]²), with Σ_k z w[k,b]² at the prior mean
+    # weights, or averaged over the training instances b (filter_weights)
     assert np.all(fitted.weights[0] == 1.0)  # feature 0, the mean dynamics
-
-    def calibrated(c, r0):
-        return np.mean(
-            [
+    w2 = {
+        "prior_mean": np.concatenate([[1.0], fitted.mu_w[1:] ** 2]),
+        "training": np.mean(fitted.weights**2, axis=1),
+    }
+    for setting, mean_w2 in w2.items():
+        for model, c_, r0_ in [(both, c, r0), (plain, np.ones_like(c), 0 * r0)]:
+            model = dataclasses.replace(model, filter_weights=setting)
+            want = (
                 fitted.hyper.noise_var[a]
-                + c[a] * v * np.einsum("k,knd->nd", w**2, fitted.z[:, a])
-                + r0[a]
-                for w in fitted.weights.T
-            ],
-            axis=0,
-        )
-
-    for model, terms in [(both, (c, r0)), (plain, (np.ones_like(c), 0 * r0))]:
-        np.testing.assert_allclose(
-            model.filter_noise(data.states, a), calibrated(*terms), rtol=1e-10
-        )
+                + c_[a] * v * np.einsum("k,knd->nd", mean_w2, fitted.z[:, a])
+                + r0_[a]
+            )
+            np.testing.assert_allclose(
+                model.filter_noise(data.states, a), want, rtol=1e-10
+            )
     # the paper's filter ignores them
     b_plain = plain.update(plain.prior(), data, model_error=False)
     b_both = both.update(both.prior(), data, model_error=False)
