@@ -68,7 +68,7 @@ class FitConfig:
     with the model error"). "prior_mean": the prior mean weights μ_w. "training":
     the squared weights averaged over the training instances, as `model_error`
     calibrated c; that keeps the weights' spread (a factor 17-36× larger on the
-    acrobot), but measured it predicted no better (README, "The filter's
+    acrobot), but measured it gains nothing consistent (README, "The filter's
     model-error weights"). It changes only the filter, not the fit.
 
     The paper's cartpole run: n_support=750, n_sweeps=250, alpha=2, sigma_w=4.
