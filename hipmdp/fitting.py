@@ -46,7 +46,7 @@ class FitConfig:
     |----------------|--------------------------------------------|------------|-------|
     | n_support      | m, number of support points S*             | 750        | >= 1  |
     | n_sweeps       | Gibbs sweeps per chain                     | 250        | >= 1  |
-    | n_chains       | independent chains; the best one is kept  | 2          | >= 1  |
+    | n_chains       | chains; the best sample of all is kept    | 2          | >= 1  |
     | alpha          | IBP concentration α                        | 2.0        | > 0   |
     | sigma_w        | σ_w, w[k,b] ~ N(μ_w[k], σ_w²)              | 4.0        | > 0   |
     | sigma_w0       | σ_w0, μ_w[k] ~ N(0, σ_w0²)                 | 4.0        | > 0   |
@@ -67,8 +67,9 @@ class FitConfig:
     (1 + Σ_k z w_k²) of its model-error variance τ² (`hipmdp.model`, "Filtering
     with the model error"). "prior_mean": the prior mean weights μ_w. "training":
     the squared weights averaged over the training instances, as `model_error`
-    calibrated c; that keeps the weights' spread (a factor 17-36× larger on the
-    acrobot), but measured it gains nothing consistent (README, "The filter's
+    calibrated c (up to its weighting by each instance's transitions); that keeps
+    the weights' spread (a factor typically 17-36× larger on the acrobot), but
+    measured it gains nothing consistent (README, "The filter's
     model-error weights"). It changes only the filter, not the fit.
 
     The paper's cartpole run: n_support=750, n_sweeps=250, alpha=2, sigma_w=4.

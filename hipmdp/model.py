@@ -43,18 +43,20 @@ Filtering with the model error. The filter's likelihood for one (transition, dim
 row is N(Δ; f_1 + F w, τ²), and τ² must be the model's error given the weights, not
 σ² alone: with σ² ~ 1e-8 against real errors ~ 1e-4 the belief collapses after a few
 transitions onto whichever weights fit them, and its covariance means nothing. `update`
-uses the variance above without the weight-uncertainty term, with the weights at their
-prior mean μ_w (the mean training weight):
+uses the variance above without the weight-uncertainty term, by default
+(`filter_weights="prior_mean"`) with the weights at their prior mean μ_w, which `fit`
+sets to the mean training weight:
 
     τ²[i,d] = σ² + c[a,d] v_ad(s_i) (1 + Σ_{k>1} z[k,a,d] μ_w[k]²) + r0[a,d].
 
 c was calibrated with each training instance's own weights (`fitting.model_error`);
 that factor's mean keeps the weights' spread, mean_b w² = μ_w² + var_b w, and is
-17-36× larger on the acrobot. `filter_weights="training"` filters with that mean,
-mean_b w[k,b]², instead. It is not the default because, measured, it gains nothing
-consistent: held-out log-likelihood 27 nats lower on the paper-size acrobot and 8
-higher on the cart-pole, per-setting MSE level (README, "The filter's model-error
-weights").
+typically 17-36× larger on the acrobot. (The calibration weighs each instance by its
+transitions; the mean here weighs instances equally, as balanced batches do.)
+`filter_weights="training"` filters with that mean, mean_b w[k,b]², instead. It is
+not the default because, measured, it gains nothing consistent: held-out
+log-likelihood 27 nats lower on the paper-size acrobot and 8 higher on the cart-pole,
+per-setting MSE level (README, "The filter's model-error weights").
 
 Because τ² does not depend on the belief, the update stays linear-Gaussian: one update
 with n transitions still equals n single ones. `update(..., model_error=False)` is the
@@ -140,7 +142,8 @@ class HipMDP:
             predictive variance (module docstring), each (A, D), or None.
         filter_weights: the weights of the filter's model-error factor,
             "prior_mean" (μ_w², module docstring) or "training" (mean_b w[k,b]²;
-            see `hipmdp.FitConfig`).
+            see `hipmdp.FitConfig`). This field is what the filter uses;
+            `info["config"]` records what `fit` was given.
     """
 
     support: Array

@@ -589,7 +589,7 @@ def run_or_exit(parser, fn: Callable[[], Any]) -> Any:
 
 def common_parser(prog: str, doc: str, presets: Sequence[str], out_default: str):
     """The options every experiment has: --preset, --seed, --out, --workers,
-    --no-record, --no-progress."""
+    --filter-weights, --no-record, --no-progress."""
     parser = argparse.ArgumentParser(
         prog=prog,
         description=doc.split("\n\n")[0],
@@ -670,7 +670,7 @@ def apply_common(
         changes["workers"] = args.workers
     if args.filter_weights is not None:
         changes["fit"] = dataclasses.replace(
-            preset.fit, filter_weights=args.filter_weights
+            changes.get("fit", preset.fit), filter_weights=args.filter_weights
         )
     if args.no_record:
         changes["record"] = False

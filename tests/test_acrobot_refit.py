@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 from pathlib import Path
 
@@ -55,7 +56,9 @@ def test_changed_settings_reach_the_model_and_the_checks(run, tmp_path):
     assert finished.hip.hyper.periodic == finished.average.hyper.periodic == (0, 1)
 
 
-def test_a_run_without_filter_weights_refits_with_the_filter_it_ran(run, tmp_path):
+def test_a_run_without_filter_weights_refits_with_the_filter_it_ran(
+    run, tmp_path, monkeypatch
+):
     # a run written before FitConfig.filter_weights filtered at μ_w: a refit
     # keeps that, and changing only the filter leaves every fitted array as it was
     old = tmp_path / "old"
@@ -65,8 +68,12 @@ def test_a_run_without_filter_weights_refits_with_the_filter_it_ran(run, tmp_pat
     config = json.loads((old / "config.json").read_text())
     assert config["fit"].pop("filter_weights") == "prior_mean"  # TINY's
     (old / "config.json").write_text(json.dumps(config))
+    # even were FitConfig's default another, the old run's value is its own
+    other_default = functools.partial(hipmdp.FitConfig, filter_weights="training")
+    monkeypatch.setattr(acrobot_refit.hipmdp, "FitConfig", other_default)
     same = acrobot_refit.main(old, tmp_path / "same", {}, progress=False).model
     assert same.filter_weights == "prior_mean"
+    monkeypatch.undo()
     res = acrobot_refit.main(
         old, tmp_path / "new", {"filter_weights": "training"}, progress=False
     )

@@ -56,6 +56,14 @@ def test_an_experiment_older_than_a_field_counts_as_its_old_behaviour(tmp_path):
         "methods.0": [None, "x=m:A"],
         "split": ["random", "time"],
     }
+    # and within the fit: before periodic and filter_weights, neither was on
+    fit = {"n_sweeps": 60, "periodic": False}
+    d = _run(
+        tmp_path / "d", config=old | {"fit": fit | {"filter_weights": "prior_mean"}}
+    )
+    assert main(a, d).config == {}
+    e = _run(tmp_path / "e", config=old | {"fit": fit | {"filter_weights": "training"}})
+    assert main(a, e).config == {"fit.filter_weights": ["prior_mean", "training"]}
 
 
 def test_a_model_older_than_a_field_counts_as_its_old_behaviour():

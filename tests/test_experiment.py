@@ -31,6 +31,7 @@ from tasks.experiment import (
     run_dir,
     to_jsonable,
     trial_seeds,
+    with_added_fields,
     write_json,
 )
 
@@ -46,6 +47,20 @@ def test_mean_ci_matches_t_interval_and_covers_at_nominal_rate():
     # 400 independent intervals: coverage ~ Binomial(400, .95)/400, sd ~ 0.011
     coverage = np.mean((ci["low"] <= 3.0) & (3.0 <= ci["high"]))
     assert abs(coverage - 0.95) < 4 * np.sqrt(0.95 * 0.05 / 400)
+
+
+def test_an_older_config_reads_with_the_values_it_ran_with():
+    old = {"seed": 0, "fit": {"n_sweeps": 60}}
+    assert with_added_fields(old) == {
+        "seed": 0,
+        "split": "random",
+        "methods": [],
+        "fit": {"n_sweeps": 60, "periodic": False, "filter_weights": "prior_mean"},
+    }
+    new = {"seed": 0, "split": "time", "methods": ["m"], "fit": {"periodic": True}}
+    assert with_added_fields(new)["fit"]["periodic"] is True  # its own kept
+    assert with_added_fields(new)["split"] == "time"
+    assert old == {"seed": 0, "fit": {"n_sweeps": 60}}  # not changed in place
 
 
 def test_mean_ci_single_sample_is_a_point():

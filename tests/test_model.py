@@ -133,8 +133,9 @@ def test_mean_predictor_is_predict_mean_at_the_belief(fitted):
         want = m.predict_mean(S, acts, belief)
         got = m.mean_predictor(belief)(S, acts)
         # the two sum k(s, S*) c in different orders, and the coefficients
-        # c = (K + σ² I)⁻¹ f are large and cancel: round-off reaches ~6e-12 on
-        # outputs ~5, where a mis-folded feature or z mask is off by O(1)
+        # c = (K + σ² I)⁻¹ f are large and cancel: round-off scales with the
+        # terms (~5 here), not with each output (one of 0.02 was 3e-12 off with
+        # another belief); a mis-folded feature or z mask is off by O(1)
         np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-10)
     assert not np.allclose(model.mean_predictor(model.prior())(S, acts), want)
     with pytest.raises(ValueError, match="belief"):

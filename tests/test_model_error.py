@@ -97,6 +97,7 @@ def test_predict_and_the_filter_add_the_terms(fitted):  # noqa: F811
         "prior_mean": np.concatenate([[1.0], fitted.mu_w[1:] ** 2]),
         "training": np.mean(fitted.weights**2, axis=1),
     }
+    assert not np.allclose(w2["prior_mean"], w2["training"])  # the check can tell
     for setting, mean_w2 in w2.items():
         for model, c_, r0_ in [(both, c, r0), (plain, np.ones_like(c), 0 * r0)]:
             model = dataclasses.replace(model, filter_weights=setting)
