@@ -55,7 +55,7 @@ typically 17-36× larger on the acrobot. (The calibration weighs each instance b
 transitions; the mean here weighs instances equally, as balanced batches do.)
 `filter_weights="training"` filters with that mean, mean_b w[k,b]², instead. It is
 not the default because, measured, it gains nothing consistent: held-out
-log-likelihood 27 nats lower on the paper-size acrobot and 8 higher on the cart-pole,
+log-likelihood 26-27 nats lower on the paper-size acrobot, 8 higher on the cart-pole,
 per-setting MSE level (README, "The filter's model-error weights").
 
 Because τ² does not depend on the belief, the update stays linear-Gaussian: one update
