@@ -46,7 +46,7 @@ class FitConfig:
     |----------------|--------------------------------------------|------------|-------|
     | n_support      | m, number of support points S*             | 750        | >= 1  |
     | n_sweeps       | Gibbs sweeps per chain                     | 250        | >= 1  |
-    | n_chains       | chains; the best sample of all is kept    | 2          | >= 1  |
+    | n_chains       | chains; the best sample of all is kept     | 2          | >= 1  |
     | alpha          | IBP concentration α                        | 2.0        | > 0   |
     | sigma_w        | σ_w, w[k,b] ~ N(μ_w[k], σ_w²)              | 4.0        | > 0   |
     | sigma_w0       | σ_w0, μ_w[k] ~ N(0, σ_w0²)                 | 4.0        | > 0   |
