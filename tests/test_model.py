@@ -179,26 +179,25 @@ def test_the_filter_weights_setting_is_fitted_saved_and_loaded(fitted, tmp_path)
     """fit gives the model FitConfig.filter_weights; the file keeps it; a file
     written before the setting existed loads as it filtered, at μ_w."""
     assert fitted.filter_weights == CONFIG.filter_weights == "prior_mean"
-    new = fitted
-    fitted = fit(
+    training = fit(
         _batch(),
         dataclasses.replace(CONFIG, filter_weights="training"),
         rng=np.random.default_rng(1),
     )
-    assert fitted.filter_weights == "training"
+    assert training.filter_weights == "training"
     for k in ("z", "f", "weights", "mu_w", "support"):  # only the filter differs
-        np.testing.assert_array_equal(getattr(fitted, k), getattr(new, k))
-    old = new
+        np.testing.assert_array_equal(getattr(training, k), getattr(fitted, k))
     data = _instance(7, np.array([0.5, 0.5]), 30, np.random.default_rng(3))
     # the two settings filter differently on this model (its weights spread)
     assert not np.allclose(
-        old.filter_noise(data.states, data.actions),
         fitted.filter_noise(data.states, data.actions),
+        training.filter_noise(data.states, data.actions),
     )
-    for model in (fitted, old):
+    for model in (training, fitted):
         loaded = load(model.save(tmp_path / "model.npz"))
         assert loaded.filter_weights == model.filter_weights
-    path = old.save(tmp_path / "old.npz")
+    # a file from before: training's arrays without the setting in its metadata
+    path = training.save(tmp_path / "old.npz")
     with np.load(path, allow_pickle=False) as npz:
         arrays = {k: npz[k] for k in npz.files}
     meta = json.loads(str(arrays["meta_json"]))
