@@ -48,7 +48,6 @@ from tasks.experiment import (
     fmt_value,
     markdown_table,
     mean_ci,
-    with_added_fields,
     write_json,
 )
 from tasks.prediction import best_baseline
@@ -185,9 +184,9 @@ def experiment_of(metrics: dict) -> str | None:
 
 
 def _settings(config: dict) -> dict[str, Any]:
-    """A config without its LABELS, with the fields an older run lacks
-    (``with_added_fields``)."""
-    return {k: v for k, v in with_added_fields(config).items() if k not in LABELS}
+    """A config without its LABELS (``read_run`` has given it the fields an older
+    run lacks)."""
+    return {k: v for k, v in config.items() if k not in LABELS}
 
 
 def read_runs(runs: Sequence[str | Path]) -> tuple[str, list[dict], list[dict]]:
