@@ -395,6 +395,7 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
         test_settings_seen=mse["test"]["seen"],
         unseen=mse["test"]["unseen"],
         per_setting_mse=mse["test"]["per_setting_mse"],
+        per_setting_loglik=mse["test"]["per_setting_loglik"],
         approximation_floor=mse["floor"]["mse"] if mse["floor"] else None,
         n_latent_features=int(hip.n_features) - 1,
         z=hip.z.astype(int).tolist(),

@@ -259,6 +259,7 @@ def main(config: PredictionConfig, out: str | os.PathLike | None = None) -> Resu
         "unseen": unseen
         and {**unseen, "mse_ratio_to_best_baseline": _ratios(unseen["mse"])},
         "per_setting_mse": table["per_setting_mse"],
+        "per_setting_loglik": table["per_setting_loglik"],
         "n_latent_features": [int(h.n_features) - 1 for h in hips],
         "z": [h.z.astype(int).tolist() for h in hips],
         "training_weights": [np.asarray(h.weights).tolist() for h in hips],

@@ -16,7 +16,8 @@ reports, from the first place results can part to the last:
    absolute difference, or the shapes;
 4. ``metrics``: the values in ``metrics.json`` (timings and environment aside)
    that differ, summarised per top-level key by count and largest relative
-   difference (every value, with both sides, in ``--out``).
+   difference (every value, with both sides, in ``--out``). A metric added since
+   (``ADDED_METRICS``) that only the newer run has is named, not compared.
 
 Settings that only change how a run is shown or scheduled (``progress``,
 ``workers``, ``record``) are not counted as differences.
@@ -48,6 +49,10 @@ from tasks.experiment import (
 
 #: Metrics that say how long a run took, never what it found.
 IGNORED_METRICS = ("seconds",)
+#: Metrics added to metrics.json since the first runs: where one run has one and
+#: the other (written before it existed) lacks it, it is not compared, and the
+#: report says so.
+ADDED_METRICS = ("per_setting_loglik",)
 #: Settings that change how a run is shown or scheduled, never its results.
 PRESENTATION = ("progress", "workers", "record")
 
@@ -59,7 +64,8 @@ class Comparison(NamedTuple):
     ``arrays`` maps ``file:array`` to ``"identical"``, ``{"max_abs_diff": x,
     "n_differ": k, "size": n}`` (numbers), ``{"json": differences}`` (a JSON
     string) or ``{"shapes": [a, b]}``; ``only_in`` lists the ``.npz`` files that one
-    folder has and the other lacks.
+    folder has and the other lacks; ``not_compared``, the metrics (of
+    ``ADDED_METRICS``) that one run has and the other, older one lacks.
     """
 
     config: dict[str, list]
@@ -67,6 +73,7 @@ class Comparison(NamedTuple):
     arrays: dict[str, Any]
     metrics: dict[str, list]
     only_in: dict[str, list[str]]
+    not_compared: tuple[str, ...] = ()
 
     @property
     def identical(self) -> bool:
@@ -209,6 +216,12 @@ def main(run_a: str | Path, run_b: str | Path, out: str | Path | None = None):
     config_b, metrics_b, env_b = read_run(b)
     config = differences(config_a, config_b, PRESENTATION)
     environment = differences(env_a, env_b) if env_a and env_b else "unrecorded"
+    not_compared = tuple(
+        key for key in ADDED_METRICS if (key in metrics_a) != (key in metrics_b)
+    )
+    for key in not_compared:  # one run is older than the metric
+        metrics_a.pop(key, None)
+        metrics_b.pop(key, None)
     metrics = differences(metrics_a, metrics_b)
     names_a = {p.name for p in a.glob("*.npz")}
     names_b = {p.name for p in b.glob("*.npz")}
@@ -216,7 +229,7 @@ def main(run_a: str | Path, run_b: str | Path, out: str | Path | None = None):
     for name in sorted(names_a & names_b):
         arrays |= _compare_files(a / name, b / name)
     only_in = {str(a): sorted(names_a - names_b), str(b): sorted(names_b - names_a)}
-    result = Comparison(config, environment, arrays, metrics, only_in)
+    result = Comparison(config, environment, arrays, metrics, only_in, not_compared)
     if out is not None:
         write_json(out, result._asdict() | {"identical": result.identical})
     return result
@@ -271,6 +284,11 @@ def report(result: Comparison, limit: int = 10) -> str:
         + ("the same" if not result.metrics else f"{len(result.metrics)} values differ")
     )
     lines += _show(metric_groups(result.metrics), limit)
+    if result.not_compared:
+        lines.append(
+            "  not compared (one run is older than them): "
+            + ", ".join(result.not_compared)
+        )
     lines.append(
         "verdict: "
         + ("identical results" if result.identical else "the results differ")

@@ -250,7 +250,10 @@ def summarise(
     ``loglik_difference[method]`` (HiP-MDP minus method; > 0 favours the HiP-MDP)
     and ``coverage[method][level][dim]`` (level as ``"0.95"``; the share of
     held-out Δ inside the central predictive interval), and ``per_instance``, the
-    same values setting by setting.
+    same values setting by setting. ``per_setting_mse[method]`` (setting,
+    dimension) and ``per_setting_loglik[method]`` (setting; the test log-likelihood
+    in nats, summed over the setting's held-out Δ) are what metrics.json stores,
+    so that two runs on the same settings can be compared setting by setting.
 
     ``seen[i]``: whether instance i has the parameters of a training instance (the
     test grids include the training settings, as in the paper). Given, the result
@@ -292,6 +295,9 @@ def summarise(
     out["per_instance"] = per_instance
     out["per_setting_mse"] = {  # [setting][dimension], as metrics.json stores it
         m: [s.mse[m].tolist() for s in scores] for m in methods
+    }
+    out["per_setting_loglik"] = {  # [setting], nats; the HiP-MDP's: mean over fits
+        m: [float(s.loglik[m]) for s in scores] for m in methods
     }
     out["mse_ratio_per_setting"] = mse_ratios(per_instance["mse"])
     if seen is not None:

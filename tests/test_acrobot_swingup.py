@@ -112,6 +112,10 @@ def test_metrics_schema(run):
         for d, v in dims.items():
             assert m["unseen"]["mse"][method][d]["mean"] == pytest.approx(v["mean"])
         assert np.array(m["per_setting_mse"][method]).shape == (1, 4)
+        assert len(m["per_setting_loglik"][method]) == 1
+    for method, lead in m["loglik_difference"].items():  # HiP-MDP minus method
+        ll = m["per_setting_loglik"]
+        assert lead["mean"] == pytest.approx(ll["hipmdp"][0] - ll[method][0])
     for d in m["paired_difference"].values():  # one setting: its mean is the mean
         assert d["by_setting"]["mean"] == pytest.approx(d["all_episodes"]["mean"])
         assert d["by_setting"]["n"] == 1

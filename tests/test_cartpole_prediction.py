@@ -64,6 +64,12 @@ def test_artefacts_and_schema(run):
         np.testing.assert_allclose(
             [m["mse"][method][d]["mean"] for d in DIM_NAMES], per_setting.mean(0)
         )
+    # the log-likelihood differences are the per-setting ones' mean
+    hip_ll = np.array(m["per_setting_loglik"]["hipmdp"])
+    assert hip_ll.shape == (2,)
+    for method, lead in m["loglik_difference"].items():
+        base_ll = np.array(m["per_setting_loglik"][method])
+        assert lead["mean"] == pytest.approx(np.mean(hip_ll - base_ll))
     assert len(m["n_latent_features"]) == 2 and len(m["z"]) == 2
     # no test setting of TINY is a training one
     assert m["test_settings_seen"] == [False, False]
@@ -188,6 +194,9 @@ def test_summarise_separates_the_settings_seen_in_training():
     assert diff["batch + train"]["mean"] == pytest.approx(-3 * 7 / 3)
     assert table["unseen"]["loglik_difference"]["train only"]["mean"] == -6.0
     assert table["per_instance"]["loglik_difference"]["batch only"] == [-1, -2, -4]
+    # each method's own log-likelihood, setting by setting, as metrics.json keeps
+    assert table["per_setting_loglik"]["hipmdp"] == [1.0, 2.0, 4.0]
+    assert table["per_setting_loglik"]["batch + train"] == [4.0, 8.0, 16.0]
     assert summarise([scores(1.0)], DIM_NAMES, [True])["unseen"] is None
     with pytest.raises(ValueError, match="seen: expected 1 flags"):
         summarise([scores(1.0)], DIM_NAMES, [True, False])

@@ -127,6 +127,26 @@ def test_runs_from_before_the_environment_was_recorded(tmp_path):
     assert result.environment == "unrecorded" and result.identical
 
 
+def test_a_metric_added_since_is_named_not_compared(tmp_path):
+    """A run written before ``per_setting_loglik`` existed reproduces a newer
+    one if everything both have agrees; where both have it, it counts."""
+    base = {"paired_difference": {"hipmdp - average": -0.5}, "n": [1, 2]}
+    a = _run(tmp_path / "a", metrics=base)
+    b = _run(tmp_path / "b", metrics=base | {"per_setting_loglik": {"x": [1.0]}})
+    result = main(a, b)
+    assert result.identical and result.not_compared == ("per_setting_loglik",)
+    assert "not compared (one run is older than them): per_setting_loglik" in (
+        report(result)
+    )
+    c = _run(tmp_path / "c", metrics=base | {"per_setting_loglik": {"x": [2.0]}})
+    result = main(b, c)
+    assert result.metrics == {"per_setting_loglik.x.0": [1.0, 2.0]}
+    assert not result.not_compared and not result.identical
+    # a metric not known to be newer still counts when one run lacks it
+    d = _run(tmp_path / "d", metrics=base | {"other": 1})
+    assert main(a, d).metrics == {"other": [None, 1]}
+
+
 def test_files_and_arrays_only_one_run_has(tmp_path):
     a, b = _run(tmp_path / "a"), _run(tmp_path / "b")
     (b / "model.npz").unlink()

@@ -435,7 +435,10 @@ def test_a_run_with_added_methods_reports_them_and_changes_nothing_else(runs):
     for m in (a, b):
         del m["seconds"], m["environment"]
     assert without(b, {"linear", "zero"}) == a
-    for key in ("mse", "loglik_difference", "coverage", "per_setting_mse"):
+    for key in (
+        "mse", "loglik_difference", "coverage", "per_setting_mse",
+        "per_setting_loglik",
+    ):  # fmt: skip
         assert set(b[key]) - set(a[key]) == {"linear", "zero"}, key
     assert set(b["unseen"]["mse"]) == set(b["mse"])
     assert set(b["mse_ratio_per_setting"]) == set(a["mse_ratio_per_setting"]) | {
