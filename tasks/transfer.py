@@ -10,7 +10,8 @@ For one test instance, one trial and one method:
    (one batched update after the episode: the belief is not used within it, so
    this is online filtering up to round-off, see ``_filter_episode``); then run
    ``planning_episodes`` simulated episodes on the model with the posterior-mean
-   weights (the average and true models stay as they are). After the first real
+   weights (the average and true models stay as they are); not after the last
+   real episode, whose value function nothing would use. After the first real
    episode, ``first_planning_episodes`` simulated episodes instead, if set (not
    the paper's protocol: a check of whether the agent can use an instance
    identified in one episode, given more planning). With ``replan_after_first``
@@ -65,7 +66,8 @@ class TransferConfig:
 
     Attributes:
         n_episodes: real episodes per trial.
-        planning_episodes: simulated episodes after each real episode (paper: 5).
+        planning_episodes: simulated episodes after each real episode but the
+            last (paper: 5).
         first_planning_episodes: simulated episodes after the first real episode
             instead of ``planning_episodes``; None (the paper's protocol) for the
             same number as after every other.
@@ -278,6 +280,8 @@ def run_trial(job: TrialJob) -> TrialResult:
             traces.append(trace)
         if belief is not None:
             weight_means.append(_belief_moments(belief)[0])
+        if episode_index == config.n_episodes - 1:
+            break  # no episode follows to use another planning's value function
         model = model_now()
         if episode_index == 0 and config.replan_after_first:
             state = fresh_state()

@@ -227,7 +227,10 @@ def test_true_first_plans_on_the_simulator_until_the_first_update(run):
 def test_first_planning_changes_only_the_planning_after_the_first_episode(planned):
 
     init, calls = planned
-    base = TINY.transfer  # 1 initial, 2 real episodes, 1 planning episode each
+    # 1 initial planning episode, 3 real episodes, 1 planning episode after each
+    # but the last (no episode follows it)
+    base = dataclasses.replace(TINY.transfer, n_episodes=3)
+    assert base.initial_planning_episodes == base.planning_episodes == 1
     for first, expected in ((None, [1, 1, 1]), (3, [1, 3, 1])):
         init(dataclasses.replace(base, first_planning_episodes=first))
         acrobot_identified._job(
@@ -288,8 +291,9 @@ def test_replan_variant_plans_again_from_a_fresh_value_function(planned, monkeyp
     fresh = init_state(
         ACROBOT.n_actions, ACROBOT.basis().n_features, ACROBOT.initial_value
     ).weights
-    # 2 initial episodes, 2 real ones with 1 planning episode after each
-    base = dataclasses.replace(TINY.transfer, initial_planning_episodes=2)
+    # 2 initial episodes, 3 real ones with 1 planning episode after each but the
+    # last
+    base = dataclasses.replace(TINY.transfer, initial_planning_episodes=2, n_episodes=3)
     for variant, first in (
         ("hipmdp", None),
         ("hipmdp_replan", None),
@@ -461,7 +465,8 @@ def test_energy_variants_plan_on_the_conserving_model_of_their_method(
         init(TINY.transfer)
         seen.clear()
         acrobot_identified._job((variant, 0, 0, setting_params(*masses), (7, ())))
-        assert len(seen) == 1 + TINY.transfer.n_episodes
+        # the initial planning and one after each real episode but the last
+        assert len(seen) == TINY.transfer.n_episodes
         for model in seen:
             if inner is None:  # the simulator is never wrapped
                 assert isinstance(model, SimulatorModel)
@@ -505,7 +510,7 @@ def test_the_planning_wrapper_skips_the_simulator_and_spares_the_recording(run):
     result = transfer.run_trial(
         transfer.TrialJob("hipmdp", 0, 0, params, (7, ()), True)
     )
-    assert len(wrapped) == 1 + TINY.transfer.n_episodes
+    assert len(wrapped) == TINY.transfer.n_episodes  # as many plannings
     # the trace holds no actions: the first prediction must be the prior-mean
     # model's for one of them, and the energy-conserving one's for none
     trace = result.traces[0]

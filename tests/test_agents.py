@@ -3,13 +3,15 @@ model steps exactly as the environment, and planning on it helps a fresh agent."
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy import stats
 
 from hipmdp.data import Transitions
 from hipmdp.planning import plan
-from hipmdp.sarsa import init_state
+from hipmdp.sarsa import SarsaState, epsilon_greedy, init_state, sarsa_update
 from tasks import acrobot, cartpole
 from tasks.agents import (
     ACROBOT,
@@ -86,6 +88,59 @@ def test_simulator_model_steps_exactly_as_the_environment(domain, params) -> Non
     # a batch is the same as its rows one at a time
     for n in (0, len(actions) - 1):
         np.testing.assert_array_equal(got[n], model.step(states[n], int(actions[n])))
+
+
+def _episode_by_hand(env, basis, config, weights, rng):
+    """Sarsa(λ) on a live environment from ``sarsa_update`` alone: a' is drawn
+    once per step and both updates with and then acts; the last step bootstraps
+    unless the episode ended in a terminal state (dm_env discount 0)."""
+    state = SarsaState(weights, np.zeros_like(weights))
+    alphas = config.alpha * basis.step_scale
+    time_step = env.reset()
+    phi = basis(time_step.observation["state"])
+    a = epsilon_greedy(state.weights @ phi, config.epsilon, rng=rng)
+    actions = []
+    while True:
+        time_step = env.step(a)
+        actions.append(a)
+        phi2 = basis(time_step.observation["state"])
+        a2 = epsilon_greedy(state.weights @ phi2, config.epsilon, rng=rng)
+        ends = time_step.last()
+        bootstrap = not (ends and time_step.discount == 0.0)
+        state = sarsa_update(state, phi, a, float(time_step.reward),
+                             phi2 if bootstrap else None, a2, alphas,
+                             config).state  # fmt: skip
+        if ends:
+            return state.weights, actions, not bootstrap
+        phi, a = phi2, a2
+
+
+@pytest.mark.parametrize(
+    ("max_steps", "terminal"),
+    [(5, False), (1000, True)],  # cut at the step limit / the pole falls
+    ids=["step-limit", "terminal"],
+)
+def test_run_episode_is_sarsa_by_hand(max_steps, terminal) -> None:
+    """An exploring agent (ε = 0.5) on the cart-pole: run_episode's weights,
+    actions and end equal the hand-written loop's, for an episode cut at the step
+    limit (which bootstraps) and one that ends with the pole down (which does
+    not). Random weights: the values at s' matter, so a missing or extra
+    bootstrap shows."""
+    basis = CARTPOLE.basis()
+    config = dataclasses.replace(CARTPOLE.sarsa, epsilon=0.5)
+    weights = np.random.default_rng(0).normal(size=(2, basis.n_features))
+    out = run_episode(
+        CARTPOLE.make_env(None, seed=4, max_steps=max_steps), basis, config,
+        SarsaState(weights, np.zeros_like(weights)), rng=np.random.default_rng(5),
+    )  # fmt: skip
+    expect, actions, ended_terminal = _episode_by_hand(
+        CARTPOLE.make_env(None, seed=4, max_steps=max_steps), basis, config,
+        weights, np.random.default_rng(5),
+    )  # fmt: skip
+    assert ended_terminal == terminal == out.terminal
+    assert len(actions) == (max_steps if not terminal else len(out.actions)) > 1
+    np.testing.assert_array_equal(out.actions, actions)
+    np.testing.assert_allclose(out.state.weights, expect, rtol=0, atol=1e-12)
 
 
 def test_planner_model_calls_match_the_simulator_step_for_step() -> None:

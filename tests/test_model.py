@@ -240,6 +240,12 @@ def test_save_bytes_depend_only_on_the_model(fitted, tmp_path):
         fitted.save(tmp_path / "model.bin")
 
 
+def _last_nan(x):
+    x = np.array(x, dtype=float)
+    x.flat[-1] = np.nan
+    return x
+
+
 @pytest.mark.parametrize(
     ("name", "edit", "match"),
     [
@@ -248,12 +254,17 @@ def test_save_bytes_depend_only_on_the_model(fitted, tmp_path):
         ("signal_var", lambda x: x[:1], r"signal_var: expected shape"),
         ("f", lambda x: x[0], r"f: expected shape \(K, A, D, m\)"),
         ("weights", lambda x: x[:, :-1], r"weights: expected shape \(K, B\)"),
+        # row 0 is the mean dynamics' weight, 1 by construction; others finite
+        ("weights", lambda x: np.vstack([3 * x[:1], x[1:]]), r"weights: .*row 0"),
+        ("weights", lambda x: _last_nan(x), r"weights: expected finite values"),
+        ("mu_w", lambda x: _last_nan(x), r"mu_w: expected finite values"),
         ("meta_json", lambda x: np.array("{not json"), "meta_json is not valid JSON"),
     ],
 )
 def test_load_names_the_field_of_a_damaged_file(fitted, tmp_path, name, edit, match):
     """A hand-edited or damaged model file fails on load, naming the file and
     the field, not later inside numpy or scipy."""
+    assert fitted.n_features > 1  # so that _last_nan damages a learned weight
     path = fitted.save(tmp_path / "model.npz")
     with np.load(path, allow_pickle=False) as npz:
         arrays = {k: npz[k] for k in npz.files}
@@ -297,6 +308,18 @@ def test_filtering_data_must_treat_angles_as_the_fit_did(fitted):
 def test_config_out_of_range(field, value):
     with pytest.raises(ValueError, match=f"FitConfig.{field}"):
         FitConfig(**{field: value})
+
+
+def test_config_takes_numpy_numbers_as_python_ones():
+    """A config built from numpy numbers (e.g. read from an array) must still go
+    into a model file's JSON metadata: else `save` fails after the whole fit."""
+    config = FitConfig(
+        n_support=np.int64(20), n_sweeps=np.int32(3), alpha=np.float32(1.5),
+        sigma_w=np.float64(2.0), filter_weights=np.str_("training"),
+    )  # fmt: skip
+    assert type(config.n_support) is int and type(config.alpha) is float
+    assert type(config.filter_weights) is str
+    assert json.loads(json.dumps(dataclasses.asdict(config)))["alpha"] == 1.5
 
 
 @pytest.fixture

@@ -3,6 +3,8 @@ episodes, and Dyna planning against a sequential Sarsa(λ) reference."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -120,14 +122,19 @@ def test_simulated_episodes_end_at_terminal_or_step_limit() -> None:
     np.testing.assert_allclose(episodes.states[:, 0], [1.05, 0.5, 0.9])
 
 
-def test_plan_with_one_episode_at_a_time_is_sequential_sarsa() -> None:
+@pytest.mark.parametrize("max_steps", [60, 4])
+def test_plan_with_one_episode_at_a_time_is_sequential_sarsa(max_steps) -> None:
     """With random (tie-free) weights and ε = 0 the actions are deterministic, so
-    plan() must equal a hand-written loop of sarsa_update on the model."""
+    plan() must equal a hand-written loop of sarsa_update on the model. With
+    max_steps = 4 no episode reaches the goal (8 steps away at best): each is cut
+    at the limit, where the update still bootstraps (only a terminal state does
+    not)."""
     rng = np.random.default_rng(0)
     basis = FourierBasis(3, np.array([0.0]), np.array([1.0]))
     config = SarsaConfig(alpha=0.05, lam=0.9, gamma=1.0, epsilon=0.0)
     start = SarsaState(rng.normal(size=(2, 4)), np.zeros((2, 4)))
-    out = plan(start, basis, config, Corridor(), CORRIDOR_TASK, np.array([[0.2]]), 3,
+    task = dataclasses.replace(CORRIDOR_TASK, max_steps=max_steps)
+    out = plan(start, basis, config, Corridor(), task, np.array([[0.2]]), 3,
                rng=np.random.default_rng(1))  # fmt: skip
 
     weights, model, alphas = start.weights, Corridor(), config.alpha * basis.step_scale
@@ -136,7 +143,7 @@ def test_plan_with_one_episode_at_a_time_is_sequential_sarsa() -> None:
         state = SarsaState(weights, np.zeros_like(weights))
         s = np.array([[0.2]])
         a = int(np.argmax(state.weights @ basis(s[0])))
-        for t in range(1, 61):  # noqa: B007 (t is the episode length after the loop)
+        for t in range(1, max_steps + 1):  # noqa: B007 (t: the episode's length)
             s2 = model.predict(s, np.array([a]))
             terminal = bool(s2[0, 0] >= 1.0 - 1e-9)
             a2 = int(np.argmax(state.weights @ basis(s2[0])))
@@ -151,6 +158,8 @@ def test_plan_with_one_episode_at_a_time_is_sequential_sarsa() -> None:
     np.testing.assert_allclose(out.state.weights, weights, atol=1e-12)
     np.testing.assert_array_equal(out.steps, steps)
     np.testing.assert_array_equal(out.state.traces, 0.0)
+    if max_steps == 4:
+        assert np.all(out.steps == 4) and not out.reached.any()
 
 
 @pytest.mark.parametrize("n_parallel", [1, 4])
