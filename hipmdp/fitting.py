@@ -131,10 +131,11 @@ class FitConfig:
             )
         object.__setattr__(self, "filter_weights", str(self.filter_weights))
         for name in ("periodic", "progress"):
-            if not isinstance(getattr(self, name), bool):
+            if not isinstance(getattr(self, name), bool | np.bool_):
                 raise ValueError(
                     f"FitConfig.{name}: expected a bool, got {getattr(self, name)!r}"
                 )
+            object.__setattr__(self, name, bool(getattr(self, name)))
 
     def periodic_dims(self, data: Transitions) -> tuple[int, ...]:
         """The dimensions every kernel treats as angles: `data.angle_dims` if
@@ -419,7 +420,7 @@ def _fit_error_terms(r2: Array, u: Array, noise: float) -> tuple[float, float]:
     terms, and heavy-tailed residuals put mean(r²), the scale, far above the best
     r0: a single start at the median could step onto that plateau and stop there,
     hundreds of nats short. So L-BFGS-B also starts from r0 at σ² and at 1e-6 of
-    the median, and another start's optimum replaces the first one's only if its
+    the median r², and another start's optimum replaces the first one's only if its
     log-likelihood is higher by more than `ERROR_TERMS_TOLERANCE` (1 nat): where
     the first start did not stall, the others land within the optimiser's
     tolerance of it (on the paper-size acrobot's fits, 0.012 nats at most, on a

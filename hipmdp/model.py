@@ -201,13 +201,12 @@ class HipMDP:
             raise ValueError(f"z: expected bool (K={K}, {A}, {D}) with z[0] all True")
         if self.weights.shape[0] != K or self.mu_w.shape != (K,):
             raise ValueError(f"weights, mu_w: expected {K} rows")
-        for name in ("weights", "mu_w"):  # row 0 is the mean dynamics': w = 1
+        for name in ("weights", "mu_w"):
             w = getattr(self, name)
-            if not np.all(np.isfinite(w)) or not np.all(w[0] == 1.0):
-                raise ValueError(
-                    f"{name}: expected finite values with row 0 (the mean "
-                    "dynamics) all 1"
-                )
+            if not np.all(np.isfinite(w)):
+                raise ValueError(f"{name}: expected finite values")
+            if not np.all(w[0] == 1.0):  # the mean dynamics' weight is 1
+                raise ValueError(f"{name}: expected row 0 (the mean dynamics) all 1")
         object.__setattr__(
             self, "_coef", interpolation_coefficients(self.support, self.hyper, self.f)
         )

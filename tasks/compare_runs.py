@@ -17,7 +17,8 @@ reports, from the first place results can part to the last:
 4. ``metrics``: the values in ``metrics.json`` (timings and environment aside)
    that differ, summarised per top-level key by count and largest relative
    difference (every value, with both sides, in ``--out``). A metric added since
-   (``ADDED_METRICS``) that only the newer run has is named, not compared.
+   (``ADDED_METRICS``) that one run has and the other lacks is named, not
+   compared: the run without it is taken to be older than the metric.
 
 Settings that only change how a run is shown or scheduled (``progress``,
 ``workers``, ``record``) are not counted as differences.

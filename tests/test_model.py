@@ -255,7 +255,11 @@ def _last_nan(x):
         ("f", lambda x: x[0], r"f: expected shape \(K, A, D, m\)"),
         ("weights", lambda x: x[:, :-1], r"weights: expected shape \(K, B\)"),
         # row 0 is the mean dynamics' weight, 1 by construction; others finite
-        ("weights", lambda x: np.vstack([3 * x[:1], x[1:]]), r"weights: .*row 0"),
+        (
+            "weights",
+            lambda x: np.vstack([3 * x[:1], x[1:]]),
+            r"weights: expected row 0",
+        ),
         ("weights", lambda x: _last_nan(x), r"weights: expected finite values"),
         ("mu_w", lambda x: _last_nan(x), r"mu_w: expected finite values"),
         ("meta_json", lambda x: np.array("{not json"), "meta_json is not valid JSON"),
@@ -316,9 +320,10 @@ def test_config_takes_numpy_numbers_as_python_ones():
     config = FitConfig(
         n_support=np.int64(20), n_sweeps=np.int32(3), alpha=np.float32(1.5),
         sigma_w=np.float64(2.0), filter_weights=np.str_("training"),
+        periodic=np.bool_(True),
     )  # fmt: skip
     assert type(config.n_support) is int and type(config.alpha) is float
-    assert type(config.filter_weights) is str
+    assert type(config.filter_weights) is str and type(config.periodic) is bool
     assert json.loads(json.dumps(dataclasses.asdict(config)))["alpha"] == 1.5
 
 
