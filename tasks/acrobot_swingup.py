@@ -10,8 +10,7 @@
 3. Transfer (tasks/transfer.py): on each test setting, repeated trials of Sarsa with
    model-based planning on the HiP-MDP (belief filtered after each episode, planning
    on the posterior-mean model before the next), on the average model and on the
-   true simulator —
-   the same instances and seeds for all three.
+   true simulator — the same instances and seeds for all three.
 4. One-step prediction (tasks/prediction.py): MSE of Δs per dimension for the
    HiP-MDP and the three GP baselines on the test settings, and the approximation
    floor on training settings.

@@ -26,10 +26,9 @@ In a transfer trial, the agent plans on ``s' = s + mean`` (angles wrapped) of th
 method adapted to the trial's real transitions so far (none before the first real
 episode; instance id 0), as the HiP-MDP plans on its belief filtered on them:
 ``adapt`` runs before the first planning and after every real episode but the last
-(no planning follows it). Planning
-calls ``predict`` with one state at a time, so it should be cheap; a predictor with
-``predict_mean(states, actions) -> mean`` has that called instead
-(``hipmdp.planning.LearnedModel``).
+(no planning follows it). Planning calls ``predict`` with one state at a time, so
+it should be cheap; a predictor with ``predict_mean(states, actions) -> mean`` has
+that called instead (``hipmdp.planning.LearnedModel``).
 
 **A policy instead of a model.** The acrobot's transfer trials also take a method
 that acts itself, with its own learning and planning (model-free, meta-RL,
