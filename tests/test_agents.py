@@ -92,8 +92,8 @@ def test_simulator_model_steps_exactly_as_the_environment(domain, params) -> Non
 
 def _episode_by_hand(env, basis, config, weights, rng):
     """Sarsa(λ) on a live environment from ``sarsa_update`` alone: a' is drawn
-    once per step and both updates with and then acts; the last step bootstraps
-    unless the episode ended in a terminal state (dm_env discount 0)."""
+    once per step, used in the update and then acted on; the last step
+    bootstraps unless the episode ended in a terminal state (dm_env discount 0)."""
     state = SarsaState(weights, np.zeros_like(weights))
     alphas = config.alpha * basis.step_scale
     time_step = env.reset()

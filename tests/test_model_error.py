@@ -76,7 +76,7 @@ def test_error_terms_reach_the_optimum_under_heavy_tails(seed):
         ).fun
         for r0 in np.geomspace(1e-14, 1e-2, 121)
     )
-    # within the tolerance the fit keeps its first start's optimum by (1 nat)
+    # the fit keeps its first start's optimum unless another beats it by 1 nat
     assert nll(*_fit_error_terms(r2, u, noise)) <= reference + ERROR_TERMS_TOLERANCE
 
 
