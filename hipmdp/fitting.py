@@ -131,11 +131,10 @@ class FitConfig:
             )
         object.__setattr__(self, "filter_weights", str(self.filter_weights))
         for name in ("periodic", "progress"):
-            if not isinstance(getattr(self, name), bool | np.bool_):
-                raise ValueError(
-                    f"FitConfig.{name}: expected a bool, got {getattr(self, name)!r}"
-                )
-            object.__setattr__(self, name, bool(getattr(self, name)))
+            v = getattr(self, name)
+            if not isinstance(v, bool | np.bool_):
+                raise ValueError(f"FitConfig.{name}: expected a bool, got {v!r}")
+            object.__setattr__(self, name, bool(v))
 
     def periodic_dims(self, data: Transitions) -> tuple[int, ...]:
         """The dimensions every kernel treats as angles: `data.angle_dims` if
