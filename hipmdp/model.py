@@ -396,6 +396,14 @@ class HipMDP:
             raise ValueError(
                 f"data: expected state dimension {self.state_dim}, got {data.state_dim}"
             )
+        # A belief is over one instance's weights: transitions of several instances
+        # would be merged into one posterior without a word.
+        ids = data.instance_ids
+        if ids.size > 1:
+            raise ValueError(
+                f"data: expected transitions of one instance, got instances "
+                f"{ids.tolist()[:10]}; take one with data.select(instances=b)"
+            )
         # Δs of angles depend on angle_dims and dt (hipmdp.data): the filter must
         # compute them as the fit did. (Models saved before dt was recorded
         # lack "dt"; their angle_dims are still checked.)

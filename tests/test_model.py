@@ -290,6 +290,23 @@ def test_filtering_data_must_treat_angles_as_the_fit_did(fitted):
         fitted.update(fitted.prior(), as_angle)
 
 
+def test_a_belief_is_filtered_on_one_instance(fitted):
+    """Transitions of two instances would be merged into one posterior: refused,
+    by update and log_likelihood alike; each instance alone is accepted."""
+    rng = np.random.default_rng(3)
+    one, two = (_instance(b, np.array([0.5, 0.5]), 5, rng) for b in (7, 8))
+    both = Transitions.concatenate([one, two])
+    calls = (
+        lambda data: fitted.update(fitted.prior(), data),
+        lambda data: fitted.log_likelihood(data, fitted.prior()),
+    )
+    for call in calls:
+        with pytest.raises(ValueError, match=r"data: .*one instance.*\[7, 8\]"):
+            call(both)
+        for data in (one, two):
+            call(data)
+
+
 @pytest.mark.parametrize(
     ("field", "value"),
     [
