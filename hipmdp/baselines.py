@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hipmdp.data import Transitions, check_queries, gaussian_loglik
+from hipmdp.data import Transitions, check_integer, check_queries, gaussian_loglik
 from hipmdp.gp import GPPosterior, HyperSet, condition, fit_hyperparameters, subsample
 from hipmdp.kernels import KernelMeans, check_periodic
 
@@ -138,6 +138,10 @@ def fit_gp_baseline(
         raise ValueError(
             f"data: expected hipmdp.Transitions, got {type(data).__name__}"
         )
+    check_integer("n_max", n_max, 1)
+    check_integer("n_hyper", n_hyper, 2)
+    if n_actions is not None:
+        check_integer("n_actions", n_actions, 1)
     A = data.n_actions if n_actions is None else int(n_actions)
     D = data.state_dim
     if data.n_actions > A:
@@ -154,7 +158,15 @@ def fit_gp_baseline(
             f"periodic: expected hyper.periodic = {hyper.periodic} (hyper is given), "
             f"got {periodic}"
         )
-    keep = np.zeros(len(data), dtype=bool) if keep is None else np.asarray(keep, bool)
+    if keep is None:
+        keep = np.zeros(len(data), dtype=bool)
+    else:
+        keep = np.asarray(keep)
+        if keep.shape != (len(data),) or keep.dtype != bool:
+            raise ValueError(
+                f"keep: expected a bool array of shape ({len(data)},), got "
+                f"{keep.dtype} {keep.shape}"
+            )
     deltas = data.deltas
     ell, sf2, sn2 = np.ones((A, D, D)), np.ones((A, D)), np.ones((A, D))
     rows = []

@@ -32,6 +32,7 @@ import zipfile
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -227,6 +228,18 @@ def check_queries(
     if len(actions) and (actions.min() < 0 or actions.max() >= n_actions):
         raise ValueError(f"actions: expected integers in [0, {n_actions})")
     return states, actions
+
+
+def check_integer(name: str, value: Any, minimum: int) -> None:
+    """Raise ``ValueError`` naming ``name`` unless ``value`` is an integer (a
+    Python or numpy integer, not a bool, a float or a string) >= ``minimum``."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise ValueError(
+            f"{name}: expected an integer >= {minimum}, got {value!r} "
+            f"({type(value).__name__})"
+        )
+    if value < minimum:
+        raise ValueError(f"{name}: expected >= {minimum}, got {value}")
 
 
 def _finite_float(name: str, x, shape_desc: str, ndim: int) -> Array:

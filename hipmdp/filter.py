@@ -86,6 +86,10 @@ def prior_belief(mu_w: Array, sigma_w: float) -> Belief:
     mu_w: μ_w[k] for k = 2..K, shape (K - 1,).
     """
     mu_w = np.asarray(mu_w, dtype=float)
+    if mu_w.ndim != 1 or not np.all(np.isfinite(mu_w)):
+        raise ValueError(f"mu_w: expected finite shape (K - 1,), got {mu_w.shape}")
+    if not (np.isfinite(sigma_w) and sigma_w > 0):
+        raise ValueError(f"sigma_w: expected a finite number > 0, got {sigma_w}")
     P0 = np.eye(len(mu_w)) / sigma_w**2
     return Belief(h=P0 @ mu_w, P=P0)
 
@@ -100,6 +104,16 @@ def update_belief(
 
     F: (n, D, K - 1); innovation: Δ - f_1, shape (n, D); noise_var: σ², shape (n, D).
     """
+    F, innovation, noise_var = (
+        np.asarray(x, dtype=float) for x in (F, innovation, noise_var)
+    )
+    if F.ndim != 3 or F.shape[2] != belief.dim:
+        raise ValueError(f"F: expected shape (n, D, {belief.dim}), got {F.shape}")
+    for name, x in (("innovation", innovation), ("noise_var", noise_var)):
+        if x.shape != F.shape[:2]:
+            raise ValueError(f"{name}: expected shape {F.shape[:2]}, got {x.shape}")
+    if not (np.all(np.isfinite(noise_var)) and np.all(noise_var > 0)):
+        raise ValueError("noise_var: expected finite values > 0")
     inv = 1.0 / noise_var
     h = belief.h + np.einsum("idk,id->k", F, innovation * inv)
     P = belief.P + np.einsum("idk,idj->kj", F * inv[..., None], F)

@@ -117,5 +117,10 @@ class FourierBasis:
                 f"states: expected shape ({self.state_dim},) or (N, {self.state_dim}),"
                 f" got {s.shape}"
             )
+        if not np.all(np.isfinite(s)):
+            bad = np.argwhere(~np.isfinite(s))[0]
+            raise ValueError(
+                f"states: non-finite value at index {tuple(int(i) for i in bad)}"
+            )
         # (N, D) @ (D, F): one matrix product, then one vectorised cosine.
         return np.cos(self.normalise(s) @ self._pi_c.T)

@@ -20,6 +20,7 @@ Symbols: ``N`` states in a batch (or episodes in lockstep), ``D`` state dimensio
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple, Protocol, runtime_checkable
@@ -28,7 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm.auto import tqdm
 
-from hipmdp.data import Transitions, wrap_angle
+from hipmdp.data import Transitions, check_integer, wrap_angle
 from hipmdp.fourier import FourierBasis
 from hipmdp.sarsa import (
     SarsaConfig,
@@ -87,7 +88,9 @@ class LearnedModel:
         belief: the weight belief passed to ``model.predict``, or ``None`` to call
             it without one. Planning "with the posterior-mean weights" is the
             HiP-MDP's ``predict`` with the current belief (its mean prediction).
-        angle_dims: state dimensions that are angles.
+        angle_dims: state dimensions that are angles; for a model that records
+            the angles it was fitted with (``info["angle_dims"]``, as a fitted
+            HiP-MDP does), the same ones, or a ValueError says they differ.
     """
 
     model: Any
@@ -98,9 +101,47 @@ class LearnedModel:
     )
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "angle_dims", self._checked_angle_dims())
         if hasattr(self.model, "mean_predictor"):
             extra = () if self.belief is None else (self.belief,)
+            try:
+                inspect.signature(self.model.mean_predictor).bind(*extra)
+            except TypeError:
+                need = "takes no belief" if extra else "needs a belief, got None"
+                raise ValueError(f"belief: the model's mean_predictor {need}") from None
             object.__setattr__(self, "_mean", self.model.mean_predictor(*extra))
+
+    def _checked_angle_dims(self) -> tuple[int, ...]:
+        raw = self.angle_dims
+        try:
+            dims = tuple(raw)
+        except TypeError:
+            raise ValueError(
+                f"angle_dims: expected a sequence of indices, got {raw!r}"
+            ) from None
+        d = getattr(self.model, "state_dim", None)
+        bound = f"[0, {d})" if isinstance(d, int) else ">= 0"
+        if (
+            not all(
+                isinstance(i, int | np.integer) and not isinstance(i, bool)
+                for i in dims
+            )
+            or len(set(dims)) != len(dims)
+            or any(i < 0 or (isinstance(d, int) and i >= d) for i in dims)
+        ):
+            raise ValueError(
+                f"angle_dims: expected distinct indices in {bound}, got {raw!r}"
+            )
+        dims = tuple(int(i) for i in dims)
+        # a fitted HiP-MDP records the angles of its batch (hipmdp.fit): planning
+        # must wrap the same ones
+        info = getattr(self.model, "info", None)
+        fitted = info.get("angle_dims") if isinstance(info, dict) else None
+        if fitted is not None and tuple(fitted) != dims:
+            raise ValueError(
+                f"angle_dims: {dims} differs from the fitted model's {tuple(fitted)}"
+            )
+        return dims
 
     def predict(self, states: Array, actions: NDArray[np.int64]) -> Array:
         """``s + E[Δ]`` with angles wrapped, shape ``(N, D)``."""
@@ -156,8 +197,7 @@ class PlanningTask:
     max_steps: int
 
     def __post_init__(self) -> None:
-        if self.max_steps < 1:
-            raise ValueError(f"max_steps: expected >= 1, got {self.max_steps}")
+        check_integer("max_steps", self.max_steps, 1)
 
 
 class StepResult(NamedTuple):
@@ -327,11 +367,8 @@ def plan(
         raise ValueError(
             f"start_states: expected shape (M >= 1, {basis.state_dim}), got {s0.shape}"
         )
-    if n_episodes < 0 or n_parallel < 1:
-        raise ValueError(
-            "n_episodes, n_parallel: expected >= 0 and >= 1, got "
-            f"{n_episodes}, {n_parallel}"
-        )
+    check_integer("n_episodes", n_episodes, 0)
+    check_integer("n_parallel", n_parallel, 1)
     if state.weights.shape[1] != basis.n_features:
         raise ValueError(
             f"state.weights: expected {basis.n_features} features, "

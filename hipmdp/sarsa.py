@@ -38,6 +38,12 @@ Array = NDArray[np.float64]
 TraceKind = Literal["replacing", "accumulating"]
 
 
+_DIVERGED = (
+    "Sarsa(λ) diverged: a non-finite TD error (a non-finite reward or weight; "
+    "a smaller step size α may help)"
+)
+
+
 @dataclass(frozen=True)
 class SarsaConfig:
     """Hyperparameters of Sarsa(λ).
@@ -178,10 +184,20 @@ def sarsa_update(
         config: ``γ``, ``λ`` and the trace kind.
     """
     weights, traces = state
+    n_actions = weights.shape[0]
+    if not 0 <= action < n_actions:
+        raise ValueError(f"action: expected an index in [0, {n_actions}), got {action}")
     target = reward
     if phi_next is not None:
+        if action_next is None or not 0 <= action_next < n_actions:
+            raise ValueError(
+                f"action_next: expected an index in [0, {n_actions}) when phi_next "
+                f"is given (s' not terminal), got {action_next}"
+            )
         target += config.gamma * float(weights[action_next] @ phi_next)
     delta = target - float(weights[action] @ phi)
+    if not np.isfinite(delta):
+        raise ValueError(_DIVERGED)
     traces = traces * (config.gamma * config.lam)
     if config.traces == "accumulating":
         traces[action] += phi
@@ -247,11 +263,17 @@ def sarsa_update_batch(
             SarsaState(one.state.weights, one.state.traces[None]),
             np.array([one.td_error]),
         )
+    n_actions = weights.shape[0]
+    for name, a in (("actions", actions), ("actions_next", actions_next)):
+        if a.min() < 0 or a.max() >= n_actions:
+            raise ValueError(f"{name}: expected indices in [0, {n_actions})")
     rows = np.arange(phi.shape[0])
     q = np.einsum("nf,nf->n", weights[actions], phi)
     q_next = np.einsum("nf,nf->n", weights[actions_next], phi_next)
     delta = rewards + np.where(terminal, 0.0, config.gamma * q_next) - q
     delta = np.where(active, delta, 0.0)
+    if not np.all(np.isfinite(delta)):
+        raise ValueError(_DIVERGED)
     decay = np.where(active, config.gamma * config.lam, 1.0)
     traces = traces * decay[:, None, None]
     taken = traces[rows, actions]  # (N, F) traces of the actions taken

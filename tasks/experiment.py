@@ -30,7 +30,7 @@ from scipy import stats
 from threadpoolctl import threadpool_info, threadpool_limits
 
 import hipmdp
-from hipmdp.data import atomic_temporaries, atomic_write
+from hipmdp.data import atomic_temporaries, atomic_write, check_integer
 
 Array = np.ndarray
 
@@ -502,18 +502,6 @@ def check_counts(**values: Any) -> None:
     >= 1."""
     for name, value in values.items():
         check_integer(name, value, 1)
-
-
-def check_integer(name: str, value: Any, minimum: int) -> None:
-    """Raise ``ValueError`` naming ``name`` unless ``value`` is an integer (a
-    Python or numpy integer, not a bool, a float or a string) >= ``minimum``."""
-    if isinstance(value, bool) or not isinstance(value, int | np.integer):
-        raise ValueError(
-            f"{name}: expected an integer >= {minimum}, got {value!r} "
-            f"({type(value).__name__})"
-        )
-    if value < minimum:
-        raise ValueError(f"{name}: expected >= {minimum}, got {value}")
 
 
 def check_run_fields(config: Any) -> None:

@@ -134,6 +134,24 @@ def test_train_only_beats_batch_only_on_a_shifted_instance():
     assert mse(bt) < mse(b)
 
 
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        # n_max = 0 was reported as "action 0 has 0 transitions"
+        ({"n_max": 0}, "n_max: expected >= 1, got 0"),
+        ({"n_max": 2.5}, "n_max: expected an integer"),
+        ({"n_hyper": 1}, "n_hyper: expected >= 2"),
+        ({"n_actions": 2.0}, "n_actions: expected an integer"),
+        ({"keep": np.ones(3, bool)}, r"keep: expected a bool array of shape \(40,\)"),
+        ({"keep": np.ones(40)}, "keep: expected a bool array"),
+    ],
+)
+def test_fit_gp_baseline_checks_its_options(kwargs, match):
+    data = _instance(0, 0.0, 40, np.random.default_rng(6))
+    with pytest.raises(ValueError, match=match):
+        fit_gp_baseline(data, rng=np.random.default_rng(0), **kwargs)
+
+
 def test_missing_action_needs_hyperparameters():
     rng = np.random.default_rng(6)
     train = _instance(0, 0.0, 20, rng).select(actions=[0])

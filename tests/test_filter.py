@@ -9,7 +9,7 @@ import pytest
 from scipy import stats
 
 from hipmdp.data import Transitions
-from hipmdp.filter import Belief
+from hipmdp.filter import Belief, prior_belief, update_belief
 from hipmdp.gp import HyperSet
 from hipmdp.kernels import se_kernel
 from hipmdp.model import HipMDP
@@ -283,6 +283,27 @@ def test_prior_and_errors():
     with pytest.raises(ValueError, match="model_error: expected True or False"):
         data = _data(model, model.mu_w[1:], 3, np.random.default_rng(0))
         model.update(prior, data, model_error="no")
+
+
+def test_filter_functions_check_their_inputs():
+    """The functions HipMDP calls, for direct users: a negative σ_w was squared
+    away, a wrong-shaped or zero noise variance failed inside numpy or as a
+    non-finite Belief that did not name it."""
+    with pytest.raises(ValueError, match="sigma_w: expected a finite number > 0"):
+        prior_belief(np.zeros(2), -1.0)
+    with pytest.raises(ValueError, match="mu_w"):
+        prior_belief(np.zeros((2, 1)), 1.0)
+    prior = prior_belief(np.zeros(2), 1.0)
+    F, innovation, noise = np.ones((3, 4, 2)), np.zeros((3, 4)), np.ones((3, 4))
+    update_belief(prior, F, innovation, noise)
+    for args, match in [
+        ((F[..., :1], innovation, noise), r"F: expected shape \(n, D, 2\)"),
+        ((F, innovation[:, :3], noise), r"innovation: expected shape \(3, 4\)"),
+        ((F, innovation, noise[:2]), r"noise_var: expected shape \(3, 4\)"),
+        ((F, innovation, 0 * noise), "noise_var: expected finite values > 0"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            update_belief(prior, *args)
 
 
 @pytest.mark.parametrize(

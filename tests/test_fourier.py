@@ -73,3 +73,13 @@ def test_wrong_state_shape_raises() -> None:
     basis = FourierBasis(1, np.zeros(2), np.ones(2))
     with pytest.raises(ValueError, match="states"):
         basis(np.zeros(3))
+
+
+def test_non_finite_states_raise() -> None:
+    """Clipping would turn inf into a box edge and NaN into NaN features."""
+    basis = FourierBasis(1, np.zeros(2), np.ones(2))
+    for bad in (np.nan, np.inf):
+        with pytest.raises(
+            ValueError, match=r"states: non-finite value at index \(1, 0\)"
+        ):
+            basis(np.array([[0.5, 0.5], [bad, 0.5]]))

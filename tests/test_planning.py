@@ -91,6 +91,40 @@ def test_learned_model_builds_a_mean_predictor_once() -> None:
     assert built == [(), ("b",)]  # built at construction, with the belief if any
 
 
+def test_learned_model_checks_angles_and_belief_when_built() -> None:
+    """Bad angle_dims used to fail at the first predict (or never: () left a
+    fitted model's angles unwrapped); a missing belief, with a TypeError."""
+
+    class Fitted(PlainModel):
+        state_dim = 3
+        info = {"angle_dims": [0, 1]}
+
+        def mean_predictor(self, belief):
+            return lambda states, actions: states
+
+    assert LearnedModel(Fitted(), "b", [np.int64(0), 1]).angle_dims == (0, 1)
+    for dims, match in [
+        ((), r"angle_dims: \(\) differs from the fitted model's \(0, 1\)"),
+        ((1, 0), r"differs"),
+        ((0, 3), r"angle_dims: expected distinct indices in \[0, 3\)"),
+        ((0, 0), "distinct"),
+        ((True,), "distinct"),
+        (0, "angle_dims: expected a sequence"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            LearnedModel(Fitted(), "b", dims)
+    with pytest.raises(ValueError, match="belief: the model's mean_predictor needs"):
+        LearnedModel(Fitted(), None, (0, 1))
+
+    class Average(PlainModel):
+        def mean_predictor(self):
+            return lambda states, actions: states
+
+    with pytest.raises(ValueError, match="belief: the model's mean_predictor takes"):
+        LearnedModel(Average(), "b")
+    assert LearnedModel(Average(), None, (5,)).angle_dims == (5,)  # no state_dim
+
+
 def test_learned_model_rejects_bad_shapes() -> None:
     model = LearnedModel(PlainModel())
     with pytest.raises(ValueError, match="actions"):
@@ -189,8 +223,16 @@ def test_plan_rejects_bad_input() -> None:
     with pytest.raises(ValueError, match="n_episodes"):
         plan(state, basis, config, Corridor(), CORRIDOR_TASK, np.zeros((1, 2)), -1,
              rng=np.random.default_rng(0))  # fmt: skip
-    with pytest.raises(ValueError, match="max_steps"):
-        PlanningTask(CORRIDOR_TASK.reward, CORRIDOR_TASK.terminal, max_steps=0)
+    for n in (2.5, True):  # 2.5 ran two episodes, True one, before failing or not
+        with pytest.raises(ValueError, match="n_episodes: expected an integer"):
+            plan(state, basis, config, Corridor(), CORRIDOR_TASK, np.zeros((1, 2)), n,
+                 rng=np.random.default_rng(0))  # fmt: skip
+    with pytest.raises(ValueError, match="n_parallel: expected an integer"):
+        plan(state, basis, config, Corridor(), CORRIDOR_TASK, np.zeros((1, 2)), 1,
+             rng=np.random.default_rng(0), n_parallel=1.0)  # fmt: skip
+    for steps in (0, 2.5):
+        with pytest.raises(ValueError, match="max_steps"):
+            PlanningTask(CORRIDOR_TASK.reward, CORRIDOR_TASK.terminal, steps)
 
 
 def test_non_finite_model_output_is_an_error() -> None:

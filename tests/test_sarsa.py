@@ -214,3 +214,33 @@ def test_init_state_sets_constant_feature_weight() -> None:
     assert reset_traces(state, 4).traces.shape == (4, 3, 5)
     with pytest.raises(ValueError, match="n_actions"):
         init_state(0, 5)
+
+
+def test_updates_refuse_bad_actions_and_a_diverged_td_error() -> None:
+    """A negative action indexed the last action's weights; a NaN reward made
+    every weight of the action NaN, which then chose action 0 silently."""
+    config = SarsaConfig()
+    state = init_state(3, 2)
+    phi, alphas = np.array([1.0, 0.5]), np.full(2, 0.1)
+    for a, a2, match in [(-1, 0, "action: "), (3, 0, "action: "),
+                         (0, None, "action_next"), (0, 3, "action_next")]:  # fmt: skip
+        with pytest.raises(ValueError, match=match):
+            sarsa_update(state, phi, a, 0.0, phi, a2, alphas, config)
+    sarsa_update(state, phi, 0, 0.0, None, None, alphas, config)  # terminal: no a'
+    with pytest.raises(ValueError, match="Sarsa.* diverged"):
+        sarsa_update(state, phi, 0, np.nan, phi, 1, alphas, config)
+    batch = reset_traces(state, 2)
+    two, ok = np.stack([phi, phi]), np.ones(2, bool)
+
+    def update(actions, actions_next, rewards):
+        return sarsa_update_batch(batch, two, np.array(actions), np.array(rewards),
+                                  two, np.array(actions_next), ~ok, ok, alphas,
+                                  config)  # fmt: skip
+
+    update([0, 2], [1, 0], [0.0, 0.0])
+    with pytest.raises(ValueError, match="actions: expected indices in"):
+        update([0, -1], [1, 0], [0.0, 0.0])
+    with pytest.raises(ValueError, match="actions_next: expected indices in"):
+        update([0, 1], [1, 3], [0.0, 0.0])
+    with pytest.raises(ValueError, match="Sarsa.* diverged"):
+        update([0, 1], [1, 0], [0.0, np.inf])
