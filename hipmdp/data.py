@@ -72,7 +72,7 @@ def _umask() -> int:
     return umask
 
 
-def _fsync_folder(path: Path) -> None:
+def fsync_folder(path: Path) -> None:
     """Make a rename in the folder ``path`` durable (POSIX; a no-op elsewhere)."""
     try:
         fd = os.open(path, os.O_RDONLY)
@@ -106,7 +106,7 @@ def atomic_write(path: str | os.PathLike, write) -> Path:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
-    _fsync_folder(path.parent)
+    fsync_folder(path.parent)
     return path
 
 
@@ -171,7 +171,7 @@ def atomic_folder(path: str | os.PathLike):
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    _fsync_folder(path.parent)
+    fsync_folder(path.parent)
 
 
 def load_npz(path: str | os.PathLike | io.IOBase):
@@ -242,6 +242,15 @@ def check_integer(name: str, value: Any, minimum: int) -> None:
         raise ValueError(f"{name}: expected >= {minimum}, got {value}")
 
 
+def wanted_instances(instances: int | Iterable[int]) -> Array:
+    """The instance ids a load asks for, as int64 (n >= 1,); a ValueError names
+    ``instances`` for none, bools or non-integers."""
+    raw = np.atleast_1d(np.asarray(instances))
+    if raw.ndim != 1 or raw.size == 0:
+        raise ValueError(f"instances: expected one or more ids, got {instances!r}")
+    return _int_array("instances", raw, raw.size)
+
+
 def _finite_float(name: str, x, shape_desc: str, ndim: int) -> Array:
     try:
         arr = np.asarray(x)
@@ -295,6 +304,10 @@ class ParameterTable:
 
     def __post_init__(self) -> None:
         ids = _int_array("instances", self.instances, np.asarray(self.instances).size)
+        if isinstance(self.names, str):  # "ab" would become ("a", "b")
+            raise ValueError(
+                f"names: expected a sequence of names, got the string {self.names!r}"
+            )
         names = tuple(self.names)
         if not all(isinstance(s, str) and s for s in names):
             raise ValueError("names: expected non-empty strings")
@@ -616,11 +629,11 @@ class Transitions:
         data = cls._load_file(path)
         if instances is None:
             return data
-        wanted = np.atleast_1d(np.asarray(instances))
+        wanted = wanted_instances(instances)
         unknown = sorted(set(wanted.tolist()) - set(data.instance_ids.tolist()))
         if unknown:
             raise ValueError(f"instances {unknown} are not in {path}")
-        return data.select(instances=instances)
+        return data.select(instances=wanted)
 
     @classmethod
     def _load_file(cls, path) -> Transitions:

@@ -52,6 +52,7 @@ from hipmdp.data import (
     atomic_temporaries,
     atomic_write,
     npz_bytes,
+    wanted_instances,
 )
 
 Array = np.ndarray
@@ -260,7 +261,7 @@ class Dataset:
             ValueError: for an id not in the run, or a needed shard that is not
                 finished or does not match its checksum.
         """
-        wanted = None if instances is None else np.atleast_1d(np.asarray(instances))
+        wanted = None if instances is None else wanted_instances(instances)
         if wanted is not None:
             unknown = np.setdiff1d(wanted, self.instances)
             if unknown.size:

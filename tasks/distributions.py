@@ -278,7 +278,12 @@ def _draw_box(
     `a = (low - μ) / s`, `b = (high - μ) / s`, `θ_j = μ_j + s_j Φ⁻¹(u)` with
     `u ~ U[Φ(a_j), Φ(b_j)]`: the normal truncated to `[low_j, high_j]` exactly. An
     interval above the mean is drawn as the mirror image of `[-b, -a]`, where `Φ`
-    keeps its precision (small values, not values close to 1).
+    keeps its precision (small values, not values close to 1). An interval
+    more than about 37 σ from the mean, where `Φ(b)` is subnormal or 0, is drawn in
+    log space, `log(Φ(a) + u (Φ(b) - Φ(a))) = log Φ(b) + log(u + (1 - u) Φ(a) /
+    Φ(b))`; there the plain formula gave `Φ⁻¹(0) = -∞` and, clipped, every draw
+    on the bound farthest from the mean. (Elsewhere the plain formula is kept: the
+    two differ by round-off, and earlier draws stay as they were.)
     """
     if distribution.kind == "uniform":
         return rng.uniform(lows, highs, size=(n, len(lows)))
@@ -290,6 +295,13 @@ def _draw_box(
     a, b = np.where(flip, -b, a), np.where(flip, -a, b)
     cdf_a, cdf_b = special.ndtr(a), special.ndtr(b)
     z = special.ndtri(cdf_a + u * (cdf_b - cdf_a))
+    far = cdf_b < np.finfo(float).tiny
+    if np.any(far):
+        log_a, log_b = special.log_ndtr(a), special.log_ndtr(b)
+        ratio = np.exp(log_a - log_b)  # Φ(a) / Φ(b), in [0, 1]
+        with np.errstate(divide="ignore"):  # u = 0 and Φ(a) = 0: z = -∞, clipped
+            z_far = special.ndtri_exp(log_b + np.log(u + (1.0 - u) * ratio))
+        z = np.where(far, z_far, z)
     points = mu + scale * np.where(flip, -z, z)
     points = np.where(highs == lows, lows, points)  # a range of one point
     return np.clip(points, lows, highs)  # guards the last ulp of the inverse CDF

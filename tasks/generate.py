@@ -62,6 +62,7 @@ from tasks.collect import DOMAINS, collect, collect_sarsa, get_domain
 from tasks.distributions import KINDS, SPLITS, Distribution, draw
 from tasks.experiment import (
     check_folder_out,
+    check_integer,
     one_blas_thread,
     path_argument,
     seed_argument,
@@ -84,9 +85,11 @@ class Config:
     `scheduler`, `resume` and `progress` only say where and how it runs.
 
     Raises:
-        ValueError: for `book_inertia` on another domain than the acrobot, with
-            varied link shapes, or on a box some of whose instances cannot keep
-            the book's inertias (`_check_book_inertia`).
+        ValueError: naming the field (and its command-line option) for a value of
+            the wrong kind or range, before any file is written; for
+            `book_inertia` on another domain than the acrobot, with varied link
+            shapes, or on a box some of whose instances cannot keep the book's
+            inertias (`_check_book_inertia`).
     """
 
     domain: str
@@ -105,6 +108,44 @@ class Config:
     book_inertia: bool = False
 
     def __post_init__(self) -> None:
+        get_domain(self.domain)
+        if not isinstance(self.distribution, Distribution):
+            raise ValueError(
+                "distribution: expected a tasks.distributions.Distribution, got "
+                f"{type(self.distribution).__name__}"
+            )
+        if self.distribution.kind == "grid":
+            if self.instances is not None:
+                raise ValueError("instances (--instances): expected None for a grid")
+        else:
+            check_integer("instances (--instances)", self.instances, 1)
+        check_integer("episodes_per_instance (--episodes-per-instance)",
+                      self.episodes_per_instance, 1)  # fmt: skip
+        check_integer("seed (--seed)", self.seed, 0)
+        if self.policy not in POLICIES:
+            raise ValueError(
+                f"policy (--policy): expected one of {sorted(POLICIES)}, "
+                f"got {self.policy!r}"
+            )
+        if self.max_steps is not None:
+            check_integer("max_steps (--max-steps)", self.max_steps, 1)
+        check_integer("shard_size (--shard-size)", self.shard_size, 1)
+        check_integer("workers (--workers)", self.workers, 1)
+        if self.scheduler is not None:
+            if not isinstance(self.scheduler, str):
+                raise ValueError(
+                    f"scheduler (--scheduler): expected an address string, got "
+                    f"{self.scheduler!r}"
+                )
+            if self.workers != 1:
+                raise ValueError(
+                    "--workers and --scheduler are exclusive (Dask decides)"
+                )
+        for name in ("resume", "progress", "book_inertia"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(
+                    f"{name}: expected True or False, got {getattr(self, name)!r}"
+                )
         if self.book_inertia:
             _check_book_inertia(self.domain, self.distribution)
 
@@ -173,7 +214,12 @@ def build_parser() -> argparse.ArgumentParser:
     add("--vary", action="append", metavar="NAME=LOW:HIGH", help="repeatable")
     add("--distribution", choices=KINDS, default=None, help="default: uniform")
     add("--grid", type=int, metavar="K", help="K points per parameter (grid)")
-    add("--sigma", type=float, default=0.1, help="relative-normal: std / nominal")
+    add(
+        "--sigma",
+        type=float,
+        default=None,
+        help="relative-normal only: std / nominal (default 0.1)",
+    )
     add(
         "--split",
         choices=SPLITS,
@@ -181,7 +227,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="train: inner box; interpolation: held-out points inside it; "
         "extrapolation: outside it; all (default): the whole box",
     )
-    add("--inner-fraction", type=float, default=0.5, help="inner box share per range")
+    add(
+        "--inner-fraction",
+        type=float,
+        default=None,
+        help="train, interpolation, extrapolation: inner box share per range "
+        "(default 0.5)",
+    )
     add(
         "--book-inertia",
         action="store_true",
@@ -218,16 +270,19 @@ def _validate(args: argparse.Namespace) -> Config:
         raise ValueError("--distribution grid needs --grid K (points per parameter)")
     if kind == "grid" and args.instances is not None:
         raise ValueError("--instances and --grid are exclusive (grid gives K^p)")
-    for name in ("instances", "episodes_per_instance", "grid", "max_steps"):
-        value = getattr(args, name)
-        if value is not None and value < 1:
-            raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
-    for name in ("shard_size", "workers"):
-        if getattr(args, name) < 1:
-            raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
-    if args.scheduler is not None:
-        if args.workers != 1:
-            raise ValueError("--workers and --scheduler are exclusive (Dask decides)")
+    # options that would be accepted and do nothing
+    if args.sigma is not None and kind != "relative-normal":
+        raise ValueError(
+            f"--sigma goes with --distribution relative-normal, not {kind}"
+        )
+    if args.inner_fraction is not None and args.split == "all":
+        raise ValueError(
+            "--inner-fraction goes with --split train, interpolation or "
+            "extrapolation, not all"
+        )
+    if args.grid is not None and args.grid < 1:
+        raise ValueError(f"--grid must be >= 1, got {args.grid}")
+    if args.scheduler is not None and args.workers == 1:
         if importlib.util.find_spec("distributed") is None:
             raise ValueError('--scheduler needs Dask: pip install -e ".[dask]"')
     names = [f.name for f in dataclasses.fields(spec.params_type)]
@@ -238,19 +293,28 @@ def _validate(args: argparse.Namespace) -> Config:
             name, low, high = _parse_range(item)
             if name not in names:
                 raise ValueError(f"--vary {item}: {args.domain} parameters are {names}")
+            if name in vary:
+                raise ValueError(f"--vary {item}: {name} is given twice")
             vary[name] = (low, high)
+    defaults = {f.name: f.default for f in dataclasses.fields(Distribution)}
     distribution = Distribution(
         spec.params_type,
         vary,
         kind=kind,
         split=args.split,
         grid=args.grid,
-        sigma=args.sigma,
-        inner_fraction=args.inner_fraction,
+        sigma=defaults["sigma"] if args.sigma is None else args.sigma,
+        inner_fraction=(
+            defaults["inner_fraction"]
+            if args.inner_fraction is None
+            else args.inner_fraction
+        ),
     )
     return Config(
         domain=args.domain,
-        instances=None if kind == "grid" else (args.instances or 4),
+        instances=(
+            None if kind == "grid" else 4 if args.instances is None else args.instances
+        ),
         episodes_per_instance=args.episodes_per_instance,
         seed=args.seed,
         distribution=distribution,
@@ -385,6 +449,8 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
         raise ValueError(
             f"{config.out} holds this run, unfinished; pass --resume to continue it"
         )
+    if todo:  # a finished run with a damaged shard is unfinished until it is redone
+        old["complete"] = False
     return old, todo
 
 

@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from hipmdp.data import fsync_folder
+
 Array = np.ndarray
 
 
@@ -172,7 +174,10 @@ class Recording:
         self._rec.flush()
         self._rec.disconnect()
         self._rec = None
+        with open(self._tmp, "rb") as fh:  # on disk before the rename, as atomic_write
+            os.fsync(fh.fileno())
         os.replace(self._tmp, self.path)
+        fsync_folder(self.path.parent)
         return self.path
 
     def abort(self) -> None:

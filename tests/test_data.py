@@ -234,6 +234,7 @@ def test_atomic_folder_refuses_a_folder_with_files_before_writing(tmp_path):
         (dict(names=("a", "a"), values=[[1.0, 2.0]]), "names: duplicate"),
         (dict(names=("a",), values=[[1.0, 2.0]]), "values: expected shape"),
         (dict(names=("a",), values=[[np.nan]]), "values: non-finite"),
+        (dict(names="ab", values=[[1.0, 2.0]]), "names: expected a sequence of names"),
     ],
 )
 def test_parameter_table_bad_input(kw, match):
@@ -330,6 +331,16 @@ def test_load_selects_instances(tmp_path):
     path = t.save(tmp_path / "d.npz")
     u = Transitions.load(path, instances=[1, 3])
     np.testing.assert_array_equal(u.states, t.select(instances=[1, 3]).states)
+    # none asked for failed in concatenate (a run) or gave nothing (a file); a
+    # bool was instance 1
+    for bad, match in [
+        ([], "one or more ids"),
+        ([True], "an integer array"),
+        ([1.5], "integers"),
+        ("1", "an integer array"),
+    ]:
+        with pytest.raises(ValueError, match=f"instances: expected {match}"):
+            Transitions.load(path, instances=bad)
 
 
 def test_fast_angle_changes_are_unwrapped_with_the_velocities():

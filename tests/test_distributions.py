@@ -76,24 +76,33 @@ def test_uniform_extrapolation_is_uniform_on_the_outer_minus_inner_box():
     assert abs(share - 1 / 3) < 4 * np.sqrt((1 / 3) * (2 / 3) / n)
 
 
-@pytest.mark.parametrize("low, high", [(0.05, 0.3), (0.15, 0.4)])
-def test_relative_normal_is_the_truncated_normal_around_the_nominal(low, high):
-    """Pole mass ~ N(0.1, (0.5 · 0.1)²) truncated to [low, high] (around the mean,
-    and wholly above it): sample mean and variance within 4 standard errors of
-    scipy's truncated-normal moments, and no point stacked on the lower bound
-    (clipping would put 16% there, resp. 84%)."""
+@pytest.mark.parametrize(
+    ("low", "high", "sigma"),
+    [
+        (0.05, 0.3, 0.5),  # around the mean
+        (0.15, 0.4, 0.5),  # wholly above it
+        (1.0, 2.0, 0.2),  # 45 σ above it: Φ underflows
+        (0.02, 0.09, 0.002),  # 50 σ below it
+    ],
+)
+def test_relative_normal_is_the_truncated_normal_around_the_nominal(low, high, sigma):
+    """Pole mass ~ N(0.1, (σ · 0.1)²) truncated to [low, high]: sample mean and
+    variance within 4 standard errors of scipy's truncated-normal moments, and no
+    point stacked on a bound (clipping would put 16% on the lower one in the
+    first case, 84% in the second, and all on the far one in the last two)."""
     d = Distribution(
-        CartpoleParams, {"pole_mass": (low, high)}, kind="relative-normal", sigma=0.5
+        CartpoleParams, {"pole_mass": (low, high)}, kind="relative-normal", sigma=sigma
     )
     n = 4000
     x = draw(d, n, rng=np.random.default_rng(4)).varied[:, 0]
-    law = stats.truncnorm((low - 0.1) / 0.05, (high - 0.1) / 0.05, loc=0.1, scale=0.05)
+    s = sigma * 0.1
+    law = stats.truncnorm((low - 0.1) / s, (high - 0.1) / s, loc=0.1, scale=s)
     assert abs(x.mean() - law.mean()) < 4 * law.std() / np.sqrt(n)
-    # Var of the sample variance ≈ (μ₄ - σ⁴) / n.
-    mu4 = law.expect(lambda v: (v - law.mean()) ** 4)
+    # Var of the sample variance ≈ (μ₄ - σ⁴) / n; μ₄ from the sample (scipy's
+    # integral is NaN this far out in the tail)
+    mu4 = np.mean((x - x.mean()) ** 4)
     assert abs(x.var() - law.var()) < 4 * np.sqrt((mu4 - law.var() ** 2) / n)
-    assert x.min() > low and x.max() <= high
-    assert np.mean(x < low + 0.001) < 0.05
+    assert x.min() > low and x.max() < high
 
 
 def test_same_rng_same_draws_and_a_degenerate_range_stays_put():

@@ -3,6 +3,7 @@ every policy, and bad options that stop before anything is written."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -179,8 +180,13 @@ def test_other_policies_write_chained_episodes(tmp_path, policy):
     "argv, message",
     [
         (["--domain", "pendulum"], "invalid choice"),
-        (["--domain", "acrobot", "--instances", "0"], "--instances must be >= 1"),
-        (["--domain", "acrobot", "--episodes-per-instance", "0"], "must be >= 1"),
+        (["--domain", "acrobot", "--instances", "0"], "(--instances): expected >= 1"),
+        (
+            ["--domain", "acrobot", "--episodes-per-instance", "0"],
+            "(--episodes-per-instance): expected >= 1",
+        ),
+        (["--domain", "acrobot", "--grid", "0"], "--grid must be >= 1"),
+        (["--domain", "acrobot", "--max-steps", "0"], "(--max-steps): expected >= 1"),
         (["--domain", "acrobot", "--grid", "2", "--instances", "3"], "exclusive"),
         (
             ["--domain", "acrobot", "--grid", "2", "--distribution", "uniform"],
@@ -223,8 +229,25 @@ def test_other_policies_write_chained_episodes(tmp_path, policy):
             "spans [0.7, 1.5] kg m^2 over --vary (link_mass_1 [0.7, 1.5], "
             "link_length_1 [1, 1]); keeping I = 1 kg m^2 needs it within [0.667, 1.43]",
         ),
-        (["--domain", "acrobot", "--workers", "0"], "--workers must be >= 1"),
-        (["--domain", "acrobot", "--shard-size", "0"], "--shard-size must be >= 1"),
+        (["--domain", "acrobot", "--workers", "0"], "(--workers): expected >= 1"),
+        (["--domain", "acrobot", "--shard-size", "0"], "(--shard-size): expected >= 1"),
+        # options that would do nothing
+        (["--domain", "acrobot", "--sigma", "0.3"], "--sigma goes with --distribution"),
+        (
+            ["--domain", "acrobot", "--inner-fraction", "0.9"],
+            "--inner-fraction goes with --split train",
+        ),
+        (
+            [
+                "--domain",
+                "acrobot",
+                "--vary",
+                "link_mass_1=1:2",
+                "--vary",
+                "link_mass_1=0.5:0.6",
+            ],
+            "link_mass_1 is given twice",
+        ),  # fmt: skip
         (
             ["--domain", "acrobot", "--workers", "2", "--scheduler", "tcp://x:1"],
             "--workers and --scheduler are exclusive",
@@ -240,6 +263,33 @@ def test_bad_options_stop_with_a_message_and_write_nothing(
         generate.main([*argv, "--out", str(out)])
     assert stopped.value.code == 2
     assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "match"),
+    [
+        # 0 episodes wrote the manifest, then failed; shard_size 0 failed in range()
+        ("episodes_per_instance", 0, r"episodes_per_instance \(--episodes-per-ins"),
+        ("shard_size", 0, r"shard_size \(--shard-size\): expected >= 1"),
+        ("shard_size", 2.0, r"shard_size \(--shard-size\): expected an integer"),
+        ("instances", None, r"instances \(--instances\): expected an integer"),
+        ("seed", -1, r"seed \(--seed\): expected >= 0"),
+        ("policy", "greedy", r"policy \(--policy\): expected one of"),
+        ("max_steps", 0, r"max_steps \(--max-steps\): expected >= 1"),
+        ("scheduler", 5, r"scheduler \(--scheduler\): expected an address"),
+        ("resume", "yes", "resume: expected True or False"),
+        ("domain", "pendulum", "domain must be one of"),
+        ("distribution", {"link_mass_1": (1, 2)}, "distribution: expected a tasks"),
+    ],
+)
+def test_config_built_in_python_is_checked_before_any_file(
+    tmp_path, field, value, match
+):
+    out = tmp_path / "out"
+    config = generate.parse_config(["--domain", "acrobot", "--out", str(out)])
+    with pytest.raises(ValueError, match=match):
+        generate.generate(dataclasses.replace(config, **{field: value}))
     assert not out.exists()
 
 

@@ -276,3 +276,27 @@ def test_a_finished_run_is_left_as_it_is(reference, tmp_path):
         assert generate.main([*RUN, *resume, "--out", str(run)]).redone == ()
     after = {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in run.iterdir()}
     assert after == before
+
+
+def test_a_finished_run_redoing_a_damaged_shard_is_unfinished_until_it_is_done(
+    reference, tmp_path
+):
+    """Resuming a finished run whose shard was damaged, killed before the redo:
+    the manifest must not say complete (it did, and readers trusted it)."""
+
+    class Dies(generate.InlineExecutor):
+        def submit(self, fn, /, *args, **kwargs):
+            raise RuntimeError("killed")
+
+    run = tmp_path / "run"
+    shutil.copytree(reference, run)
+    (run / "shard-00001.npz").write_bytes(b"damaged")
+    config = generate.parse_config([*RUN, "--out", str(run), "--resume"])
+    with pytest.raises(RuntimeError, match="killed"):
+        generate.generate(config, executor=Dies())
+    manifest = shards.read_manifest(run)
+    assert not manifest["complete"]
+    assert manifest["shards"][1]["sha256"] is None
+    assert not shards.Dataset(run).complete
+    assert generate.main([*RUN, "--out", str(run), "--resume"]).redone == (1,)
+    assert files(run) == files(reference)

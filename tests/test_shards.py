@@ -80,6 +80,9 @@ def test_dataset_loads_by_instance_reading_only_the_needed_shards(run, tmp_path)
         lazy.load(instances=3)
     with pytest.raises(ValueError, match=r"instances \[9\] are not in the run"):
         dataset.load(instances=[0, 9])
+    for bad, match in [([], "one or more ids"), ([True], "an integer array")]:
+        with pytest.raises(ValueError, match=f"instances: expected {match}"):
+            dataset.load(instances=bad)
 
 
 def test_parameters_in_the_manifest_match_the_shards(run):
