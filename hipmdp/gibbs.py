@@ -23,6 +23,7 @@ from typing import NamedTuple
 import numpy as np
 from tqdm.auto import tqdm
 
+from hipmdp.data import check_integer
 from hipmdp.gibbs_eigen import (
     EigenAlgebra,
     GibbsCache,
@@ -94,6 +95,9 @@ def gibbs_sweep(
     for the conditionals, O(N_w B m) per new-feature proposal.
     """
     priors = check_priors(priors)
+    # the sweep reads everything from the cache: other data would go unnoticed
+    if data.Y.shape != cache.Yt.shape or not np.array_equal(data.noise, cache.noise):
+        raise ValueError("cache: prepared from other data; use prepare(data)")
     check_state(state, *cache.Yt.shape)
     ft = to_eigen(state.f, cache)
     z, w, ft, mu_w = sweep(
@@ -114,6 +118,7 @@ def log_joint(
     + Σ_{k≥1} [Σ_b log N(w[k,b]; μ_w[k], σ_w²) + log N(μ_w[k]; 0, σ_w0²)]
     + log P_IBP([z[1:]])   (`hipmdp.gibbs_model.ibp_log_prior`)
     """
+    priors = check_priors(priors)
     cache = prepare(data) if cache is None else cache
     check_state(state, *cache.Yt.shape)
     ft = to_eigen(state.f, cache)
@@ -127,6 +132,7 @@ def log_marginal(
     cache: GibbsCache | None = None,
 ) -> float:
     """log p(Y, z, w, μ_w) with every f marginalised (`log_marginal_eigen`)."""
+    priors = check_priors(priors)
     cache = prepare(data) if cache is None else cache
     check_state(state, *cache.Yt.shape)
     return log_marginal_eigen(state.z, state.w, state.mu_w, priors, cache)
@@ -185,15 +191,15 @@ def run_chains(
     switches it off.
     """
     data, priors = check_data(data), check_priors(priors)
-    for name, v in (("n_sweeps", n_sweeps), ("n_chains", n_chains)):
-        if int(v) != v or v < 1:
-            raise ValueError(f"run_chains: {name} must be an int >= 1, got {v}")
+    check_integer("run_chains: n_sweeps", n_sweeps, 1)
+    check_integer("run_chains: n_chains", n_chains, 1)
     if select not in ("marginal", "joint"):
         raise ValueError(
             f"run_chains: select must be 'marginal' or 'joint', got {select}"
         )
     anneal = n_sweeps // 4 if anneal is None else anneal
-    if int(anneal) != anneal or not 0 <= anneal < n_sweeps:
+    check_integer("run_chains: anneal", anneal, 0)
+    if anneal >= n_sweeps:
         raise ValueError(f"run_chains: anneal must be in [0, n_sweeps), got {anneal}")
     cache = prepare(data)
     alg = EigenAlgebra(cache)

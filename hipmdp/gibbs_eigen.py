@@ -43,6 +43,9 @@ from hipmdp.gibbs_model import (
 
 Array = np.ndarray
 EIG_FLOOR = 1e-12
+#: Eigenvalues of K[r] below −PSD_TOLERANCE · its largest are not round-off: K[r]
+#: is not positive semi-definite (round-off of an m × m kernel is ~ m ε λ_max).
+PSD_TOLERANCE = 1e-8
 _LOG_2PI = float(np.log(2.0 * np.pi))
 
 
@@ -64,9 +67,15 @@ def prepare(data: GibbsData) -> GibbsCache:
     data = check_data(data)
     lam, U = np.linalg.eigh(data.K)
     floor = EIG_FLOOR * np.maximum(lam.max(axis=1, keepdims=True), 1e-300)
-    if np.any(lam[:, -1] <= 0):
-        raise ValueError("GibbsData.K: every K[r] must be positive semi-definite")
-    lam = np.maximum(lam, floor)
+    if np.any(lam[:, -1] <= 0) or np.any(lam[:, 0] < -PSD_TOLERANCE * lam[:, -1]):
+        r = int(
+            np.argmax((lam[:, -1] <= 0) | (lam[:, 0] < -PSD_TOLERANCE * lam[:, -1]))
+        )
+        raise ValueError(
+            f"GibbsData.K: every K[r] must be positive semi-definite; K[{r}] has "
+            f"eigenvalues from {lam[r, 0]:.3g} to {lam[r, -1]:.3g}"
+        )
+    lam = np.maximum(lam, floor)  # round-off below the floor, as in the docstring
     return GibbsCache(U, lam, data.Y @ U, data.noise)
 
 

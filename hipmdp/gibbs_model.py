@@ -24,6 +24,8 @@ from typing import NamedTuple
 import numpy as np
 from scipy.special import gammaln
 
+from hipmdp.data import check_integer
+
 Array = np.ndarray
 
 _LOG_2PI = float(np.log(2.0 * np.pi))
@@ -109,8 +111,7 @@ def check_priors(priors: GibbsPriors) -> GibbsPriors:
             raise ValueError(
                 f"GibbsPriors.{name}: expected a finite value > 0, got {v}"
             )
-    if int(priors.n_w) != priors.n_w or priors.n_w < 1:
-        raise ValueError(f"GibbsPriors.n_w: expected an int >= 1, got {priors.n_w}")
+    check_integer("GibbsPriors.n_w", priors.n_w, 1)  # 5.0 passed, then crashed
     return priors
 
 
@@ -130,6 +131,9 @@ def check_state(state: GibbsState, R: int, B: int, m: int) -> None:
         raise ValueError("GibbsState.z: must be bool with z[0] all True")
     if not np.all(state.w[0] == 1.0):
         raise ValueError("GibbsState.w: w[0] must be all ones (mean dynamics)")
+    for name in ("w", "f", "mu_w"):
+        if not np.all(np.isfinite(getattr(state, name))):
+            raise ValueError(f"GibbsState.{name}: expected finite values")
 
 
 def harmonic(n: int) -> float:

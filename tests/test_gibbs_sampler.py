@@ -14,6 +14,8 @@ errors each, which keeps the chance that any of them fails near the same 6e-5
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy import linalg
@@ -382,6 +384,8 @@ def test_init_state_is_consistent():
         ("K", np.zeros((3, 5, 4))),
         ("noise", -np.ones(3)),
         ("Y", np.full((3, 4, 5), np.nan)),
+        # an eigenvalue of -0.5 was raised to the floor: another K was fitted
+        ("K", np.tile(np.diag([1.0, -0.5, 0.2, 1.0, 1.0]), (3, 1, 1))),
     ],
 )
 def test_bad_data_raises(field, bad):
@@ -399,13 +403,62 @@ def test_bad_data_raises(field, bad):
 
 
 @pytest.mark.parametrize(
-    ("field", "bad"), [("alpha", 0.0), ("sigma_w", -1.0), ("n_w", 0)]
+    ("field", "bad"),
+    [("alpha", 0.0), ("alpha", -1.0), ("sigma_w", -1.0), ("n_w", 0), ("n_w", 5.0)],
 )
 def test_bad_priors_raise(field, bad):
+    """In every entry point: log_joint and log_marginal returned NaN or -inf for
+    α <= 0, and n_w = 5.0 passed the check, then failed as a TypeError."""
     data, _ = small_problem(12)
     priors = GibbsPriors(alpha=1.0, sigma_w=1.0, sigma_w0=1.0, n_w=5)
-    with pytest.raises(ValueError, match=field):
-        init_state(data, priors._replace(**{field: bad}), rng=np.random.default_rng(0))
+    state = init_state(data, priors, rng=np.random.default_rng(0))
+    bad_priors = priors._replace(**{field: bad})
+    for call in (
+        lambda: init_state(data, bad_priors, rng=np.random.default_rng(0)),
+        lambda: log_joint(state, data, bad_priors),
+        lambda: log_marginal(state, data, bad_priors),
+        lambda: run_chains(data, bad_priors, n_sweeps=2, n_chains=1,
+                           rng=np.random.default_rng(0), progress=False),
+    ):  # fmt: skip
+        with pytest.raises(ValueError, match=f"GibbsPriors.{field}"):
+            call()
+
+
+@pytest.mark.parametrize("field", ["w", "f", "mu_w"])
+def test_a_state_with_non_finite_values_is_refused(field):
+    """A NaN in μ_w made every z decision compare against NaN: the feature was
+    switched off and deleted without a word."""
+    data, _ = small_problem(12)
+    priors = GibbsPriors(alpha=1.0, sigma_w=1.0, sigma_w0=1.0, n_w=5)
+    one, cache = init_state(data, priors, rng=np.random.default_rng(0)), prepare(data)
+    state = dataclasses.replace(  # a second feature, on row 0, for w[1] to hold NaN
+        one,
+        z=np.vstack([one.z, one.z[:1] & (np.arange(3) == 0)]),
+        w=np.vstack([one.w, np.full_like(one.w, 0.5)]),
+        f=np.concatenate([one.f, one.f]),
+        mu_w=np.append(one.mu_w, 0.0),
+    )
+    log_joint(state, data, priors)  # accepted as it is
+    values = getattr(state, field).copy()
+    values[-1] = np.nan  # feature 1's row
+    bad = dataclasses.replace(state, **{field: values})
+    for call in (
+        lambda: gibbs_sweep(bad, data, priors, cache, rng=np.random.default_rng(0)),
+        lambda: log_joint(bad, data, priors),
+    ):
+        with pytest.raises(ValueError, match=f"GibbsState.{field}: expected finite"):
+            call()
+
+
+def test_a_sweep_refuses_a_cache_of_other_data():
+    """The sweep reads the data from the cache: with other data it used to give
+    the same result without a word."""
+    data, _ = small_problem(12)
+    priors = GibbsPriors(alpha=1.0, sigma_w=1.0, sigma_w0=1.0, n_w=5)
+    state, cache = init_state(data, priors, rng=np.random.default_rng(0)), prepare(data)
+    for other in (data._replace(noise=2 * data.noise), small_problem(12, B=3)[0]):
+        with pytest.raises(ValueError, match="cache: prepared from other data"):
+            gibbs_sweep(state, other, priors, cache, rng=np.random.default_rng(0))
 
 
 @pytest.mark.parametrize(
@@ -413,6 +466,8 @@ def test_bad_priors_raise(field, bad):
     [
         ({"n_sweeps": 0}, "n_sweeps"),
         ({"n_chains": 1.5}, "n_chains"),
+        ({"n_sweeps": 5.0}, "n_sweeps"),  # passed the check, then a TypeError
+        ({"anneal": 1.0}, "anneal"),
         ({"anneal": 5}, "anneal"),
         ({"select": "mean"}, "select"),
     ],
