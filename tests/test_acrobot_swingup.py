@@ -8,6 +8,7 @@ import json
 
 import numpy as np
 import pytest
+from scipy import stats
 from threadpoolctl import threadpool_limits
 
 import hipmdp
@@ -351,6 +352,43 @@ def test_per_setting_differences_group_trials_by_setting():
     assert hip_avg[1]["mean"] == pytest.approx(-1.0)
     assert hip_avg[1]["low"] < -4.0 < 2.0 < hip_avg[1]["high"]
     assert all(r["mean"] == pytest.approx(0.0) for r in rows["average - true"])
+
+
+def test_transfer_metrics_pair_methods_by_setting_and_trial_in_any_order():
+    """3 settings x 4 trials whose (setting, trial) effects are shared by every
+    method and dwarf the differences: only a correct pairing gives the narrow
+    paired intervals of a hand-paired reference. The trials arrive shuffled,
+    each method in its own order."""
+    rng = np.random.default_rng(3)
+    n_settings, n_trials, n_episodes = 3, 4, 2
+    shared = rng.normal(0.0, 30.0, size=(n_settings, n_trials, n_episodes)) - 120
+    effect = {m: rng.normal(0.0, 1.0, size=shared.shape) for m in METHODS}
+    returns = {m: shared + effect[m] + 3.0 * (m == "hipmdp") for m in METHODS}
+    trials = [
+        TrialResult(m, s, t, returns[m][s, t], -returns[m][s, t],
+                    np.zeros((n_episodes + 1, 1)), None)
+        for m in METHODS for s in range(n_settings) for t in range(n_trials)
+    ]  # fmt: skip
+    trials = [trials[i] for i in rng.permutation(len(trials))]
+    config = dataclasses.replace(
+        TINY,
+        test_masses=((0.7, 0.9), (1.0, 1.0), (1.3, 1.1)),
+        n_trials=n_trials,
+        final_window=1,
+    )
+    got = transfer_metrics(config, trials)["paired_difference"]["hipmdp - average"]
+    diff = (returns["hipmdp"] - returns["average"]).mean(axis=2)  # (setting, trial)
+    t = stats.t.ppf(0.975, diff.size - 1)
+    half = t * diff.std(ddof=1) / np.sqrt(diff.size)
+    want = {"mean": diff.mean(), "low": diff.mean() - half, "high": diff.mean() + half}
+    for k, v in want.items():
+        assert got["all_episodes"][k] == pytest.approx(v, rel=1e-12)
+    by_setting = diff.mean(axis=1)
+    half = stats.t.ppf(0.975, 2) * by_setting.std(ddof=1) / np.sqrt(3)
+    assert got["by_setting"]["low"] == pytest.approx(by_setting.mean() - half)
+    assert got["by_setting"]["high"] == pytest.approx(by_setting.mean() + half)
+    # unpaired, the shared effects would make the interval about 40 times wider
+    assert got["all_episodes"]["high"] - got["all_episodes"]["low"] < 3.0
 
 
 def test_step_limit_split_adds_up_and_counts_only_limit_episodes():
