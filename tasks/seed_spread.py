@@ -189,16 +189,20 @@ def _settings(config: dict) -> dict[str, Any]:
     return {k: v for k, v in config.items() if k not in LABELS}
 
 
-def read_runs(runs: Sequence[str | Path]) -> tuple[str, list[dict], list[dict]]:
-    """``(experiment, configs, metrics)`` of the run folders, checked to be seeds
-    of one experiment: the same experiment, configs equal but for LABELS and
-    PRESENTATION (a field an older run lacks counts as its old value),
-    distinct seeds. Raises ValueError naming what differs."""
+def read_runs(
+    runs: Sequence[str | Path],
+) -> tuple[str, list[dict], list[dict], list[str | None]]:
+    """``(experiment, configs, metrics, git commits)`` of the run folders, checked
+    to be seeds of one experiment: the same experiment, configs equal but for
+    LABELS and PRESENTATION (a field an older run lacks counts as its old value),
+    distinct seeds. Raises ValueError naming what differs. (The commits may
+    differ: :func:`report` says so.)"""
     if len(runs) < 2:
         raise ValueError(f"runs: expected at least 2 run folders, got {len(runs)}")
     read = [read_run(Path(r)) for r in runs]
     configs = [c for c, _, _ in read]
     metrics = [m for _, m, _ in read]
+    commits = [(env or {}).get("git_commit") for _, _, env in read]
     kinds = [experiment_of(m) for m in metrics]
     if len(set(kinds)) != 1 or kinds[0] is None:
         raise ValueError(
@@ -224,7 +228,7 @@ def read_runs(runs: Sequence[str | Path]) -> tuple[str, list[dict], list[dict]]:
                     f"{k} ({a!r} vs {b!r})" for k, (a, b) in list(differ.items())[:5]
                 )  # fmt: skip
             )
-    return kinds[0], configs, metrics
+    return kinds[0], configs, metrics, commits
 
 
 def _interval(value: Any, label: str, run: str) -> dict[str, Any]:
@@ -289,12 +293,12 @@ def _older(run: str, err: Exception, label: str = "a headline number") -> str:
 
 def main(runs: Sequence[str | Path], out: str | Path | None = None) -> dict[str, Any]:
     """Check the runs (:func:`read_runs`) and summarise their headline numbers;
-    ``{"experiment", "seeds", "runs", "numbers": [{"label", "scale", "per_seed",
-    "across_seeds"}]}``. Also written as JSON to ``out``."""
+    ``{"experiment", "seeds", "runs", "git_commits", "numbers": [{"label",
+    "scale", "per_seed", "across_seeds"}]}``. Also written as JSON to ``out``."""
     if out is not None:
         check_out_file(out)
     runs = [str(r) for r in runs]
-    name, configs, metrics = read_runs(runs)
+    name, configs, metrics, commits = read_runs(runs)
     try:
         headlines = EXPERIMENTS[name][1](metrics[0])
     except (KeyError, IndexError, TypeError) as err:
@@ -314,6 +318,7 @@ def main(runs: Sequence[str | Path], out: str | Path | None = None) -> dict[str,
         "experiment": name,
         "seeds": [c["seed"] for c in configs],
         "runs": runs,
+        "git_commits": commits,
         "numbers": numbers,
     }
     if out is not None:
@@ -352,9 +357,17 @@ def report(result: dict[str, Any]) -> str:
     for n in result["numbers"]:
         cells = [_cell(p, n["scale"]) for p in n["per_seed"]]
         rows.append([n["label"], *cells, *_across_cell(n["across_seeds"], n["scale"])])
+    commits = result.get("git_commits") or [None] * len(result["runs"])
+    code = ""
+    if len(set(commits)) > 1:  # a difference between seeds may be one of code
+        made = ", ".join(
+            f"{run}: {c or 'not recorded'}"
+            for run, c in zip(result["runs"], commits, strict=True)
+        )
+        code = f"Note: the runs were made at different code ({made}).\n\n"
     return (
         f"{result['experiment']}: {len(result['seeds'])} seeds "
-        f"({', '.join(result['runs'])})\n\n" + markdown_table(header, rows)
+        f"({', '.join(result['runs'])})\n\n" + code + markdown_table(header, rows)
     )
 
 

@@ -259,3 +259,18 @@ def test_cli_prints_the_table_and_writes_json(tmp_path, capsys):
         cli(["no_run", "no_run_either", "--out", str(tmp_path)])
     assert err.value.code == 2
     assert f"out: {tmp_path} is a folder" in capsys.readouterr().err
+
+
+def test_runs_made_at_different_code_are_named_in_the_report(tmp_path):
+    """A difference between seeds can be one of code: the report says which run
+    was made at which commit when they differ, and nothing when they agree."""
+    runs = _runs(tmp_path)
+    for run in runs:
+        _edit(run, lambda m: m.update(environment={"git_commit": "aaa"}))
+    result = main(runs)
+    assert result["git_commits"] == ["aaa"] * 3
+    assert "different code" not in report(result)
+    _edit(runs[2], lambda m: m.update(environment={"git_commit": "bbb"}))
+    text = report(main(runs))
+    assert f"Note: the runs were made at different code ({runs[0]}: aaa," in text
+    assert f"{runs[2]}: bbb)" in text
