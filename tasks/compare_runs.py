@@ -53,7 +53,7 @@ IGNORED_METRICS = ("seconds",)
 #: Metrics added to metrics.json since the first runs: where one run has one and
 #: the other (written before it existed) lacks it, it is not compared, and the
 #: report says so.
-ADDED_METRICS = ("per_setting_loglik",)
+ADDED_METRICS = ("per_setting_loglik", "mse_ratio_to_best_baseline_interval")
 #: Settings that change how a run is shown or scheduled, never its results.
 PRESENTATION = ("progress", "workers", "record")
 

@@ -11,7 +11,14 @@ import pytest
 from threadpoolctl import threadpool_limits
 
 import hipmdp
-from tasks.cartpole_prediction import DIM_NAMES, PredictionConfig, main, parse_args
+from tasks.cartpole_prediction import (
+    DIM_NAMES,
+    N_BOOTSTRAP,
+    PredictionConfig,
+    main,
+    parse_args,
+    ratio_intervals,
+)
 from tasks.prediction import PREDICTION_METHODS, best_baseline
 from tasks.recording import rrd_contents
 from tests._prediction import assert_coverage_schema
@@ -76,6 +83,8 @@ def test_artefacts_and_schema(run):
     assert m["unseen"]["n_instances"] == 2
     assert m["unseen"]["mse_ratio_to_best_baseline"] == m["mse_ratio_to_best_baseline"]
     assert set(m["mse_ratio_to_best_baseline"]) == set(DIM_NAMES)
+    for d, ci in m["mse_ratio_to_best_baseline_interval"].items():
+        assert ci["n_settings"] == 2 and ci["low"] <= ci["high"], d
     assert m["environment"]["packages"]["numpy"] == np.__version__
     assert "Machine: " in (run.out / "report.md").read_text()
     assert_coverage_schema(m, DIM_NAMES, (run.out / "report.md").read_text())
@@ -347,3 +356,26 @@ def test_ratio_to_best_baseline_divides_by_the_lowest_mean_mse():
     assert ratios["dx"] == 0.5  # train only, 2.0
     assert ratios["dtheta"] is None  # the best baseline predicts it exactly
     assert ratios["dx_dot"] == ratios["dtheta_dot"] == 0.25  # batch only, 4.0
+
+
+def test_ratio_intervals_resample_settings_with_the_methods_paired():
+    """Against a loop over resamples drawn as the function draws them; and a
+    HiP-MDP at half the baseline on every setting has the interval [0.5, 0.5]
+    whatever the settings drawn (the methods stay paired)."""
+    rng = np.random.default_rng(5)
+    base = rng.lognormal(0.0, 1.5, size=(6, 4))
+    hip = base * rng.uniform(0.2, 1.4, size=base.shape)
+    per_setting = {"hipmdp": hip, "batch only": base, "train only": 2 * base}
+    mse = {m: {d: {"mean": v[:, j].mean()} for j, d in enumerate(DIM_NAMES)}
+           for m, v in per_setting.items()}  # fmt: skip
+    got = ratio_intervals(per_setting, mse, rng=np.random.default_rng(1))
+    draws = np.random.default_rng(1).integers(6, size=(N_BOOTSTRAP, 6))
+    for j, d in enumerate(DIM_NAMES):
+        ratios = [hip[i, j].mean() / base[i, j].mean() for i in draws]
+        want = np.percentile(ratios, [2.5, 97.5])
+        assert [got[d]["low"], got[d]["high"]] == pytest.approx(want, rel=1e-12)
+        assert got[d]["share_at_least_1"] == np.mean(np.array(ratios) >= 1)
+    half = {**per_setting, "hipmdp": 0.5 * base}
+    for ci in ratio_intervals(half, mse, rng=np.random.default_rng(2)).values():
+        assert ci["low"] == pytest.approx(0.5) and ci["high"] == pytest.approx(0.5)
+        assert ci["share_at_least_1"] == 0.0
