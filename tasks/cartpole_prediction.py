@@ -8,10 +8,11 @@
    repetitions × 30 episodes × ≤300 steps); every transition is kept.
 2. The HiP-MDP is fitted ``n_runs`` times independently (the paper's repeated MCMC
    runs); the average model is one GP on all batch data.
-3. On each test setting (the paper preset's 5 × 5 grid; quick: 3 × 3): 50 train and 50 held-out test
-   transitions along Sarsa trajectories; MSE of Δs per dimension and test
-   log-likelihood for the HiP-MDP (belief filtered on the 50 train transitions) and
-   the batch-only, train-only and batch + train GPs (tasks/prediction.py).
+3. On each test setting (the paper preset's 5 × 5 grid; quick: 3 × 3): 50 train
+   and 50 held-out test transitions along Sarsa trajectories; MSE of Δs per
+   dimension and test log-likelihood for the HiP-MDP (belief filtered on the 50
+   train transitions) and the batch-only, train-only and batch + train GPs
+   (tasks/prediction.py).
 
 The paper lists (0.3, 0.4) twice among its seven training settings; we keep the list
 as printed (two training instances with the same parameters).

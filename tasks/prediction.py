@@ -407,10 +407,19 @@ def score_settings(
 
 
 def mse_table(mse: dict[str, Any]) -> str:
-    """``mse[method][dimension]`` intervals as a markdown table."""
+    """``mse[method][dimension]`` intervals as a markdown table; a note under it
+    where a t-interval reaches below 0, which an MSE cannot."""
     dims = list(next(iter(mse.values())))
-    return markdown_table(
+    table = markdown_table(
         ["method", *dims], [[m] + [fmt_ci(mse[m][d]) for d in dims] for m in mse]
+    )
+    below = [f"{m} {d}" for m in mse for d in dims if mse[m][d]["low"] < 0]
+    if not below:
+        return table
+    return (
+        f"{table}\n\nThe intervals are Student-t over settings. Where one reaches "
+        f"below 0 ({', '.join(below)}), a few settings carry most of that mean and "
+        "the interval says little; the per-setting ratios are the better guide."
     )
 
 

@@ -19,7 +19,7 @@ from tasks.cartpole_prediction import (
     parse_args,
     ratio_intervals,
 )
-from tasks.prediction import PREDICTION_METHODS, best_baseline
+from tasks.prediction import PREDICTION_METHODS, best_baseline, mse_table
 from tasks.recording import rrd_contents
 from tests._prediction import assert_coverage_schema
 from tests._seed_spread import assert_reads_the_run
@@ -379,3 +379,15 @@ def test_ratio_intervals_resample_settings_with_the_methods_paired():
     for ci in ratio_intervals(half, mse, rng=np.random.default_rng(2)).values():
         assert ci["low"] == pytest.approx(0.5) and ci["high"] == pytest.approx(0.5)
         assert ci["share_at_least_1"] == 0.0
+
+
+def test_mse_table_notes_intervals_that_reach_below_zero():
+    """An MSE cannot be negative; a t-interval over settings that says so gets a
+    note naming it, and a table without one gets none."""
+    ok = {"mean": 2.0, "low": 1.0, "high": 3.0, "n": 9}
+    mse = {"hipmdp": {"dx": ok, "dtheta": ok}, "train only": {"dx": ok, "dtheta": ok}}
+    assert "below 0" not in mse_table(mse)
+    mse["hipmdp"]["dtheta"] = {"mean": 4.6e-05, "low": -4.6e-05, "high": 1.4e-4, "n": 9}
+    text = mse_table(mse)
+    assert text.startswith("| method | dx | dtheta |")
+    assert "reaches below 0 (hipmdp dtheta)" in text
