@@ -229,7 +229,14 @@ class EigenAlgebra:
 
     def w_draw(self, z, f, mu_w, sigma_w, *, rng):
         mean, cov = w_posterior(z, f, self.Yc, self.noise, mu_w, sigma_w)
-        L = np.linalg.cholesky(cov)
+        try:
+            L = np.linalg.cholesky(cov)
+        except np.linalg.LinAlgError:
+            # cov = P⁻¹ of a near-singular P (nearly equal features, tiny noise):
+            # round-off left it indefinite. Its eigen-factor, with the negative
+            # round-off clipped, draws from the same Gaussian.
+            d, Q = np.linalg.eigh(cov)
+            L = Q * np.sqrt(np.clip(d, 0.0, None))
         return mean + L @ rng.standard_normal(mean.shape)
 
 

@@ -599,3 +599,22 @@ def test_remove_unused_keeps_feature_zero_and_used_features():
     np.testing.assert_array_equal(z2, z[[0, 2]])
     np.testing.assert_array_equal(w2, w[[0, 2]])
     np.testing.assert_array_equal(mu2, [0.0, 2.0])
+
+
+def test_weight_draw_survives_a_covariance_round_off_left_indefinite(monkeypatch):
+    """Nearly equal features and a tiny noise make P near-singular, and P⁻¹'s
+    round-off can leave it indefinite: its Cholesky factor failed and the fit
+    stopped. A singular covariance stands in for it here: the draws must still
+    follow it (w₁ − w₂ fixed at the mean's, each w with variance 1)."""
+    mean = np.array([[0.5], [-0.25]])
+    cov = np.array([[1.0, 1.0], [1.0, 1.0 - 1e-13]])  # eigenvalue ~ -5e-14
+    with pytest.raises(np.linalg.LinAlgError):
+        np.linalg.cholesky(cov)
+    monkeypatch.setattr(fast, "w_posterior", lambda *args: (mean, cov))
+    alg = fast.EigenAlgebra(prepare(small_problem(3)[0]))
+    rng = np.random.default_rng(4)
+    draws = np.array([alg.w_draw(None, None, None, 1.0, rng=rng)[:, 0]
+                      for _ in range(N_DRAWS)])  # fmt: skip
+    np.testing.assert_allclose(draws[:, 0] - draws[:, 1], 0.75, atol=1e-6)
+    assert abs(draws[:, 0].mean() - 0.5) < 4 / np.sqrt(N_DRAWS)
+    assert abs(draws[:, 0].var() - 1.0) < 4 * np.sqrt(2 / N_DRAWS)
