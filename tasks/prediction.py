@@ -407,19 +407,23 @@ def score_settings(
 
 
 def mse_table(mse: dict[str, Any]) -> str:
-    """``mse[method][dimension]`` intervals as a markdown table; a note under it
-    where a t-interval reaches below 0, which an MSE cannot."""
+    """``mse[method][dimension]`` intervals as a markdown table; a t-interval
+    that reaches below 0, which an MSE cannot, is marked † and explained under
+    the table."""
+
+    def cell(ci: dict[str, Any]) -> str:
+        return fmt_ci(ci) + (" †" if ci["low"] < 0 else "")
+
     dims = list(next(iter(mse.values())))
     table = markdown_table(
-        ["method", *dims], [[m] + [fmt_ci(mse[m][d]) for d in dims] for m in mse]
+        ["method", *dims], [[m] + [cell(mse[m][d]) for d in dims] for m in mse]
     )
-    below = [f"{m} {d}" for m in mse for d in dims if mse[m][d]["low"] < 0]
-    if not below:
+    if not any(mse[m][d]["low"] < 0 for m in mse for d in dims):
         return table
     return (
-        f"{table}\n\nThe intervals are Student-t over settings. Where one reaches "
-        f"below 0 ({', '.join(below)}), a few settings carry most of that mean and "
-        "the interval says little; the per-setting ratios are the better guide."
+        f"{table}\n\n† The intervals are Student-t over settings; one that reaches "
+        "below 0 means a few settings carry most of that mean, and it says little. "
+        "The per-setting ratios are the better guide there."
     )
 
 

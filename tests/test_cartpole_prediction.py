@@ -390,4 +390,5 @@ def test_mse_table_notes_intervals_that_reach_below_zero():
     mse["hipmdp"]["dtheta"] = {"mean": 4.6e-05, "low": -4.6e-05, "high": 1.4e-4, "n": 9}
     text = mse_table(mse)
     assert text.startswith("| method | dx | dtheta |")
-    assert "reaches below 0 (hipmdp dtheta)" in text
+    assert "| hipmdp | 2 [1, 3] | 4.60e-05 [-4.60e-05, 1.40e-04] † |" in text
+    assert text.endswith("The per-setting ratios are the better guide there.")

@@ -455,7 +455,7 @@ def test_a_run_with_added_methods_reports_them_and_changes_nothing_else(runs):
 
     # the report's tables, but for the added rows and the sentence naming them
     # (the non-empty lines; the run times after them differ)
-    def tables(run, added=("| linear ", "| zero ", "Added with")):
+    def tables(run, added=("| linear ", "| zero ", "Added with", "† The intervals")):
         text = (run.out / "report.md").read_text()
         text = text[text.index("## MSE") : text.index("## Latent structure")]
         return [ln for ln in text.splitlines() if ln and not ln.startswith(added)]
