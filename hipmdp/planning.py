@@ -144,11 +144,15 @@ class LearnedModel:
         return dims
 
     def predict(self, states: Array, actions: NDArray[np.int64]) -> Array:
-        """``s + E[Δ]`` with angles wrapped, shape ``(N, D)``."""
+        """``s + E[Δ]`` with angles wrapped, shape ``(N, D)``. The model is given
+        copies of the states and actions: one that writes into its arguments
+        cannot move the planner's own."""
         s, a = _check_batch(states, actions)
-        args = (s, a) if self.belief is None else (s, a, self.belief)
+        args = (s.copy(), a.copy())
+        if self.belief is not None:
+            args = (*args, self.belief)
         if self._mean is not None:
-            mean = self._mean(s, a)
+            mean = self._mean(*args[:2])
         elif hasattr(self.model, "predict_mean"):
             mean = self.model.predict_mean(*args)
         else:

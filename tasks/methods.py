@@ -82,6 +82,7 @@ from hipmdp.data import Transitions, gaussian_loglik
 from hipmdp.sarsa import epsilon_greedy, init_state, reset_traces, sarsa_update
 from tasks.agents import DOMAINS, Domain
 from tasks.prediction import PREDICTION_METHODS, entity
+from tasks.transfer import LABELS as TRANSFER_LABELS
 from tasks.transfer import METHODS as TRANSFER_METHODS
 
 Array = np.ndarray
@@ -130,12 +131,15 @@ def check_specs(specs: Any) -> tuple[MethodSpec, ...]:
         )
     parsed = tuple(parse_spec(s) for s in specs)
     names = [p.name for p in parsed]
-    reserved = {*BUILT_IN, *map(entity, BUILT_IN)}  # names, and as recordings say them
+    # the built-in names, as recordings and reports say them, in any case: a
+    # report with two "HiP-MDP" rows would be ambiguous
+    reserved = {*BUILT_IN, *map(entity, BUILT_IN), *TRANSFER_LABELS.values()}
+    reserved = {r.lower() for r in reserved}
     for p in parsed:
-        if p.name in reserved:
+        if p.name.lower() in reserved:
             raise ValueError(
-                f"methods: {p.name!r} is (or is recorded as) a built-in method; "
-                "choose another name"
+                f"methods: {p.name!r} is (or is recorded or reported as) a built-in "
+                "method; choose another name"
             )
         if names.count(p.name) > 1:
             raise ValueError(f"methods: the name {p.name!r} is given twice")
@@ -309,8 +313,11 @@ class Added(NamedTuple):
         self, train: Transitions, test: Transitions, key: tuple[int, ...]
     ) -> tuple[Array, Array]:
         """The (mean, var) of Δs on ``test`` of the method adapted to ``train``
-        (:meth:`adapt`), checked as :meth:`checked_predict` says."""
-        return self.checked_predict(self.adapt(train, key), test)
+        (:meth:`adapt`, on a :meth:`fresh_copy` of the fitted object, as every
+        transfer trial gets: an ``adapt`` that changes the object cannot carry one
+        setting's data into the next), checked as :meth:`checked_predict` says."""
+        fresh = self._replace(method=self.fresh_copy())
+        return self.checked_predict(fresh.adapt(train, key), test)
 
     def checked_predict(self, predictor: Any, test: Transitions) -> tuple[Array, Array]:
         """``predictor.predict`` on copies of ``test``'s inputs, checked: real and
@@ -343,6 +350,12 @@ class Added(NamedTuple):
         mean, var = checked
         if not np.all(var > 0):
             raise ValueError(f"{where}'s var must be > 0")
+        with np.errstate(over="ignore"):
+            squared = (mean - test.deltas) ** 2
+        if not np.all(np.isfinite(squared)):
+            raise ValueError(
+                f"{where}'s mean is so far off that its squared error is not finite"
+            )
         with np.errstate(over="ignore", divide="ignore"):
             loglik = gaussian_loglik(test.deltas, mean, var)
         if not np.isfinite(loglik):

@@ -24,9 +24,9 @@ from tasks.prediction import (
     unseen_section,
 )
 from tasks.recording import Recording
+from tasks.transfer import LABELS
 
 COLORS = {"true": (60, 60, 60), "average": (230, 120, 30), "hipmdp": (40, 110, 220)}
-LABELS = {"true": "true model", "average": "average model", "hipmdp": "HiP-MDP"}
 #: Colours of methods added with ``--method``, in turn.
 ADDED_COLORS = ((40, 160, 80), (150, 60, 180), (190, 160, 20), (20, 160, 170))
 

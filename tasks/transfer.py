@@ -58,6 +58,8 @@ from tasks.experiment import check_integer, check_positive
 Array = np.ndarray
 
 METHODS = ("true", "average", "hipmdp")
+#: Their names in reports, tables and legends.
+LABELS = {"true": "true model", "average": "average model", "hipmdp": "HiP-MDP"}
 
 
 @dataclass(frozen=True)

@@ -150,6 +150,9 @@ def test_bayesian_linear_moves_from_the_batch_fit_to_the_instance():
         # the transfer's models
         ("true=tasks.methods:BayesianLinear", "'true' is .* a built-in method"),
         ("average=tasks.methods:BayesianLinear", "'average' is .* a built-in method"),
+        # as the report labels them, and in another case: two "HiP-MDP" rows
+        ("HiP-MDP=tasks.methods:BayesianLinear", "'HiP-MDP' is .* reported as"),
+        ("HipMDP=tasks.methods:BayesianLinear", "'HipMDP' is .* a built-in method"),
         (3, "expected strings NAME=module:attribute"),
     ],
 )
@@ -281,6 +284,7 @@ def test_methods_that_cannot_be_loaded_are_refused(tmp_path, monkeypatch):
         (dict(var=0.0), "var must be > 0"),
         (dict(var=np.inf), "var is not finite"),
         (dict(var=1e-320), "log-likelihood of the test transitions is not finite"),
+        (dict(mean=1e200), "mean is so far off that its squared error is not"),
         (dict(out=lambda pair: pair[0]), "must return \\(mean, var\\), got ndarray"),
     ],
 )
@@ -291,6 +295,36 @@ def test_bad_predictions_are_refused_naming_the_method(kw, match):
     added = Added(MethodSpec("mine", "m", "A"), Constant(**kw), 0)
     with pytest.raises(ValueError, match="method mine: predict" + ".*" + match):
         added.predict(test, test, (0, 0))
+
+
+class Memo(Constant):
+    """Keeps what it adapts to, on itself (fine-tuning in place, a context
+    buffer), and predicts the number of instances it has seen."""
+
+    def __init__(self):
+        super().__init__()
+        self.seen = []
+
+    def adapt(self, train, *, rng):
+        self.seen.append(len(train))
+        return self
+
+    def predict(self, states, actions):
+        return np.full(states.shape, float(len(self.seen))), np.ones(states.shape)
+
+
+def test_each_prediction_adapts_a_fresh_copy_of_the_fitted_method():
+    """The prediction tables adapt the method setting after setting: on one
+    shared object, a Memo carried each setting's data into the next (its
+    prediction 1, 2, 3, ...), as no transfer trial can."""
+    s = np.random.default_rng(2).normal(size=(5, 4))
+    test = hipmdp.Transitions(s, np.zeros(5, int), s + 0.1, np.zeros(5, int))
+    memo = Memo()
+    added = Added(MethodSpec("memo", "m", "A"), memo, 0)
+    for key in [(0, 0), (0, 1), (1, 0)]:
+        mean, _ = added.predict(test, test, key)
+        np.testing.assert_array_equal(mean, 1.0)
+    assert memo.seen == []  # the fitted object itself is never adapted
 
 
 def test_an_adapt_without_a_predictor_is_refused():
@@ -345,17 +379,16 @@ def test_each_call_gets_its_own_stream_from_the_seed_and_the_name():
     key), different for another setting, table, name or seed."""
 
     class Draws(Constant):
-        def adapt(self, train, *, rng):
-            self.drawn = rng.random()
+        def adapt(self, train, *, rng):  # on a copy: the draw is kept on the class
+            type(self).drawn = rng.random()
             return super().adapt(train, rng=rng)
 
     s = np.random.default_rng(2).normal(size=(5, 4))
     test = hipmdp.Transitions(s, np.zeros(5, int), s + 0.1, np.zeros(5, int))
 
     def draw(name, seed, key):
-        method = Draws()
-        Added(MethodSpec(name, "m", "A"), method, seed).predict(test, test, key)
-        return method.drawn
+        Added(MethodSpec(name, "m", "A"), Draws(), seed).predict(test, test, key)
+        return Draws.drawn
 
     first = draw("a", 0, (0, 0))
     assert first == draw("a", 0, (0, 0))

@@ -66,6 +66,24 @@ def test_learned_model_adds_mean_delta_and_wraps_angles() -> None:
     np.testing.assert_allclose(got, states + 0.5)
 
 
+def test_learned_model_gives_the_model_copies_of_its_inputs() -> None:
+    """A model that writes into its arguments (s -= 1, then Δ = 0) moved the
+    planner's states, so that planning used s' = s - 1 while the prediction
+    tables, which pass copies, scored Δ = 0."""
+
+    class Scribbles(PlainModel):
+        def predict(self, states, actions):
+            states -= 1.0
+            actions[:] = 0
+            return np.zeros_like(states), np.ones_like(states)
+
+    states, actions = np.ones((2, 3)), np.array([1, 2])
+    got = LearnedModel(Scribbles()).predict(states, actions)
+    np.testing.assert_array_equal(got, 1.0)
+    np.testing.assert_array_equal(states, 1.0)
+    np.testing.assert_array_equal(actions, [1, 2])
+
+
 def test_learned_model_prefers_a_mean_only_path() -> None:
     class MeanOnly(PlainModel):
         def predict_mean(self, states, actions):
