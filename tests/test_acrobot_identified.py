@@ -14,6 +14,8 @@ import hipmdp
 from tasks import acrobot_identified
 from tasks.acrobot_swingup import main as swingup_main
 from tasks.acrobot_swingup import run_streams
+from tasks.agents import ACROBOT
+from tasks.prediction import gather_split
 from tests.test_acrobot_swingup import TINY
 
 
@@ -594,3 +596,41 @@ def test_the_checks_build_the_runs_own_instances(run, tmp_path, monkeypatch):
         assert instances, name
         for params in instances:
             assert params.inertias == pytest.approx((1.0, 1.0)), name
+
+
+def test_the_identified_variants_get_beliefs_filtered_on_their_instance(
+    run, monkeypatch, tmp_path
+):
+    """The beliefs handed to the trials, rebuilt from --seed: each setting's
+    own `identify` transitions, filtered with the model's error ("model") and
+    with the paper's σ² ("paper"); neither is the prior. (The returns cannot
+    show a swap: the tiny run's are all at the step limit.)"""
+    out, _ = run
+    handed = {}
+    real_init = acrobot_identified._init
+
+    def init(config, hip, average, beliefs):
+        handed.update(hip=hip, beliefs=beliefs)
+        real_init(config, hip, average, beliefs)
+
+    monkeypatch.setattr(acrobot_identified, "_init", init)
+    acrobot_identified.main(
+        out, variants=("identified", "identified_paper_filter"), trials=1,
+        episodes=1, identify=30, seed=5, workers=1, progress=False,
+        out=tmp_path / "identified.json",
+    )  # fmt: skip
+    hip, beliefs = handed["hip"], handed["beliefs"]
+    config = json.loads((out / "config.json").read_text())
+    instances = acrobot_identified.run_test_instances(config)
+    _, ss_identify = np.random.SeedSequence(5).spawn(2)
+    assert len(beliefs["model"]) == len(beliefs["paper"]) == len(instances)
+    for i, (s, params) in enumerate(
+        zip(ss_identify.spawn(len(instances)), instances, strict=True)
+    ):
+        train = gather_split(ACROBOT, params, 30, 0, rng=np.random.default_rng(s)).train
+        assert len(train) == 30 and set(train.instances) == {0}
+        for key, model_error in (("model", True), ("paper", False)):
+            want = hip.update(hip.prior(), train, model_error=model_error)
+            np.testing.assert_array_equal(beliefs[key][i].mean, want.mean)
+            assert not np.allclose(beliefs[key][i].mean, hip.prior().mean)
+        assert not np.allclose(beliefs["model"][i].mean, beliefs["paper"][i].mean)

@@ -73,6 +73,8 @@ def test_first_episode_within_uses_negative_returns():
     curve = np.array([-500.0, -200.0, -111.0, -109.0, -100.0])
     assert first_episode_within(curve, target=-100.0) == 4
     assert first_episode_within(curve, target=-10.0) is None
+    # on the threshold counts as within (returns are whole steps: ties happen)
+    assert first_episode_within(np.array([-111.0, -110.0]), target=-100.0) == 2
 
 
 def test_paired_difference_cancels_what_the_trials_share():

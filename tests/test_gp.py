@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from hipmdp import gp
 from hipmdp.gp import (
     GPHyper,
     condition,
@@ -134,3 +135,32 @@ def test_periodic_gp_interpolates_across_the_wrap():
     assert np.all(err[(0,)] < 4 * sd[(0,)])
     assert np.all(err[()] > 4 * sd[(0,)])
     assert np.all(sd[(0,)] < sd[()])  # it knows it has data across the wrap
+
+
+def test_hyper_set_fits_each_action_on_at_most_n_subsample_transitions(monkeypatch):
+    """n_subsample is split across the B instances (n_subsample // B each, at
+    least 2), each action's groups are that action's transitions of one
+    instance, and every (a, d) is fitted on them."""
+    rng = np.random.default_rng(0)
+    n, D, A, B = 600, 2, 2, 4
+    states = rng.normal(size=(n, D))
+    actions = rng.integers(A, size=n)
+    instances = np.repeat(np.arange(B), n // B)
+    deltas = rng.normal(size=(n, D))
+    calls = []
+
+    def record(groups, periodic):
+        calls.append([(x.copy(), y.copy()) for x, y in groups])
+        return np.ones(3)
+
+    monkeypatch.setattr(gp, "fit_hyperparameters", record)
+    gp.fit_hyper_set(states, actions, deltas, instances, A, n_subsample=40,
+                     rng=np.random.default_rng(1))  # fmt: skip
+    assert len(calls) == A * D
+    for k, groups in enumerate(calls):
+        a, d = divmod(k, D)
+        assert len(groups) == B and all(len(y) == 40 // B for _, y in groups)
+        for (x, y), b in zip(groups, range(B), strict=True):
+            rows = np.flatnonzero((actions == a) & (instances == b))
+            i = [int(np.flatnonzero((states[rows] == s).all(axis=1))[0]) for s in x]
+            np.testing.assert_array_equal(y, deltas[rows[i], d])

@@ -67,6 +67,18 @@ def test_observations_conform_to_the_spec_and_wrap_angles(name):
         step = env.step(action_spec.generate_value() + rng.integers(2))
     if name == "acrobot":  # the test exercised wrapping (cart-pole fails at 12°)
         assert np.abs(raw_angles).max() > np.pi
+    # every angle is wrapped, each on its own (ANGLE_DIMS = (0,) would leave the
+    # acrobot's elbow unwrapped): the angles are the model's hinge joints, and
+    # each, set past ±π, is observed wrapped
+    model = env.physics.model
+    hinges = [int(model.jnt_qposadr[j]) for j in range(model.njnt)
+              if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE]  # fmt: skip
+    assert tuple(hinges) == module.ANGLE_DIMS
+    for j, q in zip(module.ANGLE_DIMS, (4.0, -4.5), strict=False):
+        env.physics.data.qpos[:] = 0.0
+        env.physics.data.qpos[j] = q
+        state = env.task.get_observation(env.physics)["state"]
+        assert state[j] == pytest.approx(wrap_angle(q))
 
 
 @pytest.mark.parametrize("name", DOMAINS)
@@ -76,6 +88,22 @@ def test_same_seed_and_actions_give_the_same_trajectory(name):
     first = run(factory, params, 7, actions)
     np.testing.assert_array_equal(first, run(factory, params, 7, actions))
     assert not np.array_equal(first[0], run(factory, params, 8, actions)[0])
+
+
+@pytest.mark.parametrize("name", DOMAINS)
+def test_start_states_are_uniform_on_the_noise_box(name):
+    """s₀ ~ U[−c, c] in every coordinate (qpos and qvel): over 400 resets each
+    coordinate's mean, variance (c²/3) and both halves of the box agree with it
+    to within 4 standard errors."""
+    module, factory, _ = DOMAINS[name]
+    env, c, n = factory(None, seed=11), module.INITIAL_NOISE, 400
+    s0 = np.array([env.reset().observation["state"] for _ in range(n)])
+    assert np.all(np.abs(s0) <= c)
+    assert np.all(np.abs(s0.mean(axis=0)) < 4 * c / np.sqrt(3 * n))
+    # Var of a U[−c, c] sample variance: (μ₄ − σ⁴)/n = (c⁴/5 − c⁴/9)/n
+    se_var = np.sqrt((c**4 / 5 - c**4 / 9) / n)
+    assert np.all(np.abs(s0.var(axis=0) - c**2 / 3) < 4 * se_var)
+    assert np.all(np.abs(np.mean(s0 < 0, axis=0) - 0.5) < 4 * np.sqrt(0.25 / n))
 
 
 @pytest.mark.parametrize("name", DOMAINS)
