@@ -16,9 +16,11 @@ import dataclasses
 import functools
 import json
 import os
+import pickle
 import platform
 import subprocess
 import sys
+import traceback
 from collections.abc import Callable, Sequence
 from importlib import metadata
 from pathlib import Path
@@ -460,13 +462,34 @@ def pool_map(
     with ProcessPoolExecutor(
         workers, initializer=_init_worker, initargs=(initializer, initargs)
     ) as pool:
-        it = pool.map(fn, jobs)
+        it = pool.map(functools.partial(_sendable_errors, fn), jobs)
         try:
             return list(tqdm(it, total=len(jobs), desc=desc, disable=not progress))
         except BaseException:
             # a job failed (or Ctrl-C): drop the queued ones rather than run them
             pool.shutdown(wait=True, cancel_futures=True)
             raise
+
+
+def _sendable_errors(fn, job):
+    """``fn(job)`` in a pool worker. An error that cannot travel back to the
+    parent as it is (pickled and rebuilt: an exception whose ``__init__`` takes
+    other arguments than it passes on, say) would break the pool and lose its
+    message; it is raised instead as a RuntimeError that carries its type,
+    message, notes and traceback."""
+    try:
+        return fn(job)
+    except Exception as err:
+        try:
+            pickle.loads(pickle.dumps(err))
+        except Exception:
+            kind = f"{type(err).__module__}.{type(err).__qualname__}"
+            text = "".join(traceback.format_exception(err))
+            raise RuntimeError(
+                f"{kind} raised in a worker process, which could not send it back "
+                f"as it is:\n{text}"
+            ) from None
+        raise
 
 
 def _init_worker(initializer, initargs: tuple) -> None:

@@ -229,6 +229,39 @@ def test_pool_jobs_run_one_blas_thread_after_the_initializer(two_blas_threads, w
     assert got == [([1], ["models"])] * 3
 
 
+class TwoPartError(Exception):
+    """An exception pickle cannot rebuild: __init__ takes two arguments and
+    passes one on, as a user's own exception class might."""
+
+    def __init__(self, code, detail):
+        super().__init__(f"{code}: {detail}")
+
+
+def _raise_two_part(job: int) -> int:
+    if job == 2:
+        err = TwoPartError(42, "no action 2 here")
+        err.add_note("(setting 0, trial 2)")
+        raise err
+    return job
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_an_error_a_worker_cannot_send_back_keeps_its_message(workers):
+    """At 2 workers such an error broke the pool (BrokenProcessPool, its message
+    lost); it now arrives as a RuntimeError naming its type, message and note.
+    In this process it is raised as it is."""
+    expected = TwoPartError if workers == 1 else RuntimeError
+    with pytest.raises(expected) as raised:
+        pool_map(_raise_two_part, [0, 1, 2, 3], workers=workers, desc="",
+                 progress=False)  # fmt: skip
+    text = str(raised.value) + "".join(getattr(raised.value, "__notes__", []))
+    assert "42: no action 2 here" in text and "(setting 0, trial 2)" in text
+    if workers == 2:
+        assert "test_experiment.TwoPartError raised in a worker" in text
+    assert pool_map(_raise_two_part, [0, 1], workers=workers, desc="",
+                    progress=False) == [0, 1]  # fmt: skip
+
+
 def _fail_or_mark(job: tuple[str, str]) -> None:
     """Job ("fail", _) raises at once; ("mark", path) writes path, then waits."""
     kind, path = job
