@@ -253,6 +253,57 @@ def test_each_trial_gets_its_own_agent_stream():
     assert Draws.drawn == expected and len(set(expected)) == 3
 
 
+class ModelDraws:
+    """A model-based method that records the first draw of every rng it is
+    given, fit's and each adapt's, on the class (trials run on copies)."""
+
+    drawn: dict = {}
+
+    def fit(self, batch, *, rng):
+        ModelDraws.drawn.setdefault("fit", []).append(rng.random())
+
+    def adapt(self, train, *, rng):
+        ModelDraws.drawn.setdefault(len(train), []).append(rng.random())
+        return self
+
+    def predict(self, states, actions):
+        return np.zeros(states.shape), np.ones(states.shape)
+
+
+def test_a_models_fit_and_each_trials_adapt_get_their_own_streams():
+    """fit gets (seed, name, 0); a transfer trial's adapt after e real
+    episodes of trial t on setting i gets (seed, name, 1, 3, i, t, e), as
+    method_seed says: the same
+    for the same trial, another for another (an unseeded or constant stream
+    would pass the other tests: their methods draw nothing)."""
+    from tasks.transfer import TrialJob, run_trial, set_models
+
+    config = TransferConfig(
+        n_episodes=2, max_steps=5, planning_max_steps=5,
+        initial_planning_episodes=1, planning_episodes=1,
+    )  # fmt: skip
+    ModelDraws.drawn = {}
+    loaded = [(MethodSpec("m", "x", "A"), ModelDraws())]
+    set_models(
+        ACROBOT, config, None, None, added=methods.fit_all(loaded, batch(), 7, 3)
+    )
+    fit = np.random.default_rng(method_seed(7, "m", 0)).random()
+    assert ModelDraws.drawn["fit"] == [fit]
+    ModelDraws.drawn = {}
+    params = AcrobotParams(link_mass_1=0.9, link_mass_2=1.1)
+    trials = [(0, 0), (1, 2), (0, 0)]
+    for i, t in trials:
+        run_trial(TrialJob("m", i, t, params, (5, (i, t)), False))
+    # before the first episode (no transitions), after it (its 5)
+    for e, n_seen in enumerate((0, 5)):
+        expected = [
+            np.random.default_rng(method_seed(7, "m", 1, 3, i, t, e)).random()
+            for i, t in trials
+        ]
+        assert ModelDraws.drawn[n_seen] == expected, e
+        assert expected[0] == expected[2] != expected[1]
+
+
 def test_a_swing_up_run_takes_a_policy_and_nothing_else_changes(tmp_path, monkeypatch):
     """A tiny swing-up run without added methods (one process) and with a policy
     and a model (two worker processes): every other method's numbers, traced
