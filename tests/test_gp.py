@@ -93,6 +93,10 @@ def test_prediction_matches_dense_formula():
     np.testing.assert_allclose(mean, Ks @ np.linalg.solve(C, y), atol=1e-10)
     dense_var = h.signal_var + h.noise_var - np.diag(Ks @ np.linalg.solve(C, Ks.T))
     np.testing.assert_allclose(var, dense_var, atol=1e-10)
+    # without the noise (the default): the latent function's variance
+    mean_f, var_f = condition(X, y, h).predict(Xs)
+    np.testing.assert_array_equal(mean_f, mean)
+    np.testing.assert_allclose(var_f, dense_var - h.noise_var, atol=1e-10)
 
 
 def test_periodic_nlml_gradient_matches_finite_differences():

@@ -143,7 +143,8 @@ def test_progress_lines_finish_shards_of_an_unfinished_run(run, tmp_path):
     shards.append_progress(part, {**whole["shards"][2], "counts": None})
     assert shards.read_progress(part)[2]["counts"] is None
     shards.append_progress(part, whole["shards"][2])
-    shards.append_progress(part, {**whole["shards"][2], "index": 99})
+    for beyond in (99, len(whole["shards"]), -1):  # -1: refused, not the last
+        shards.append_progress(part, {**whole["shards"][2], "index": beyond})
     assert len(shards.read_manifest(part)["shards"]) == len(whole["shards"])
     dataset = shards.Dataset(part)
     assert not dataset.complete
