@@ -61,3 +61,44 @@ def test_bad_input(tmp_path):
             rec.strips("/s", np.zeros((3, 2)), episode=0)
         with pytest.raises(ValueError, match="step: expected shape"):
             rec.scalars("/x", [1.0, 2.0], episode=0, step=np.arange(3))
+
+
+def _capture(rec: Recording) -> dict[str, list]:
+    """What `rec` sends to rerun, decoded: per entity, its (indexes, values)
+    batches, the indexes as {timeline: array}."""
+    sent: dict[str, list] = {}
+    send = rec._rec.send_columns
+
+    def capture(entity, indexes, columns):
+        times = {i.timeline_name(): i.as_arrow_array().to_numpy() for i in indexes}
+        (column,) = list(columns)
+        values = column.as_arrow_array().flatten().to_numpy(zero_copy_only=False)
+        sent.setdefault(entity, []).append((times, values))
+        return send(entity, indexes=indexes, columns=columns)
+
+    rec._rec.send_columns = capture
+    return sent
+
+
+def test_belief_panel_sends_mean_and_two_sigma_band_on_the_steps(tmp_path):
+    """The values and time indexes themselves (the row counts above cannot tell
+    a band of ±1σ from ±2σ, or a zeroed episode timeline): per weight the mean,
+    mean ± 2σ, and the true parameters as constants, at (episode, step)."""
+    means = np.array([[0.5, 1.0], [0.6, 1.1], [0.7, 1.3]])
+    sds = np.array([[0.1, 0.2], [0.05, 0.1], [0.02, 0.3]])
+    step = np.array([0, 4, 9])
+    with Recording(tmp_path / "r.rrd", application_id="t", enabled=True) as rec:
+        sent = _capture(rec)
+        rec.belief(means, sds, {"link_mass_2": 0.9}, episode=3, step=step)
+    expected = {"/belief/true/link_mass_2": np.full(3, 0.9)}
+    for k in range(2):
+        base = f"/belief/w{k + 1}"
+        expected[f"{base}/mean"] = means[:, k]
+        expected[f"{base}/upper"] = means[:, k] + 2 * sds[:, k]
+        expected[f"{base}/lower"] = means[:, k] - 2 * sds[:, k]
+    assert set(sent) == set(expected)
+    for entity, values in expected.items():
+        ((times, got),) = sent[entity]
+        np.testing.assert_array_equal(got, values, err_msg=entity)
+        np.testing.assert_array_equal(times["episode"], [3, 3, 3], err_msg=entity)
+        np.testing.assert_array_equal(times["step"], step, err_msg=entity)
