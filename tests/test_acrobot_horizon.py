@@ -7,8 +7,11 @@ import json
 import numpy as np
 import pytest
 
+from hipmdp.planning import LearnedModel, open_loop_errors
 from tasks import acrobot_horizon
 from tasks.acrobot_swingup import main as swingup_main
+from tasks.agents import ACROBOT
+from tasks.prediction import gather_split
 from tests.test_acrobot_swingup import TINY
 
 
@@ -46,6 +49,37 @@ def test_writes_errors_per_model_horizon_and_setting(run, capsys):
     np.testing.assert_array_equal(
         results.summary["rmse"]["identified"]["4"], data["rmse"]["identified"]["4"]
     )
+
+
+def test_setting_0_rebuilt_from_the_seed(run):
+    """Setting 0's numbers from its own seeds: the belief filtered on its
+    `identify` transitions (not the prior), each model's k-step errors on its
+    held-out episodes, their root mean square and 99th percentile of |error|
+    per dimension."""
+    out, results = run
+    config, hip, _ = acrobot_horizon.read_run(out)
+    params = acrobot_horizon.run_test_instances(config)[0]
+    ss_identify, ss_evaluate = (
+        np.random.SeedSequence(321).spawn(len(TINY.test_masses))[0].spawn(2)
+    )
+    train = gather_split(
+        ACROBOT, params, 30, 0, rng=np.random.default_rng(ss_identify)
+    ).train
+    held_out = gather_split(
+        ACROBOT, params, 0, 40, rng=np.random.default_rng(ss_evaluate)
+    ).episodes
+    identified = hip.update(hip.prior(), train)
+    assert not np.allclose(identified.mean, hip.prior().mean)
+    for name, belief in (("prior", hip.prior()), ("identified", identified)):
+        model = LearnedModel(hip, belief, ACROBOT.angle_dims)
+        for k, err in open_loop_errors(model, held_out, (1, 4)).items():
+            got = results.summary
+            np.testing.assert_array_equal(
+                got["rmse"][name][str(k)][0], np.sqrt(np.mean(err**2, axis=0))
+            )
+            np.testing.assert_array_equal(
+                got["p99"][name][str(k)][0], np.percentile(np.abs(err), 99, axis=0)
+            )
 
 
 def test_rejects_bad_options(tmp_path, run):
