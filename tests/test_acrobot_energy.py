@@ -310,6 +310,26 @@ def test_writes_promised_delivered_and_energy_per_model(run, capsys):
     )
 
 
+def test_a_model_exact_everywhere_has_no_energy_error(run, tmp_path):
+    """exact_slow with the band edge above every state is the simulator itself:
+    every energy term and band error exactly 0, its plans the simulator's. (A
+    swapped split, wrong actions for the true next state or the prior for the
+    exact rows would show here; the smoke test above checks shapes.)"""
+    out, options, _ = run
+    summary = acrobot_energy.main(
+        out, **{**options, "models": ("true", "exact_slow"), "fast": 1e6, "noise": None,
+                "out": tmp_path / "e.json"},
+    ).summary  # fmt: skip
+    for k in acrobot_energy.TERMS:
+        if k != "true_gain":
+            np.testing.assert_array_equal(summary["energy_terms"]["exact_slow"][k], 0)
+    rmse = np.array(summary["band_rmse"]["exact_slow"], dtype=float)
+    assert np.all(rmse[np.isfinite(rmse)] == 0) and np.isfinite(rmse).any()
+    np.testing.assert_array_equal(
+        summary["promised_steps"]["exact_slow"], summary["promised_steps"]["true"]
+    )
+
+
 def test_without_noise_there_is_no_noisy_model(run, tmp_path):
     out, options, _ = run
     summary = acrobot_energy.main(
