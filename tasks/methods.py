@@ -201,7 +201,14 @@ def load(spec: MethodSpec, build: bool = True) -> Any:
     lacks = [] if "fit" in has else ["fit"]
     lacks += [] if has & {"adapt", "agent"} else ["adapt or agent"]
     if lacks:
-        raise ValueError(f"{kind} no {' and no '.join(lacks)}")
+        # an agent on the object but not its class is not read as a policy
+        hint = (
+            "; its agent is an attribute of the object, and a policy's agent "
+            "must be a method of its class"
+            if "adapt or agent" in lacks and callable(getattr(method, "agent", None))
+            else ""
+        )
+        raise ValueError(f"{kind} no {' and no '.join(lacks)}{hint}")
     if {"adapt", "agent"} <= has:
         raise ValueError(f"{kind} both adapt and agent")
     return method

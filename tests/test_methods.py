@@ -203,6 +203,13 @@ class NoAdapt:
         pass
 
 
+def agent_on_the_object():
+    """A policy built as an object whose agent is an instance attribute."""
+    method = NoAdapt()
+    method.agent = lambda *, rng: None
+    return method
+
+
 class AdaptsToNothing(NoAdapt):
     def adapt(self, train, *, rng):
         return None
@@ -264,6 +271,7 @@ def test_methods_that_cannot_be_loaded_are_refused(tmp_path, monkeypatch):
         ("x=broken_method:A", "importing 'broken_method' raised RuntimeError: boom"),
         ("x=tasks.methods:NoSuchClass", "has no class or function 'NoSuchClass'"),
         ("x=tests.test_methods:NoAdapt", "NoAdapt has no adapt"),
+        ("x=tests.test_methods:agent_on_the_object", "must be a method of its class"),
         ("x=tasks.methods:load", "calling load\\(\\) with no arguments raised"),
     ]:
         with pytest.raises(ValueError, match=match):
