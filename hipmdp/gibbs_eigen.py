@@ -236,6 +236,8 @@ class EigenAlgebra:
             # round-off left it indefinite. Its eigen-factor, with the negative
             # round-off clipped, draws from the same Gaussian.
             d, Q = np.linalg.eigh(cov)
+            if d.min() < -PSD_TOLERANCE * d.max():  # not round-off: a real error
+                raise
             L = Q * np.sqrt(np.clip(d, 0.0, None))
         return mean + L @ rng.standard_normal(mean.shape)
 

@@ -174,7 +174,9 @@ class Recording:
         self._rec.flush()
         self._rec.disconnect()
         self._rec = None
-        with open(self._tmp, "rb") as fh:  # on disk before the rename, as atomic_write
+        # on disk before the rename, as atomic_write (a writable handle: Windows'
+        # FlushFileBuffers needs one)
+        with open(self._tmp, "r+b") as fh:
             os.fsync(fh.fileno())
         os.replace(self._tmp, self.path)
         fsync_folder(self.path.parent)

@@ -361,10 +361,10 @@ def report(result: dict[str, Any]) -> str:
     code = ""
     if len(set(commits)) > 1:  # a difference between seeds may be one of code
         made = ", ".join(
-            f"{run}: {c or 'not recorded'}"
+            f"{run}: {c[:8] if c else 'not recorded'}"
             for run, c in zip(result["runs"], commits, strict=True)
         )
-        code = f"Note: the runs were made at different code ({made}).\n\n"
+        code = f"Note: the runs were made at different commits ({made}).\n\n"
     return (
         f"{result['experiment']}: {len(result['seeds'])} seeds "
         f"({', '.join(result['runs'])})\n\n" + code + markdown_table(header, rows)

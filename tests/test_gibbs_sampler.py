@@ -618,3 +618,7 @@ def test_weight_draw_survives_a_covariance_round_off_left_indefinite(monkeypatch
     np.testing.assert_allclose(draws[:, 0] - draws[:, 1], 0.75, atol=1e-6)
     assert abs(draws[:, 0].mean() - 0.5) < 4 / np.sqrt(N_DRAWS)
     assert abs(draws[:, 0].var() - 1.0) < 4 * np.sqrt(2 / N_DRAWS)
+    # an eigenvalue of -0.5 is no round-off: the error stands
+    monkeypatch.setattr(fast, "w_posterior", lambda *args: (mean, np.diag([1.0, -0.5])))
+    with pytest.raises(np.linalg.LinAlgError):
+        alg.w_draw(None, None, None, 1.0, rng=rng)

@@ -269,8 +269,8 @@ def test_runs_made_at_different_code_are_named_in_the_report(tmp_path):
         _edit(run, lambda m: m.update(environment={"git_commit": "aaa"}))
     result = main(runs)
     assert result["git_commits"] == ["aaa"] * 3
-    assert "different code" not in report(result)
+    assert "different commits" not in report(result)
     _edit(runs[2], lambda m: m.update(environment={"git_commit": "bbb"}))
     text = report(main(runs))
-    assert f"Note: the runs were made at different code ({runs[0]}: aaa," in text
+    assert f"Note: the runs were made at different commits ({runs[0]}: aaa," in text
     assert f"{runs[2]}: bbb)" in text
