@@ -62,6 +62,24 @@ def test_same_rng_gives_the_same_data_and_another_does_not():
     assert not np.array_equal(a.states, c.transitions.states)
 
 
+def test_each_instance_starts_from_its_own_stream():
+    """Instance i's episodes start from states drawn by the i-th stream spawned
+    from rng (the policy's is spawned after them): its first start state is that
+    of an environment seeded with that stream. Two identical instances thus
+    start apart, and one instance's data do not depend on the others'."""
+    result = collect.collect(
+        "acrobot", [ACROBOTS[0], ACROBOTS[0]], episodes_per_instance=1,
+        rng=np.random.default_rng(5), max_steps=3, policy=lambda s: 1,
+    )  # fmt: skip
+    t = result.transitions
+    streams = np.random.default_rng(5).spawn(2)
+    for i, stream in enumerate(streams):
+        env = acrobot.swingup(ACROBOTS[0], seed=stream, max_steps=3)
+        first = t.states[t.instances == i][0]
+        np.testing.assert_array_equal(first, env.reset().observation["state"])
+    assert not np.array_equal(t.states[t.instances == 0], t.states[t.instances == 1])
+
+
 def test_a_policy_callable_chooses_the_actions():
     result = collect.collect(
         "cartpole",
