@@ -130,7 +130,7 @@ class LearnedModel:
             or any(i < 0 or (isinstance(d, int) and i >= d) for i in dims)
         ):
             raise ValueError(
-                f"angle_dims: expected distinct indices in {bound}, got {raw!r}"
+                f"angle_dims: expected distinct integer indices in {bound}, got {raw!r}"
             )
         dims = tuple(int(i) for i in dims)
         # a fitted HiP-MDP records the angles of its batch (hipmdp.fit): planning
