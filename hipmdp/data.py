@@ -242,6 +242,27 @@ def check_integer(name: str, value: Any, minimum: int) -> None:
         raise ValueError(f"{name}: expected >= {minimum}, got {value}")
 
 
+def check_angle_dims(angle_dims: Any, d: int | None) -> tuple[int, ...]:
+    """``angle_dims`` as a tuple of distinct int indices in ``[0, d)`` (``d``
+    None: any index >= 0); a ValueError naming ``angle_dims`` otherwise."""
+    try:
+        raw = tuple(angle_dims)
+    except TypeError:
+        raise ValueError(
+            f"angle_dims: expected a sequence of indices, got {angle_dims!r}"
+        ) from None
+    if not all(
+        isinstance(i, int | np.integer) and not isinstance(i, bool) for i in raw
+    ):
+        raise ValueError(f"angle_dims: expected integer indices, got {raw}")
+    angles = tuple(int(i) for i in raw)
+    high = np.inf if d is None else d
+    if any(i < 0 or i >= high for i in angles) or len(set(angles)) != len(angles):
+        bound = ">= 0" if d is None else f"in [0, {d})"
+        raise ValueError(f"angle_dims: expected distinct indices {bound}, got {angles}")
+    return angles
+
+
 def wanted_instances(instances: int | Iterable[int]) -> Array:
     """The instance ids a load asks for, as int64 (n >= 1,); a ValueError names
     ``instances`` for none, bools or non-integers."""
@@ -408,21 +429,7 @@ class Transitions:
                 if not np.all(np.isin(done, (0, 1))):
                     raise ValueError("dones: expected booleans (or 0/1)")
                 done = done.astype(bool)
-        try:
-            raw = tuple(self.angle_dims)
-        except TypeError:
-            raise ValueError(
-                f"angle_dims: expected a sequence of indices, got {self.angle_dims!r}"
-            ) from None
-        if not all(
-            isinstance(i, int | np.integer) and not isinstance(i, bool) for i in raw
-        ):
-            raise ValueError(f"angle_dims: expected integer indices, got {raw}")
-        angles = tuple(int(i) for i in raw)
-        if any(i < 0 or i >= d for i in angles) or len(set(angles)) != len(angles):
-            raise ValueError(
-                f"angle_dims: expected distinct indices in [0, {d}), got {angles}"
-            )
+        angles = check_angle_dims(self.angle_dims, d)
         dt = self.dt
         if dt is not None:
             if isinstance(dt, bool) or not isinstance(dt, int | float | np.number):

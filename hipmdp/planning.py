@@ -29,7 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm.auto import tqdm
 
-from hipmdp.data import Transitions, check_integer, wrap_angle
+from hipmdp.data import Transitions, check_angle_dims, check_integer, wrap_angle
 from hipmdp.fourier import FourierBasis
 from hipmdp.sarsa import (
     SarsaConfig,
@@ -112,27 +112,8 @@ class LearnedModel:
             object.__setattr__(self, "_mean", self.model.mean_predictor(*extra))
 
     def _checked_angle_dims(self) -> tuple[int, ...]:
-        raw = self.angle_dims
-        try:
-            dims = tuple(raw)
-        except TypeError:
-            raise ValueError(
-                f"angle_dims: expected a sequence of indices, got {raw!r}"
-            ) from None
         d = getattr(self.model, "state_dim", None)
-        bound = f"[0, {d})" if isinstance(d, int) else ">= 0"
-        if (
-            not all(
-                isinstance(i, int | np.integer) and not isinstance(i, bool)
-                for i in dims
-            )
-            or len(set(dims)) != len(dims)
-            or any(i < 0 or (isinstance(d, int) and i >= d) for i in dims)
-        ):
-            raise ValueError(
-                f"angle_dims: expected distinct integer indices in {bound}, got {raw!r}"
-            )
-        dims = tuple(int(i) for i in dims)
+        dims = check_angle_dims(self.angle_dims, d if isinstance(d, int) else None)
         # a fitted HiP-MDP records the angles of its batch (hipmdp.fit): planning
         # must wrap the same ones
         info = getattr(self.model, "info", None)

@@ -124,9 +124,9 @@ def test_learned_model_checks_angles_and_belief_when_built() -> None:
     for dims, match in [
         ((), r"angle_dims: \(\) differs from the fitted model's \(0, 1\)"),
         ((1, 0), r"differs"),
-        ((0, 3), r"angle_dims: expected distinct integer indices in \[0, 3\)"),
+        ((0, 3), r"angle_dims: expected distinct indices in \[0, 3\)"),
         ((0, 0), "distinct"),
-        ((True,), "distinct integer"),
+        ((True,), "expected integer indices"),
         (0, "angle_dims: expected a sequence"),
     ]:
         with pytest.raises(ValueError, match=match):
