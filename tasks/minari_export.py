@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from hipmdp import shards
+from hipmdp.data import ParameterTable, Transitions
 from tasks import agents
 from tasks.collect import get_domain
 from tasks.experiment import check_folder_out, path_argument
@@ -92,13 +93,10 @@ def export(run: str | Path, out: str | Path, *, dataset_id: str | None = None) -
     episode, steps = 0, 0
     for entry in dataset.manifest["shards"]:
         transitions = dataset.load(instances=entry["instances"])
-        ends = np.flatnonzero(transitions.dones) + 1
-        for start, stop in zip(np.r_[0, ends[:-1]], ends, strict=True):
+        for start, stop, terminal in episode_ends(
+            transitions, table, domain, max_steps
+        ):
             b = int(transitions.instances[start])
-            params = spec.params_type(**table.row(b))
-            task = agents.DOMAINS[domain].planning_task(params, max_steps)
-            last = transitions.next_states[stop - 1]
-            terminal = bool(task.terminal(last[None])[0])
             columns = _episode_columns(transitions, start, stop, terminal)
             folder = data / str(episode)
             folder.mkdir()
@@ -157,6 +155,24 @@ def check_dataset_id(dataset_id: str) -> None:
             "--dataset-id: expected Minari's [namespace/]name-vN, of letters, "
             f"digits, '_' and '-' (e.g. acrobot-random-v0), got {dataset_id!r}"
         )
+
+
+def episode_ends(
+    transitions: Transitions, table: ParameterTable, domain: str, max_steps: int
+) -> list[tuple[int, int, bool]]:
+    """``(start, stop, terminal)`` of each episode in ``transitions`` (ended by
+    its ``dones``): ``terminal`` if its last next state ends the task of its own
+    instance (its parameters from ``table``: the acrobot's goal height, say,
+    depends on its link lengths), else the episode was truncated."""
+    spec = get_domain(domain)
+    ends = np.flatnonzero(transitions.dones) + 1
+    out = []
+    for start, stop in zip(np.r_[0, ends[:-1]], ends, strict=True):
+        params = spec.params_type(**table.row(int(transitions.instances[start])))
+        task = agents.DOMAINS[domain].planning_task(params, max_steps)
+        last = transitions.next_states[stop - 1]
+        out.append((int(start), int(stop), bool(task.terminal(last[None])[0])))
+    return out
 
 
 def _episode_columns(transitions, start: int, stop: int, terminal: bool) -> dict:

@@ -4,6 +4,7 @@ by the task, and each episode carries its instance's parameters."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -140,3 +141,29 @@ def test_an_out_that_is_a_file_is_a_usage_error(run, tmp_path, capsys):
         minari_export.main([str(run), "--out", str(file)])
     assert stopped.value.code == 2
     assert "--out: " in capsys.readouterr().err and file.read_text() == "mine"
+
+
+def test_episode_ends_are_labelled_by_their_own_instances_task():
+    """The acrobot's goal is the tip above l₁, so it depends on the instance's
+    link lengths: a pose with the tip at l₂ = 1 m reaches it for l₁ = 0.8 m and
+    not for l₁ = 1.2 m (nor for the nominal 1 m, which a label from the nominal
+    parameters would use)."""
+    from hipmdp.data import ParameterTable, Transitions
+    from tasks.acrobot import AcrobotParams, goal_reached
+
+    pose = np.array([np.pi / 2, np.pi / 2, 0.0, 0.0])  # link 1 level, link 2 up
+    short, long = AcrobotParams(link_length_1=0.8), AcrobotParams(link_length_1=1.2)
+    assert not goal_reached(pose[None], AcrobotParams())[0]
+    states = np.zeros((4, 4))
+    next_states = np.array([np.zeros(4), pose, np.zeros(4), pose])
+    transitions = Transitions(
+        states, np.zeros(4, int), next_states, np.array([0, 0, 1, 1]),
+        angle_dims=(0, 1), dones=np.array([False, True, False, True]),
+    )  # fmt: skip
+    names = [f.name for f in dataclasses.fields(AcrobotParams)]
+    table = ParameterTable(
+        [0, 1], names,
+        [[getattr(p, n) for n in names] for p in (short, long)],
+    )  # fmt: skip
+    ends = minari_export.episode_ends(transitions, table, "acrobot", 500)
+    assert ends == [(0, 2, True), (2, 4, False)]
