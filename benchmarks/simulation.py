@@ -1,6 +1,6 @@
 """Simulation speed: raw `mujoco.mj_step` against our dm_control environments.
 
-    python -m benchmarks.simulation [--steps 5000]
+    python -m benchmarks.simulation [--steps 5000] [--repeats 7]
 
 For each domain, measured side by side in one run on the same compiled model:
 
@@ -10,8 +10,12 @@ For each domain, measured side by side in one run on the same compiled model:
   uniformly random actions, resetting when an episode ends (observations, reward,
   termination, action checks and resets included).
 
-Prints control steps per second for both (and raw MuJoCo physics steps per second)
-and the ratio env / raw: the fraction of raw speed the environment keeps.
+The two are measured in turn, `--repeats` times (raw first in odd repeats, env
+first in even ones, after one untimed warm-up of each). Prints the median control
+steps per second of each (and raw MuJoCo physics steps per second) and the
+median of the repeats' paired ratios env / raw: the fraction of raw speed the
+environment keeps, with the ratios' range. (One timing per side gave ratios
+0.80–1.02 on the acrobot over four runs on an idle machine.)
 """
 
 from __future__ import annotations
@@ -54,28 +58,51 @@ def env_steps_per_second(env, n_actions, n_steps, rng):
     return n_steps / (time.perf_counter() - start)
 
 
+def paired_rates(env, module, n_steps: int, repeats: int, rng):
+    """``repeats`` (raw, env) control-step rates measured in turn, the order
+    alternating, after one untimed warm-up of each; two arrays."""
+    model, n_sub = env.physics.model.ptr, module.N_SUB_STEPS
+    sides = {
+        "raw": lambda n: raw_steps_per_second(model, module.ACTIONS, n, n_sub, rng),
+        "env": lambda n: env_steps_per_second(env, len(module.ACTIONS), n, rng),
+    }
+    for rate in sides.values():  # warm-up
+        rate(n_steps // 10 + 1)
+    rates = {"raw": [], "env": []}
+    for r in range(repeats):
+        for side in ("raw", "env") if r % 2 == 0 else ("env", "raw"):
+            rates[side].append(sides[side](n_steps))
+    return np.array(rates["raw"]), np.array(rates["env"])
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(
         prog="python -m benchmarks.simulation", description=__doc__.splitlines()[0]
     )
     parser.add_argument("--steps", type=int, default=5000, help="control steps")
+    parser.add_argument("--repeats", type=int, default=7, help="paired measurements")
     args = parser.parse_args(argv)
-    if args.steps < 1:
-        parser.error(f"--steps must be >= 1, got {args.steps}")
+    for name in ("steps", "repeats"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name} must be >= 1, got {getattr(args, name)}")
     rng = np.random.default_rng(0)
-    print(f"{args.steps} control steps per measurement, mujoco {mujoco.__version__}")
+    print(
+        f"{args.steps} control steps per measurement, {args.repeats} paired "
+        f"repeats (medians), mujoco {mujoco.__version__}"
+    )
     header = f"{'domain':<9} {'sub':>3} {'raw mj_step/s':>14} {'raw ctrl/s':>11}"
-    print(f"{header} {'env ctrl/s':>11} {'env/raw':>8}")
+    print(f"{header} {'env ctrl/s':>11} {'env/raw':>8} {'range':>11}")
     for name, factory in DOMAINS.items():
         env = factory(seed=0)
         module = acrobot if name == "acrobot" else cartpole
         n_sub = module.N_SUB_STEPS
-        model = env.physics.model.ptr
-        raw = raw_steps_per_second(model, module.ACTIONS, args.steps, n_sub, rng)
-        ours = env_steps_per_second(env, len(module.ACTIONS), args.steps, rng)
+        raws, envs = paired_rates(env, module, args.steps, args.repeats, rng)
+        ratios = envs / raws
+        raw, ours = float(np.median(raws)), float(np.median(envs))
         print(
             f"{name:<9} {n_sub:>3} {raw * n_sub:>14.0f} {raw:>11.0f} "
-            f"{ours:>11.0f} {ours / raw:>8.2f}"
+            f"{ours:>11.0f} {np.median(ratios):>8.2f} "
+            f"{ratios.min():>5.2f}-{ratios.max():<5.2f}"
         )
 
 
