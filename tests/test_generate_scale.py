@@ -86,6 +86,51 @@ def test_open_loop_equals_stepping_the_environment(domain, instances):
         assert np.count_nonzero(t.dones) == 6 and len(t) < 6 * steps
 
 
+@pytest.mark.parametrize("chunk", [1, 300])
+def test_open_loop_from_fast_states_reaches_the_goal_and_wraps_as_the_environment(
+    chunk,
+):
+    """Acrobot episodes from fast, far-flung starts: most end at the goal,
+    angles wrap past ±π, and the others run to the step limit; one step per
+    `mujoco.rollout` call and the whole episode in one. Each episode equals the
+    environment set to the same start and stepped with the same actions."""
+    rng = np.random.default_rng(12)
+    n, steps = 8, 300
+    s0 = np.c_[rng.uniform(-np.pi, np.pi, (n, 2)), rng.uniform(-6, 6, (n, 2))]
+    s0[-1] = 0.0  # hanging still: random torques do not swing it up in time
+    instance = np.arange(n) % 2
+    actions = rng.integers(3, size=(n, steps))
+    got = rollout.rollout_episodes(
+        "acrobot", ACROBOTS, instance, s0, actions, chunk=chunk
+    )
+    assert not (got.diverged >= 0).any()
+    lengths, wrapped = [], False
+    for e in range(n):
+        env = acrobot.swingup(ACROBOTS[instance[e]], seed=0, max_steps=steps)
+        env.reset()
+        with env.physics.reset_context():
+            env.physics.data.qpos[:] = s0[e, :2]
+            env.physics.data.qvel[:] = s0[e, 2:]
+        states = [env.task.get_observation(env.physics)["state"]]
+        rewards = []
+        for a in actions[e]:
+            step = env.step(int(a))
+            states.append(step.observation["state"])
+            rewards.append(step.reward)
+            wrapped |= bool(
+                np.abs(np.diff(np.array(states)[-2:, :2], axis=0)).max() > 4
+            )
+            if step.last():
+                break
+        k = len(rewards)
+        lengths.append(k)
+        assert got.lengths[e] == k, e
+        np.testing.assert_array_equal(got.states[e, : k + 1], np.array(states))
+        np.testing.assert_array_equal(got.rewards[e, :k], rewards)
+    assert min(lengths) < steps // 2 and max(lengths) == steps  # goals and a limit
+    assert wrapped  # an angle crossed ±π
+
+
 def test_open_loop_drops_a_diverging_episode():
     """A velocity of 1e150 makes MuJoCo reset the data (time goes back): the
     episode is reported as diverged at its first step, its neighbours are not."""
