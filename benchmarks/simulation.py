@@ -10,8 +10,8 @@ For each domain, measured side by side in one run on the same compiled model:
   uniformly random actions, resetting when an episode ends (observations, reward,
   termination, action checks and resets included).
 
-The two are measured in turn, `--repeats` times (raw first in odd repeats, env
-first in even ones, after one untimed warm-up of each). Prints the median control
+The two are measured in turn, `--repeats` times (the order alternating, raw
+first, after one untimed warm-up of each). Prints the median control
 steps per second of each (and raw MuJoCo physics steps per second) and the
 median of the repeats' paired ratios env / raw: the fraction of raw speed the
 environment keeps, with the ratios' range. (One timing per side gave ratios
