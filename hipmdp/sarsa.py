@@ -28,6 +28,7 @@ Everything is explicit state: :class:`SarsaState` in, a new :class:`SarsaState` 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal, NamedTuple
 
@@ -196,7 +197,7 @@ def sarsa_update(
             )
         target += config.gamma * float(weights[action_next] @ phi_next)
     delta = target - float(weights[action] @ phi)
-    if not np.isfinite(delta):
+    if not math.isfinite(delta):
         raise ValueError(_DIVERGED)
     traces = traces * (config.gamma * config.lam)
     if config.traces == "accumulating":
