@@ -65,6 +65,7 @@ from tasks.prediction import (
     score_instance,
     summarise,
 )
+from tasks.recording import resolve_record
 
 TRAIN_SETTINGS = (
     (0.1, 0.4), (0.3, 0.4), (0.15, 0.45), (0.2, 0.55),
@@ -173,6 +174,7 @@ def main(config: PredictionConfig, out: str | os.PathLike | None = None) -> Resu
     from tasks import prediction_report
 
     started = time.perf_counter()
+    config = resolve_record(config)  # RERUN=off: no recording, and config.json says so
     machine = environment()  # the code and machine as the run starts
     loaded = load_all(config.methods)  # a bad one fails here, before any work
     if loaded:  # which code the added methods are
@@ -279,12 +281,14 @@ def main(config: PredictionConfig, out: str | os.PathLike | None = None) -> Resu
         "n_batch_transitions": len(batch),
     }
     t0 = time.perf_counter()
-    prediction_report.write_artefacts(path, config, metrics, hips[0], splits)
-    seconds["artefacts"] = time.perf_counter() - t0
-    seconds["total"] = time.perf_counter() - started
-    metrics["seconds"] = seconds
-    metrics["environment"] = machine
-    write_json(path / "metrics.json", metrics)
+    try:  # metrics.json is written even if a figure or the recording fails
+        prediction_report.write_artefacts(path, config, metrics, hips[0], splits)
+    finally:
+        seconds["artefacts"] = time.perf_counter() - t0
+        seconds["total"] = time.perf_counter() - started
+        metrics["seconds"] = seconds
+        metrics["environment"] = machine
+        write_json(path / "metrics.json", metrics)
     prediction_report.write_report(path, config, metrics)
     return Results(path, to_jsonable(metrics))
 
@@ -355,7 +359,9 @@ def parse_args(argv: list[str] | None = None) -> tuple[PredictionConfig, str | N
 def cli(argv: list[str] | None = None) -> int:
     config, out = parse_args(argv)
     results = main(config, out)
-    print(f"wrote {results.out}/ (report.md, metrics.json, figures, recording)")
+    recorded = (results.out / "cartpole.rrd").exists()
+    written = "figures, recording" if recorded else "figures"
+    print(f"wrote {results.out}/ (report.md, metrics.json, {written})")
     print("HiP-MDP MSE / best baseline:", results.metrics["mse_ratio_to_best_baseline"])
     return 0
 

@@ -25,7 +25,7 @@ from tasks.prediction import (
     ratio_text,
     unseen_section,
 )
-from tasks.recording import Recording
+from tasks.recording import Recording, offset_steps, recording_line
 
 
 def write_artefacts(path: Path, config, metrics: dict, hip, splits) -> None:
@@ -49,9 +49,12 @@ def _weights_figure(file: Path, config, metrics: dict) -> None:
 
 
 def record(file: Path, config, metrics: dict, hip, splits) -> None:
-    """Per test setting (the ``episode`` timeline): the belief filtered over the
-    train transitions, the first gathered episode posed in 3D with the HiP-MDP's
-    one-step predictions, and each method's MSE."""
+    """Per test setting (the ``episode`` timeline, the setting's index): the belief
+    filtered over the train transitions (the ``transition`` timeline), the first
+    gathered episode posed in 3D with the HiP-MDP's one-step predictions (the
+    ``step`` timeline), and each method's MSE. Both ``transition`` and ``step``
+    count on from one setting to the next, so that scrubbing plays the settings
+    in turn."""
     import rerun.blueprint as rrb
 
     blueprint = rrb.Blueprint(
@@ -75,7 +78,13 @@ def record(file: Path, config, metrics: dict, hip, splits) -> None:
             mse = np.asarray(per_setting[m])
             for d in (2, 3):  # Δẋ and Δθ̇, the dimensions the parameters act on
                 rec.scalars(f"/mse/{d}/{entity(m)}", mse[:, d], episode=setting)
-        for e, (p, split) in enumerate(zip(config.test_settings, splits, strict=True)):
+        # the cart's drawn size (box geom half-sizes), the same on every instance
+        cart_half = tuple(float(v) for v in cartpole.make_model(None).geom("cart").size)
+        firsts = [_first_episode(split.episodes) for split in splits]
+        transitions = offset_steps([len(split.train) + 1 for split in splits])
+        steps = offset_steps([len(first) + 1 for first in firsts])
+        settings = zip(config.test_settings, splits, firsts, strict=True)
+        for e, (p, split, first) in enumerate(settings):
             params = cartpole.CartpoleParams(
                 cart_mass=1.0, pole_mass=p[0], pole_half_length=p[1]
             )
@@ -86,17 +95,21 @@ def record(file: Path, config, metrics: dict, hip, splits) -> None:
                 means.append(belief.mean)
                 sds.append(np.sqrt(np.diag(belief.cov)))
             means, sds = np.array(means), np.array(sds)
-            step = np.arange(means.shape[0])
             truth = {"pole_mass": p[0], "pole_half_length": p[1]}
-            rec.belief(means, sds, truth, episode=e, step=step)
-            first = _first_episode(split.episodes)
+            rec.belief(means, sds, truth, episode=e, step=transitions[e],
+                       timeline="transition")  # fmt: skip
             model = LearnedModel(hip, belief, first.angle_dims)
             predicted = model.predict(first.states, first.actions)
-            step = np.arange(len(first))
-            rec.strips("/rollout/real", cartpole.link_points(first.states, params),
-                       episode=e, step=step, color=(40, 110, 220))  # fmt: skip
+            # the real poses s_0 .. s_T, the predicted s_1 .. s_T beside them
+            real = np.concatenate([first.states, first.next_states[-1:]])
+            real_points = cartpole.link_points(real, params)
+            step = steps[e]
+            rec.strips("/rollout/real", real_points, episode=e, step=step,
+                       color=(40, 110, 220))  # fmt: skip
+            rec.boxes("/rollout/cart", real_points[:, 0], cart_half,
+                      episode=e, step=step, color=(180, 130, 80))  # fmt: skip
             rec.strips("/rollout/predicted", cartpole.link_points(predicted, params),
-                       episode=e, step=step + 1, color=(200, 40, 40),
+                       episode=e, step=step[1:], color=(200, 40, 40),
                        radius=0.015)  # fmt: skip
 
 
@@ -108,15 +121,21 @@ def _first_episode(data: Transitions) -> Transitions:
 _NOTES = """\
 # Cartpole one-step prediction
 
-The `episode` timeline is the test setting (pole mass, half-length grid, in order).
+The `episode` timeline is the test setting's index (from 0, in the order of the
+pole mass, half-length grid).
 
-- **weight belief**: the HiP-MDP's belief over each latent weight (mean, ±2σ) while
-  it filters the setting's 50 train transitions (`step`), beside the true pole mass
-  and half-length (`/belief/true`).
-- **MSE per test setting**: each method's held-out MSE of Δẋ (`/mse/2`) and Δθ̇
-  (`/mse/3`).
-- **cart-pole**: the first gathered episode posed from the simulator (blue) and the
-  HiP-MDP's one-step predicted pose for each step (red).
+- **weight belief** (timeline `transition`): the HiP-MDP's belief over each latent
+  weight (mean, ±2σ) while it filters each setting's train transitions, one at a
+  time, beside the true pole mass and half-length (`/belief/true`).
+- **MSE per test setting** (timeline `episode`): each method's held-out MSE of Δẋ
+  (`/mse/2`) and Δθ̇ (`/mse/3`).
+- **cart-pole** (timeline `step`): the setting's first gathered episode posed from
+  the simulator (the cart a box, the pole blue) and the HiP-MDP's one-step
+  predicted pole for each step (red), from the belief after all the setting's
+  train transitions (some of this episode's transitions are among them).
+
+`transition` and `step` count on from one setting to the next, so scrubbing
+either plays the settings in turn.
 """
 
 
@@ -178,8 +197,8 @@ Latent features per run: {metrics["n_latent_features"]}. z of run 0 (feature ×
 action × dimension, feature 0 the mean dynamics): `{metrics["z"][0]}`
 
 Run time: {s["total"]:.0f} s (batch data {s["batch_data"]:.0f} s, fits {s["fit"]:.0f} s,
-prediction {s["prediction"]:.0f} s). Figures: `weights.png`. Recording:
-`rerun cartpole.rrd`.
+prediction {s["prediction"]:.0f} s). Figures: `weights.png`.
+{recording_line(config, "cartpole.rrd")}
 
 {describe_environment(metrics.get("environment"))}
 """

@@ -5,10 +5,13 @@ Nothing here opens a viewer or a network connection: a :class:`Recording` writes
 ``rerun runs/<name>/acrobot.rrd`` opens laid out. Data are sent in columns, one call
 per entity per episode (``send_columns``), not row by row, which keeps recording cheap.
 
-Timelines: ``episode`` (real episode index) and ``step`` (step within the episode).
+Timelines: ``episode`` and ``step``; the experiments count ``step`` on from one
+episode to the next (``offset_steps``), so that scrubbing it plays the episodes in
+turn (a step count that restarts each episode would put every episode's steps on
+the same instants, where the viewer shows only one of them).
 
 Set the environment variable ``RERUN=off`` to disable recording; every method is then
-a no-op and no file is written.
+a no-op (its input still checked) and no file is written.
 
 The file is written to a temporary name beside its destination and renamed when the
 recording is closed, so an interrupted run never leaves a half-written ``.rrd``.
@@ -36,6 +39,32 @@ def recording_enabled() -> bool:
     }
 
 
+def resolve_record(config):
+    """``config`` with ``record`` False under ``RERUN=off``, so that the run's
+    ``config.json``, report and traced trial say what it writes."""
+    import dataclasses
+
+    if config.record and not recording_enabled():
+        return dataclasses.replace(config, record=False)
+    return config
+
+
+def recording_line(config, name: str) -> str:
+    """A report's line on the recording ``name``: how to open it, or that the run
+    wrote none."""
+    if config.record:
+        return f"Recording: `rerun {name}`."
+    return "No recording (`--no-record` or `RERUN=off`)."
+
+
+def offset_steps(lengths) -> list[Array]:
+    """The ``step`` index of each of consecutive episodes of ``lengths`` rows:
+    counted on from the previous episode's last (``[0, 1], [2, 3, 4]`` for
+    lengths 2 and 3)."""
+    ends = np.cumsum(lengths, dtype=np.int64)
+    return [np.arange(end - n, end) for n, end in zip(lengths, ends, strict=True)]
+
+
 class Recording:
     """One headless ``.rrd`` file, written atomically.
 
@@ -45,7 +74,8 @@ class Recording:
         path: destination ``.rrd`` file.
         application_id: rerun application id (groups recordings in the viewer).
         blueprint: a ``rerun.blueprint.Blueprint`` stored as the default layout.
-        enabled: overrides :func:`recording_enabled` when given.
+        enabled: False turns recording off. ``RERUN=off`` wins over True: the
+            rerun SDK itself reads it and would write nothing.
     """
 
     def __init__(
@@ -59,7 +89,7 @@ class Recording:
         self.path = Path(path)
         if self.path.suffix != ".rrd":
             raise ValueError(f"path: expected a .rrd file name, got {self.path.name!r}")
-        self.enabled = recording_enabled() if enabled is None else bool(enabled)
+        self.enabled = recording_enabled() and (enabled is None or bool(enabled))
         self._rec = None
         self._styled: set[str] = set()
         if not self.enabled:
@@ -74,15 +104,21 @@ class Recording:
 
     # -- logging in columns --------------------------------------------------------
 
-    def _indexes(self, n: int, episode: int | Array, step: Array | None) -> list:
-        rr = self._rr
+    def _indexes(
+        self, n: int, episode: int | Array, step: Array | None, timeline: str = "step"
+    ) -> list | None:
+        """The time columns of ``n`` rows (checked): ``episode``, and ``step`` on
+        the timeline named ``timeline``; None when disabled."""
         ep = np.broadcast_to(np.asarray(episode, dtype=np.int64), (n,))
-        idx = [rr.TimeColumn("episode", sequence=ep)]
         if step is not None:
             step = np.asarray(step, dtype=np.int64)
             if step.shape != (n,):
                 raise ValueError(f"step: expected shape ({n},), got {step.shape}")
-            idx.append(rr.TimeColumn("step", sequence=step))
+        if self._rec is None:
+            return None
+        idx = [self._rr.TimeColumn("episode", sequence=ep)]
+        if step is not None:
+            idx.append(self._rr.TimeColumn(timeline, sequence=step))
         return idx
 
     def scalars(
@@ -92,15 +128,16 @@ class Recording:
         *,
         episode: int | Array,
         step: Array | None = None,
+        timeline: str = "step",
     ) -> None:
-        """A time series: ``values`` shape (T,), one row per (episode, step)."""
-        if self._rec is None:
-            return
+        """A time series: ``values`` shape (T,), one row per (episode, step);
+        ``step`` on the timeline named ``timeline``."""
         values = np.asarray(values, dtype=float).reshape(-1)
+        indexes = self._indexes(values.size, episode, step, timeline)
+        if indexes is None:
+            return
         self._rec.send_columns(
-            entity,
-            indexes=self._indexes(values.size, episode, step),
-            columns=self._rr.Scalars.columns(scalars=values),
+            entity, indexes=indexes, columns=self._rr.Scalars.columns(scalars=values)
         )
 
     def belief(
@@ -111,19 +148,20 @@ class Recording:
         *,
         episode: int,
         step: Array,
+        timeline: str = "step",
     ) -> None:
         """The weight-belief panel: per weight ``k`` the series ``/belief/w{k}/mean``,
         ``/upper`` and ``/lower`` (mean ± 2σ), and each true parameter as a
         constant ``/belief/true/<name>``. ``means``, ``sds``: shape (T, K)."""
+        at = {"episode": episode, "step": step, "timeline": timeline}
         for k in range(np.shape(means)[1]):
             base = f"/belief/w{k + 1}"
             mean, sd = means[:, k], sds[:, k]
-            self.scalars(f"{base}/mean", mean, episode=episode, step=step)
-            self.scalars(f"{base}/upper", mean + 2 * sd, episode=episode, step=step)
-            self.scalars(f"{base}/lower", mean - 2 * sd, episode=episode, step=step)
+            self.scalars(f"{base}/mean", mean, **at)
+            self.scalars(f"{base}/upper", mean + 2 * sd, **at)
+            self.scalars(f"{base}/lower", mean - 2 * sd, **at)
         for name, value in truth.items():
-            constant = np.full(len(step), float(value))
-            self.scalars(f"/belief/true/{name}", constant, episode=episode, step=step)
+            self.scalars(f"/belief/true/{name}", np.full(len(step), float(value)), **at)
 
     def strips(
         self,
@@ -136,24 +174,53 @@ class Recording:
         radius: float = 0.03,
     ) -> None:
         """A moving 3D polyline: ``strips`` shape (T, P, 3), one strip per row."""
-        if self._rec is None:
-            return
         strips = np.asarray(strips, dtype=np.float32)
         if strips.ndim != 3 or strips.shape[2] != 3:
             raise ValueError(f"strips: expected shape (T, P, 3), got {strips.shape}")
+        indexes = self._indexes(strips.shape[0], episode, step)
+        if indexes is None:
+            return
         self._rec.send_columns(
             entity,
-            indexes=self._indexes(strips.shape[0], episode, step),
+            indexes=indexes,
             columns=self._rr.LineStrips3D.columns(strips=strips),
         )
-        if entity in self._styled:
-            return
-        # style is constant over time: log it once, statically
-        self._styled.add(entity)
         style = {"radii": [radius]}
         if color is not None:
             style["colors"] = [color]
-        self._rec.log(entity, self._rr.LineStrips3D.from_fields(**style), static=True)
+        self._style(entity, self._rr.LineStrips3D, style)
+
+    def boxes(
+        self,
+        entity: str,
+        centers: Array,
+        half_size: tuple[float, float, float],
+        *,
+        episode: int | Array,
+        step: Array | None = None,
+        color: tuple[int, int, int] | None = None,
+    ) -> None:
+        """A moving solid box (a cart): ``centers`` shape (T, 3), one per row;
+        ``half_size`` constant."""
+        centers = np.asarray(centers, dtype=np.float32)
+        if centers.ndim != 2 or centers.shape[1] != 3:
+            raise ValueError(f"centers: expected shape (T, 3), got {centers.shape}")
+        indexes = self._indexes(centers.shape[0], episode, step)
+        if indexes is None:
+            return
+        self._rec.send_columns(
+            entity, indexes=indexes, columns=self._rr.Boxes3D.columns(centers=centers)
+        )
+        style = {"half_sizes": [half_size], "fill_mode": "solid"}
+        if color is not None:
+            style["colors"] = [color]
+        self._style(entity, self._rr.Boxes3D, style)
+
+    def _style(self, entity: str, archetype, style: dict) -> None:
+        """An entity's constant style, logged once, statically."""
+        if entity not in self._styled:
+            self._styled.add(entity)
+            self._rec.log(entity, archetype.from_fields(**style), static=True)
 
     def text(self, entity: str, text: str) -> None:
         """A static Markdown note (e.g. what the panels show)."""

@@ -23,7 +23,7 @@ from tasks.prediction import (
     ratio_text,
     unseen_section,
 )
-from tasks.recording import Recording
+from tasks.recording import Recording, offset_steps, recording_line
 from tasks.transfer import LABELS
 
 COLORS = {"true": (60, 60, 60), "average": (230, 120, 30), "hipmdp": (40, 110, 220)}
@@ -119,26 +119,26 @@ def record(file: Path, config, metrics: dict, trials: list) -> None:
         rec.text("/notes", _NOTES.format(m1=m1, m2=m2))
         for m in methods:
             c = metrics["returns"][m]
-            ep = np.arange(len(c["mean"]))
+            ep = np.arange(1, len(c["mean"]) + 1)  # numbered as report.md's
             rec.scalars(f"/returns/{m}", c["mean"], episode=ep)
         for m, result in traced.items():
-            for e, trace in enumerate(result.traces):
-                step = np.arange(trace.states.shape[0])
+            steps = offset_steps([len(t.states) for t in result.traces])
+            for e, (trace, step) in enumerate(zip(result.traces, steps, strict=True)):
                 real = acrobot.link_points(trace.states, params)
                 rec.strips(
-                    f"/rollout/{m}/real", real, episode=e, step=step,
+                    f"/rollout/{m}/real", real, episode=e + 1, step=step,
                     color=color(m, methods),
                 )  # fmt: skip
                 if trace.predicted is not None:  # None: a policy, without a model
                     pred = acrobot.link_points(trace.predicted, params)
                     rec.strips(
-                        f"/rollout/{m}/predicted", pred, episode=e, step=step[1:],
-                        color=(200, 40, 40), radius=0.015,
+                        f"/rollout/{m}/predicted", pred, episode=e + 1,
+                        step=step[1:], color=(200, 40, 40), radius=0.015,
                     )  # fmt: skip
                 if trace.belief_mean is not None:
                     rec.belief(
                         trace.belief_mean, trace.belief_std, {"m1": m1, "m2": m2},
-                        episode=e, step=step,
+                        episode=e + 1, step=step,
                     )  # fmt: skip
 
 
@@ -155,7 +155,10 @@ Test instance m1 = {m1} kg, m2 = {m2} kg (first test setting, first trial).
   previous real state (none for a policy added with `--method`, which has no
   model).
 
-Timelines: `episode` (real episode) and `step` (step within it).
+Timelines: `episode` (the real episode, numbered from 1 as in `report.md`) and
+`step` (the trial's steps, counted on across its episodes, so that scrubbing
+it plays the episodes in turn; each method's trial has its own episode
+lengths, so the same step can fall in different episodes for two methods).
 """
 
 
@@ -165,7 +168,7 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
     target = metrics["near_optimal_target"]["true_model_final_mean_return"]
     curves = metrics["returns"]
     n_ep = len(curves["true"]["mean"])
-    show = sorted({0, 1, min(4, n_ep - 1), n_ep - 1})
+    show = sorted({0, min(1, n_ep - 1), min(4, n_ep - 1), n_ep - 1})
     methods = list(curves)  # METHODS, then any added with --method
     rows = [
         [label(m)]
@@ -334,6 +337,6 @@ transfer {s["transfer"]:.0f} s, prediction {s["prediction"]:.0f} s).
 
 {describe_environment(metrics.get("environment"))}
 
-Figures: `learning_curves.png`, `weights.png`. Recording: `rerun acrobot.rrd`.
+Figures: `learning_curves.png`, `weights.png`. {recording_line(config, "acrobot.rrd")}
 """
     write_text(path / "report.md", text)

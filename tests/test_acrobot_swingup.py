@@ -13,7 +13,7 @@ from threadpoolctl import threadpool_limits
 
 import hipmdp
 from tasks import acrobot_swingup as swingup
-from tasks import compare_runs, prediction
+from tasks import compare_runs, prediction, swingup_report
 from tasks.acrobot_swingup import (
     PRESETS,
     SwingupConfig,
@@ -27,6 +27,7 @@ from tasks.prediction import score_settings
 from tasks.recording import rrd_contents
 from tasks.transfer import METHODS, TransferConfig, TrialResult, run_trial
 from tests._prediction import assert_coverage_schema
+from tests._rrd import rrd_times
 from tests._seed_spread import assert_reads_the_run
 
 TINY = SwingupConfig(
@@ -192,6 +193,60 @@ def test_recording_has_the_panels(run):
     assert rows["/rollout/hipmdp/real"] == int(hip_steps.sum()) + len(hip_steps) + 1
     has_belief = any(e.startswith("/belief/w") for e in rows)
     assert has_belief == (metrics["n_latent_features"] > 0)
+
+
+def test_recording_timelines_play_the_episodes_in_turn(run):
+    """Episodes numbered from 1 as in report.md; ``step`` counts on across the
+    trial's episodes (a step that restarted each episode put every episode on
+    the same instants, where the viewer shows one of them); each episode's
+    predictions sit on its real steps but the first."""
+    file = run.out / "acrobot.rrd"
+    metrics = json.loads((file.parent / "metrics.json").read_text())
+    n_ep = TINY.transfer.n_episodes
+    lengths = 1 - np.array(metrics["returns"]["hipmdp"]["mean"], dtype=int)
+    real = rrd_times(file, "/rollout/hipmdp/real")
+    np.testing.assert_array_equal(real["step"], np.arange(lengths.sum()))
+    np.testing.assert_array_equal(
+        real["episode"], np.repeat(np.arange(n_ep) + 1, lengths)
+    )
+    predicted = rrd_times(file, "/rollout/hipmdp/predicted")
+    firsts = np.cumsum(lengths) - lengths
+    np.testing.assert_array_equal(predicted["step"], np.delete(real["step"], firsts))
+    returns = rrd_times(file, "/returns/hipmdp")
+    np.testing.assert_array_equal(returns["episode"], np.arange(n_ep) + 1)
+    assert set(returns) == {"episode"}
+    if metrics["n_latent_features"] > 0:
+        belief = rrd_times(file, "/belief/w1/mean")
+        np.testing.assert_array_equal(belief["step"], real["step"])
+
+
+def test_one_episode_under_rerun_off(tmp_path, monkeypatch):
+    """``--episodes 1`` is accepted, and its report.md used to fail on the
+    table's episode-2 column; under RERUN=off the run records nothing and its
+    config.json and report.md say so (they said a recording was written)."""
+    monkeypatch.setenv("RERUN", "off")
+    one = dataclasses.replace(TINY.transfer, n_episodes=1)
+    run = main(dataclasses.replace(TINY, transfer=one), out=tmp_path)
+    report = (run.out / "report.md").read_text()
+    assert "| method | episode 1 | episodes to near-optimal |" in report
+    assert "No recording (`--no-record` or `RERUN=off`)." in report
+    assert "rerun acrobot.rrd" not in report
+    assert not (run.out / "acrobot.rrd").exists()
+    assert json.loads((run.out / "config.json").read_text())["record"] is False
+
+
+def test_a_failing_figure_keeps_the_metrics(tmp_path, monkeypatch):
+    """The artefacts come after the minutes of work; metrics.json used to be
+    written after them, so a failing figure (or recording) lost every number."""
+
+    def fail(*args):
+        raise RuntimeError("no figure today")
+
+    monkeypatch.setattr(swingup_report, "_weights_figure", fail)
+    with pytest.raises(RuntimeError, match="no figure today"):
+        main(TINY, out=tmp_path)
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert len(metrics["returns"]["hipmdp"]["mean"]) == TINY.transfer.n_episodes
 
 
 def test_cli_presets_and_bad_options(capsys):

@@ -22,6 +22,7 @@ from tasks.cartpole_prediction import (
 from tasks.prediction import PREDICTION_METHODS, best_baseline, mse_table
 from tasks.recording import rrd_contents
 from tests._prediction import assert_coverage_schema
+from tests._rrd import rrd_times
 from tests._seed_spread import assert_reads_the_run
 
 TINY = PredictionConfig(
@@ -105,6 +106,29 @@ def test_recording(run):
     assert rows["/belief/true/pole_mass"] == len(TINY.test_settings) * (
         TINY.n_train + 1
     )
+
+
+def test_recording_timelines_play_the_settings_in_turn(run):
+    """The belief on ``transition`` and the rollout on ``step``, each counted on
+    across the test settings (both on one restarting ``step`` showed unrelated
+    quantities at the same instants, every setting on the same ones); the
+    rollout ends on the episode's last real pose; the cart drawn as a box."""
+    file = run.out / "cartpole.rrd"
+    n_set, per = len(TINY.test_settings), TINY.n_train + 1
+    belief = rrd_times(file, "/belief/true/pole_mass")
+    assert set(belief) == {"episode", "transition"}
+    np.testing.assert_array_equal(belief["transition"], np.arange(n_set * per))
+    np.testing.assert_array_equal(belief["episode"], np.repeat(np.arange(n_set), per))
+    real = rrd_times(file, "/rollout/real")
+    assert set(real) == {"episode", "step"}
+    np.testing.assert_array_equal(real["step"], np.arange(len(real["step"])))
+    episodes, firsts = np.unique(real["episode"], return_index=True)
+    np.testing.assert_array_equal(episodes, np.arange(n_set))
+    assert np.all(np.diff(real["episode"]) >= 0)
+    predicted = rrd_times(file, "/rollout/predicted")
+    np.testing.assert_array_equal(predicted["step"], np.delete(real["step"], firsts))
+    cart = rrd_times(file, "/rollout/cart")
+    np.testing.assert_array_equal(cart["step"], real["step"])
 
 
 def test_cli_bad_option(capsys):

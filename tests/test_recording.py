@@ -2,11 +2,19 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import rerun.blueprint as rrb
 
-from tasks.recording import Recording, recording_enabled, rrd_contents
+from tasks.recording import (
+    Recording,
+    offset_steps,
+    recording_enabled,
+    resolve_record,
+    rrd_contents,
+)
 
 
 def _blueprint():
@@ -43,6 +51,37 @@ def test_rerun_off_writes_nothing(tmp_path, monkeypatch):
     with Recording(tmp_path / "r.rrd", application_id="t") as rec:
         rec.scalars("/x", [1.0, 2.0], episode=0, step=np.arange(2))
     assert list(tmp_path.iterdir()) == []
+
+
+def test_rerun_off_wins_over_enabled_and_input_is_still_checked(tmp_path, monkeypatch):
+    """The rerun SDK reads RERUN=off itself and writes nothing; a Recording told
+    enabled=True used to expect a file then, and failed on closing."""
+    monkeypatch.setenv("RERUN", "off")
+    with Recording(tmp_path / "r.rrd", application_id="t", enabled=True) as rec:
+        assert not rec.enabled
+        with pytest.raises(ValueError, match="strips: expected shape"):
+            rec.strips("/s", np.zeros((3, 2)), episode=0)
+        with pytest.raises(ValueError, match="centers: expected shape"):
+            rec.boxes("/b", np.zeros((3, 2)), (1.0, 1.0, 1.0), episode=0)
+        with pytest.raises(ValueError, match="step: expected shape"):
+            rec.scalars("/x", [1.0, 2.0], episode=0, step=np.arange(3))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_resolve_record_turns_recording_off_under_rerun_off(monkeypatch):
+    from tasks.acrobot_swingup import SwingupConfig
+
+    config = SwingupConfig()
+    assert config.record and resolve_record(config) is config
+    monkeypatch.setenv("RERUN", "off")
+    assert not resolve_record(config).record
+    assert resolve_record(config) == dataclasses.replace(config, record=False)
+
+
+def test_offset_steps_count_on_across_episodes():
+    steps = offset_steps([2, 3, 1])
+    assert [s.tolist() for s in steps] == [[0, 1], [2, 3, 4], [5]]
+    assert offset_steps([]) == []
 
 
 def test_crash_leaves_no_file(tmp_path):

@@ -1,0 +1,48 @@
+"""Reading a recording's time indexes back, for the tests: ``rerun rrd print
+-vvv`` prints every chunk as a table whose first columns are the row id and the
+timelines."""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+TIMELINES = ("episode", "step", "transition")
+
+
+def rrd_times(path: str | os.PathLike, entity: str) -> dict[str, np.ndarray]:
+    """The time index of every row of ``entity`` (its static rows excluded), per
+    timeline, in the order the rows were sent."""
+    exe = shutil.which("rerun") or str(Path(sys.executable).parent / "rerun")
+    out = subprocess.run(
+        [exe, "rrd", "print", "-vvv", str(path)],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ, RUST_LOG="error"),
+        check=True,
+    ).stdout
+    times: dict[str, list[int]] = {}
+    columns: list[str] | None = None
+    ours = False
+    for line in out.splitlines():
+        chunk = re.match(r"Chunk\(\S+\) with \d+ rows \([^)]*\) - (\S+) - ", line)
+        if chunk:
+            columns = None
+            ours = chunk.group(1) == entity
+            continue
+        if not ours or not line.startswith("│ │ "):
+            continue
+        cells = [c.strip() for c in line.strip("│ ").split("┆")]
+        if cells[0] == "RowId":
+            columns = cells
+        elif columns and cells[0].startswith("row_"):
+            for name, cell in zip(columns, cells, strict=False):
+                if name in TIMELINES:
+                    times.setdefault(name, []).append(int(cell))
+    return {name: np.array(v) for name, v in times.items()}
