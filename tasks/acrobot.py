@@ -130,13 +130,12 @@ def book_inertia(
         ValueError: as `AcrobotParams`, naming `link_shape_i` when `m_i l_i²`
             is outside [1 / 1.5, 1 / 0.7] = [0.67, 1.43] kg·m².
     """
-    return AcrobotParams(
-        link_mass_1,
-        link_mass_2,
-        link_length_1,
-        link_length_2,
-        link_shape_1=1.0 / (link_mass_1 * link_length_1**2),
-        link_shape_2=1.0 / (link_mass_2 * link_length_2**2),
+    # the masses and lengths checked first (a zero one raised ZeroDivisionError)
+    params = AcrobotParams(link_mass_1, link_mass_2, link_length_1, link_length_2)
+    return dataclasses.replace(
+        params,
+        link_shape_1=1.0 / (params.link_mass_1 * params.link_length_1**2),
+        link_shape_2=1.0 / (params.link_mass_2 * params.link_length_2**2),
     )
 
 

@@ -3,7 +3,9 @@ model per instance.
 
 Symbols: `M` cart mass (kg); `m` pole mass (kg); `l` pole half-length (m), the pole a
 uniform rod of length `2l` with moment of inertia `m (2l)² / 12` about its centre;
-`g = 9.81` m/s²; `F ∈ ACTIONS = (-10, +10)` N the force on the cart.
+`g = 9.81` m/s² (the classic code, and Gym's, use 9.8: a 0.1% difference in the
+dynamics, kept so that the published runs stand); `F ∈ ACTIONS = (-10, +10)` N
+the force on the cart.
 
 State `s = (x, θ, ẋ, θ̇)`, shape `(4,)` (`STATE_DIM`): `x` the cart position, `θ = 0`
 upright and `θ > 0` leaning toward +x, the angle (`ANGLE_DIMS`) wrapped to (-π, π].

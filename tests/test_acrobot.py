@@ -163,6 +163,11 @@ def test_inertia_is_the_shape_times_m_l_squared():
     assert acrobot.book_inertia(0.9, 1.2, 1.0, 1.05).inertias == pytest.approx((1, 1))
     with pytest.raises(ValueError, match=r"AcrobotParams\.link_shape_1 .*upper"):
         acrobot.book_inertia(0.6)  # I = 1 would need k = 1.67
+    # a zero mass or length: the field's bound, not a ZeroDivisionError
+    with pytest.raises(ValueError, match=r"AcrobotParams\.link_mass_1 .*lower"):
+        acrobot.book_inertia(0.0)
+    with pytest.raises(ValueError, match=r"AcrobotParams\.link_length_2 .*lower"):
+        acrobot.book_inertia(1.0, 1.0, 1.0, 0.0)
 
 
 def accelerations(params: AcrobotParams, tau: float, states: np.ndarray) -> np.ndarray:
