@@ -85,7 +85,8 @@ def timed_run_shard(job: generate.ShardJob) -> tuple[int, float]:
 
 
 def jobs(args, policy: str, n_shards: int, first: int = 0) -> list[generate.ShardJob]:
-    """`n_shards` shards of nominal instances (parameters do not change speed)."""
+    """`n_shards` shards of nominal instances (parameters do not change speed,
+    but for a fast acrobot's finer step, `tasks.acrobot.sub_steps`)."""
     spec = get_domain(args.domain)
     values = dataclasses.astuple(spec.params_type())
     size = args.instances if policy != "sarsa" else 2

@@ -19,9 +19,19 @@ length above the shoulder, `y > l₁` (the book's goal line at nominal lengths; 
 rewritten lengths it stays reachable since `l₁ + l₂ > l₁`), or (discount 1) after
 `max_steps` steps (default 500).
 
-Integration: MuJoCo's RK4 with a 10 ms step, 20 steps per action. Against a
-tolerance-1e-12 ODE solve of the book equations, one 0.2 s action errs below 1e-5
-for |θ̇₁| ≤ 5, |θ̇₂| ≤ 8 rad/s (tests/test_acrobot.py); 20 ms steps err ~1e-4.
+Integration: MuJoCo's RK4 with a 10 ms step, 20 steps per action, on every
+instance whose elbow the torque accelerates by at most `ELBOW_ACCELERATION` = 4
+rad/s² per N·m (`elbow_acceleration`: 1.8 for the nominal instance, at most 2.5
+for every experiment's). Against a tolerance-1e-12 ODE solve of the book
+equations, one 0.2 s action errs below 1e-5 for |θ̇₁| ≤ 5, |θ̇₂| ≤ 8 rad/s
+(tests/test_acrobot.py); 20 ms steps err ~1e-4. A lighter, shorter or slimmer
+link swings faster, and random torques drive it to hundreds of rad/s: at 10 ms
+such instances erred by up to 1e7 per action. Their step is halved until the
+acceleration per halving is within the limit (`sub_steps`: 10 ms / 2^k, 20 · 2^k
+steps per action, k ≤ 6 inside the bounds). Measured over the 64 corners of the
+bounds and 300 instances drawn log-uniformly inside them, 200–300 random-torque
+actions each, one action then errs by at most 7.6e-5 against an eighth of the
+step (tests/test_tasks_contract.py checks three fast instances to 1e-4).
 
 Deviation from the book: velocities are not clipped (the book clips θ̇₁ to ±4π and
 θ̇₂ to ±9π rad/s). Clipping is not part of the equations of motion and would make
@@ -31,6 +41,7 @@ the dynamics non-smooth; random-torque episodes stay well below those limits.
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any
 
 import mujoco
@@ -57,9 +68,12 @@ ACTIONS = np.array([-1.0, 0.0, 1.0])
 #: State `(θ₁, θ₂, θ̇₁, θ̇₂)`: its dimension and which entries are angles.
 STATE_DIM = 4
 ANGLE_DIMS = (0, 1)
-#: Seconds per action; MuJoCo RK4 steps of 10 ms per action.
+#: Seconds per action; MuJoCo RK4 steps of 10 ms per action at most (`sub_steps`).
 CONTROL_TIMESTEP = 0.2
 N_SUB_STEPS = 20
+TIMESTEP = 0.01  # s, as assets/mjcf/acrobot.xml
+#: rad/s² per N·m of elbow torque above which the step is halved (`sub_steps`).
+ELBOW_ACCELERATION = 4.0
 DEFAULT_MAX_STEPS = 500
 GRAVITY = 9.8  # m/s², as assets/mjcf/acrobot.xml
 #: Half-width of the uniform initial-state noise around hanging at rest.
@@ -174,7 +188,30 @@ def make_model(params: AcrobotParams | None = None) -> mujoco.MjModel:
     spec.body("link_2").pos = [0.0, 0.0, -l1]
     set_link(spec.body("link_2"), spec.geom("link_2"), m2, l2, i2, down=-1)
     spec.site("tip").pos = [0.0, 0.0, -l2]
+    # halving by a power of two is exact: instances at 10 ms keep it to the bit
+    spec.option.timestep = TIMESTEP / (sub_steps(params) // N_SUB_STEPS)
     return spec.compile()
+
+
+def elbow_acceleration(params: AcrobotParams | None = None) -> float:
+    """The largest angular acceleration of the elbow per N·m of elbow torque,
+    rad/s² per N·m: `max over θ₂ of (M⁻¹)₂₂` (`mass_matrix`), taken on 721
+    elbow angles, 0.5° apart. Sets the integration step (`sub_steps`)."""
+    theta_2 = np.linspace(-np.pi, np.pi, 721)
+    states = np.zeros((theta_2.size, STATE_DIM))
+    states[:, 1] = theta_2
+    m = mass_matrix(states, params)
+    det = m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] * m[:, 1, 0]
+    return float(np.max(m[:, 0, 0] / det))
+
+
+def sub_steps(params: AcrobotParams | None = None) -> int:
+    """MuJoCo steps per action on the instance: `N_SUB_STEPS · 2^k`, the least
+    `k ≥ 0` with `elbow_acceleration(params) · max|τ| / 2^k ≤ ELBOW_ACCELERATION`
+    (20 steps of 10 ms for the nominal instance and every experiment's)."""
+    a = elbow_acceleration(params) * float(np.abs(ACTIONS).max())
+    k = max(0, math.ceil(math.log2(a / ELBOW_ACCELERATION)))
+    return N_SUB_STEPS * 2**k
 
 
 class Physics(StatePhysics):
@@ -381,7 +418,7 @@ def swingup(
     physics = Physics.from_mj_model(make_model(params))
     task = SwingUp(params, max_steps=max_steps, seed=seed)
     return control.Environment(
-        physics, task, n_sub_steps=N_SUB_STEPS, legacy_step=False
+        physics, task, n_sub_steps=sub_steps(params), legacy_step=False
     )
 
 

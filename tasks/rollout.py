@@ -1,7 +1,8 @@
 """Open-loop random action sequences on many instances at once with `mujoco.rollout`.
 
 Symbols: `b` instance, `E` episodes, `T` control steps per episode (the step limit),
-`n` MuJoCo steps per control step (`N_SUB_STEPS`), `D` state dimension, `A` actions.
+`n` MuJoCo steps per control step (the instance's: `N_SUB_STEPS`, or for a fast
+acrobot `tasks.acrobot.sub_steps`), `D` state dimension, `A` actions.
 
 An open-loop episode is exactly what the domain's dm_control environment does with a
 fixed action sequence: it starts from `s₀` (drawn like the task does, `U[-c, c]^D`),
@@ -123,8 +124,27 @@ def rollout_episodes(
     _check_positive_int("chunk", chunk)
 
     models = [module.make_model(p) for p in instances]
+    # MuJoCo steps per action: the instance's own (an acrobot whose links swing
+    # fast takes shorter steps, tasks.acrobot.sub_steps); one rollout per count
+    n_subs = np.array([round(module.CONTROL_TIMESTEP / m.opt.timestep) for m in models])
+    counts = np.unique(n_subs[episode_instance])
+    if len(counts) > 1:
+        out = OpenLoop(
+            np.zeros((n_episodes, n_steps + 1, spec.state_dim)),
+            np.zeros(n_episodes, dtype=int), np.zeros((n_episodes, n_steps)),
+            np.zeros(n_episodes, dtype=int),
+        )  # fmt: skip
+        for count in counts:
+            rows = np.flatnonzero(n_subs[episode_instance] == count)
+            part = rollout_episodes(
+                domain, instances, episode_instance[rows], initial_states[rows],
+                actions[rows], chunk=chunk,
+            )  # fmt: skip
+            for whole, piece in zip(out, part, strict=True):
+                whole[rows] = piece
+        return out
     tasks = [agents.DOMAINS[domain].planning_task(p, n_steps) for p in instances]
-    nq, n_sub = models[0].nq, module.N_SUB_STEPS
+    nq, n_sub = models[0].nq, int(counts[0])
     qpos_at = mujoco.mj_stateSize(models[0], mujoco.mjtState.mjSTATE_TIME)
     data = mujoco.MjData(models[0])
     physics = np.zeros((n_episodes, mujoco.mj_stateSize(models[0], STATE_SPEC)))

@@ -40,8 +40,14 @@ def reference(tmp_path_factory):
     return out
 
 
+#: a nominal acrobot (20 steps of 10 ms per action) and a light, short-linked one
+#: (80 steps of 2.5 ms, tasks.acrobot.sub_steps): open-loop rolls them out apart
+MIXED_STEPS = [acrobot.AcrobotParams(), acrobot.AcrobotParams(0.6, 0.4, 1.0, 0.5)]
+
+
 @pytest.mark.parametrize(
-    "domain, instances", [("acrobot", ACROBOTS), ("cartpole", CARTPOLES)]
+    "domain, instances",
+    [("acrobot", ACROBOTS), ("cartpole", CARTPOLES), ("acrobot", MIXED_STEPS)],
 )
 def test_open_loop_equals_stepping_the_environment(domain, instances):
     """`collect_open_loop` on instance `i` is the environment seeded with the

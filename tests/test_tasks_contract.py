@@ -176,8 +176,9 @@ def corners(params_type):
 def test_energy_is_conserved_at_every_corner_of_the_bounds(name):
     """Unforced and undamped, MuJoCo's total energy must stay constant: over 10 s
     from a large swing it drifts by less than 0.1% of its scale everywhere inside
-    the documented bounds (the worst corner drifts 3.5e-4), so the chosen RK4 step
-    is accurate for every valid instance."""
+    the documented bounds, each instance at its own step (the acrobot's worst
+    corner drifted 3.5e-4 at a fixed 10 ms, 1.5e-6 at its own). Unforced swings
+    stay slow; the test below checks the step under random torques."""
     module, _, _ = DOMAINS[name]
     n_actions = round(10.0 / module.CONTROL_TIMESTEP)
     s = np.array([2.5, 1.0, 0.0, 0.0] if name == "acrobot" else [0.0, 2.5, 0.0, 0.0])
@@ -189,11 +190,71 @@ def test_energy_is_conserved_at_every_corner_of_the_bounds(name):
         mujoco.mj_forward(model, data)
         e0, scale = data.energy.sum(), np.abs(data.energy).max()
         energies = []
+        n_sub = round(module.CONTROL_TIMESTEP / model.opt.timestep)  # the instance's
         for _ in range(n_actions):
-            mujoco.mj_step(model, data, module.N_SUB_STEPS)
+            mujoco.mj_step(model, data, n_sub)
             mujoco.mj_forward(model, data)
             energies.append(data.energy.sum())
         assert np.abs(np.array(energies) - e0).max() < 1e-3 * scale, params
+
+
+#: Acrobots whose elbow the torque accelerates 20 to 250 times the nominal
+#: instance's (at 10 ms per step, one action erred by up to 1e7 under random torques)
+FAST_ACROBOTS = [
+    acrobot.AcrobotParams(0.2, 0.2, 5.0, 0.2, 0.7, 0.7),
+    acrobot.AcrobotParams(0.2, 0.2, 0.2, 0.2, 1.5, 0.7),
+    acrobot.AcrobotParams(0.5, 0.3, 0.6, 0.4),
+]
+
+
+@pytest.mark.parametrize("params", [acrobot.AcrobotParams(), *FAST_ACROBOTS])
+def test_one_action_is_accurate_under_random_torques(params):
+    """Along 40 random-torque actions from near hanging, each action of the
+    instance's own step (``acrobot.sub_steps``) agrees with the same action at a
+    quarter of that step to 1e-4, the accuracy the step is chosen for. (Fourth
+    order: the quarter step's own error is 256 times smaller.)"""
+    model = acrobot.make_model(params)
+    n_sub = acrobot.sub_steps(params)
+    assert model.opt.timestep * n_sub == pytest.approx(acrobot.CONTROL_TIMESTEP)
+    fine = acrobot.make_model(params)
+    fine.opt.timestep = model.opt.timestep / 4
+    data, fine_data = mujoco.MjData(model), mujoco.MjData(fine)
+    rng = np.random.default_rng(0)
+    s = rng.uniform(-0.1, 0.1, 4)
+    worst = 0.0
+    for u in acrobot.ACTIONS[rng.integers(3, size=40)]:
+        for d in (data, fine_data):
+            d.qpos[:], d.qvel[:], d.ctrl[0] = s[:2], s[2:], u
+        mujoco.mj_step(model, data, n_sub)
+        mujoco.mj_step(fine, fine_data, 4 * n_sub)
+        s = np.r_[fine_data.qpos, fine_data.qvel]
+        worst = max(worst, np.abs(np.r_[data.qpos, data.qvel] - s).max())
+    assert worst < 1e-4, (params, worst)
+
+
+def test_every_experiment_instance_keeps_the_10_ms_step():
+    """The finer step is only for fast acrobots: the nominal instance and every
+    preset's instances keep 20 steps of exactly 10 ms, so their results stand."""
+    from tasks import acrobot_swingup
+    from tasks.generate import DEFAULT_VARY
+
+    instances = [acrobot.AcrobotParams()]
+    for config in acrobot_swingup.PRESETS.values():
+        for book in (False, True):
+            c = dataclasses.replace(config, book_inertia=book)
+            instances += [c.params(*m) for m in c.train_masses + c.test_masses]
+    vary = DEFAULT_VARY["acrobot"]
+    instances += [
+        acrobot.AcrobotParams(m1, m2)
+        for m1 in vary["link_mass_1"]
+        for m2 in vary["link_mass_2"]
+    ]
+    for params in instances:
+        assert acrobot.sub_steps(params) == acrobot.N_SUB_STEPS, params
+        assert acrobot.make_model(params).opt.timestep == 0.01, params
+    env = acrobot.swingup(FAST_ACROBOTS[0], seed=0)
+    assert env.control_timestep() == pytest.approx(acrobot.CONTROL_TIMESTEP)
+    assert acrobot.sub_steps(FAST_ACROBOTS[0]) == 20 * 2**6
 
 
 @pytest.mark.parametrize("name", DOMAINS)
