@@ -19,7 +19,10 @@ is the number of steps balanced. The episode ends (discount 0) at failure, or
 
 Integration: MuJoCo's RK4 with a 10 ms step, 2 steps per action (the classic code
 uses one Euler step of 20 ms; RK4 integrates the same equations far more
-accurately, see tests/test_cartpole.py).
+accurately, see tests/test_cartpole.py). Under random forces until failure, one
+action errs against an eighth of the step by at most 6.5e-4 at the lightest
+corner of the bounds (cart 0.1 kg, pole 0.01 kg and 0.1 m), 4.7e-5 at the next
+worst, and below 4e-7 at the other six corners (measured, 20 episodes each).
 """
 
 from __future__ import annotations
