@@ -98,6 +98,16 @@ def test_one_action_converges_to_the_ode_at_fourth_order(params):
     assert_fourth_order(acrobot, book_accelerations, params, [np.pi, np.pi, 5, 8])
 
 
+def test_a_fast_instance_converges_at_its_own_step():
+    """A light, short-linked acrobot (160 steps of 1.25 ms per action, `sub_steps`)
+    from states as fast as its random-torque episodes reach, at its own step.
+    (At the bounds' corners the step is so fine that h/4's error is round-off,
+    where no order can be read.)"""
+    params = AcrobotParams(0.5, 0.3, 0.6, 0.4)
+    assert acrobot.sub_steps(params) == 8 * acrobot.N_SUB_STEPS
+    assert_fourth_order(acrobot, book_accelerations, params, [np.pi, np.pi, 20, 60])
+
+
 @pytest.mark.parametrize("field", [f.name for f in dataclasses.fields(AcrobotParams)])
 def test_every_parameter_changes_the_accelerations(field):
     rng = np.random.default_rng(2)
