@@ -92,6 +92,13 @@ class CartpoleParams:
         validate_parameters(self)
 
 
+def sub_steps(params: CartpoleParams | None = None) -> int:
+    """MuJoCo steps per action: `N_SUB_STEPS` on every instance (the acrobot's
+    `sub_steps` depends on the instance)."""
+    check_params(params, CartpoleParams)
+    return N_SUB_STEPS
+
+
 def make_model(params: CartpoleParams | None = None) -> mujoco.MjModel:
     """Compile `assets/mjcf/cartpole.xml` rewritten to `params` with `mujoco.MjSpec`.
 

@@ -67,7 +67,7 @@ from tasks.experiment import (
     path_argument,
     seed_argument,
 )
-from tasks.rollout import collect_open_loop
+from tasks.rollout import MODULES, collect_open_loop
 
 #: Parameters varied when no `--vary` is given: name -> (low, high).
 DEFAULT_VARY = {
@@ -385,6 +385,7 @@ def plan(config: Config) -> dict[str, Any]:
         booked = [with_book_inertia(p) for p in drawn.params]
         values = parameter_matrix(booked)
         drawn = drawn._replace(params=booked, values=values)
+    module = MODULES[config.domain]
     entries = []
     for index, start in enumerate(range(0, len(drawn.params), config.shard_size)):
         stop = min(start + config.shard_size, len(drawn.params))
@@ -394,6 +395,9 @@ def plan(config: Config) -> dict[str, Any]:
                 "file": shards.shard_name(index),
                 "instances": list(range(start, stop)),
                 "parameters": drawn.values[start:stop].tolist(),
+                # MuJoCo steps per action of each instance (a fast acrobot's
+                # step is finer, tasks.acrobot.sub_steps)
+                "sub_steps": [module.sub_steps(p) for p in drawn.params[start:stop]],
                 "sha256": None,
                 "counts": None,
                 "diverged": [],
@@ -440,6 +444,18 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
             f"{config.out} holds this configuration but other instances (made by "
             "another version of the code?); choose another --out"
         )
+    nominal = MODULES[config.domain].N_SUB_STEPS
+    for entry, new in zip(old["shards"], fresh["shards"], strict=True):
+        # a run from before 2026-12-04 names none: every instance took nominal steps
+        steps = entry.get("sub_steps", [nominal] * len(entry["instances"]))
+        if steps != new["sub_steps"]:
+            raise ValueError(
+                f"{config.out} holds this run, but its shard {entry['index']} was "
+                "simulated with other steps per action than this version takes "
+                "(fast acrobots integrate with finer steps since 2026-12-04, "
+                "tasks.acrobot.sub_steps); choose another --out"
+            )
+        entry["sub_steps"] = steps
     todo = []
     for entry in old["shards"]:
         if not shards.shard_is_valid(config.out, entry):

@@ -20,6 +20,10 @@ recording is closed, so an interrupted run never leaves a half-written ``.rrd``.
 from __future__ import annotations
 
 import os
+import re
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -267,32 +271,27 @@ class Recording:
             self.abort()
 
 
+def rerun_rrd(*args: str) -> subprocess.CompletedProcess:
+    """``rerun rrd <args>`` (the CLI installed with rerun-sdk), its output captured
+    as text; rerun's own log quietened."""
+    exe = shutil.which("rerun") or str(Path(sys.executable).parent / "rerun")
+    env = dict(os.environ, RUST_LOG="error")
+    return subprocess.run([exe, "rrd", *args], capture_output=True, text=True, env=env)
+
+
 def rrd_contents(path: str | os.PathLike) -> dict[str, int]:
     """Rows per entity in an ``.rrd`` file, read back with ``rerun rrd print``.
 
     Also runs ``rerun rrd verify`` first and raises ``RuntimeError`` if the file does
     not verify. Used by tests and for a quick look at a recording without a viewer.
     """
-    import re
-    import shutil
-    import subprocess
-    import sys
-
-    exe = shutil.which("rerun") or str(Path(sys.executable).parent / "rerun")
-    env = dict(os.environ, RUST_LOG="error")
-    verify = subprocess.run(
-        [exe, "rrd", "verify", str(path)], capture_output=True, text=True, env=env
-    )
+    verify = rerun_rrd("verify", str(path))
     if verify.returncode != 0:
         raise RuntimeError(f"rerun rrd verify failed on {path}: {verify.stderr[-500:]}")
-    out = subprocess.run(
-        [exe, "rrd", "print", str(path)],
-        capture_output=True,
-        text=True,
-        env=env,
-        check=True,
-    ).stdout
+    printed = rerun_rrd("print", str(path))
+    printed.check_returncode()
     rows: dict[str, int] = {}
-    for m in re.finditer(r"with (\d+) rows \([^)]*\) - (\S+) - data columns", out):
+    pattern = r"with (\d+) rows \([^)]*\) - (\S+) - data columns"
+    for m in re.finditer(pattern, printed.stdout):
         rows[m.group(2)] = rows.get(m.group(2), 0) + int(m.group(1))
     return rows

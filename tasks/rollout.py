@@ -39,7 +39,8 @@ from tasks.collect import Collection, Divergence, _check_positive_int, get_domai
 
 Array = np.ndarray
 
-#: Per domain: its module (`make_model`, `ACTIONS`, `N_SUB_STEPS`, `INITIAL_NOISE`).
+#: Per domain: its module (`make_model`, `ACTIONS`, `CONTROL_TIMESTEP`,
+#: `N_SUB_STEPS`, `INITIAL_NOISE`).
 MODULES = {"acrobot": acrobot, "cartpole": cartpole}
 STATE_SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS
 #: Control steps per `mujoco.rollout` call.
@@ -94,7 +95,8 @@ def rollout_episodes(
         episode_instance: for each episode, its index into `instances`, `(E,)`.
         initial_states: `s₀` per episode, `(E, D)` (qpos then qvel).
         actions: action indices per episode, `(E, T)`; `T` is the step limit.
-        chunk: control steps per `mujoco.rollout` call.
+        chunk: control steps per `mujoco.rollout` call (at `N_SUB_STEPS` MuJoCo
+            steps each; an instance with a finer step takes proportionally fewer).
 
     Returns:
         `OpenLoop`.
@@ -145,6 +147,8 @@ def rollout_episodes(
         return out
     tasks = [agents.DOMAINS[domain].planning_task(p, n_steps) for p in instances]
     nq, n_sub = models[0].nq, int(counts[0])
+    # the same MuJoCo steps per call whatever the instance's step: memory bounded
+    chunk = max(1, chunk * module.N_SUB_STEPS // n_sub)
     qpos_at = mujoco.mj_stateSize(models[0], mujoco.mjtState.mjSTATE_TIME)
     data = mujoco.MjData(models[0])
     physics = np.zeros((n_episodes, mujoco.mj_stateSize(models[0], STATE_SPEC)))

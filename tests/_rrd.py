@@ -6,31 +6,24 @@ from __future__ import annotations
 
 import os
 import re
-import shutil
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
+
+from tasks.recording import rerun_rrd
 
 TIMELINES = ("episode", "step", "transition")
 
 
 def rrd_times(path: str | os.PathLike, entity: str) -> dict[str, np.ndarray]:
     """The time index of every row of ``entity`` (its static rows excluded), per
-    timeline, in the order the rows were sent."""
-    exe = shutil.which("rerun") or str(Path(sys.executable).parent / "rerun")
-    out = subprocess.run(
-        [exe, "rrd", "print", "-vvv", str(path)],
-        capture_output=True,
-        text=True,
-        env=dict(os.environ, RUST_LOG="error"),
-        check=True,
-    ).stdout
+    timeline, in the order the rows were sent. Empty if nothing matched (every
+    caller then fails on the timelines it expects)."""
+    printed = rerun_rrd("print", "-vvv", str(path))
+    printed.check_returncode()
     times: dict[str, list[int]] = {}
     columns: list[str] | None = None
     ours = False
-    for line in out.splitlines():
+    for line in printed.stdout.splitlines():
         chunk = re.match(r"Chunk\(\S+\) with \d+ rows \([^)]*\) - (\S+) - ", line)
         if chunk:
             columns = None

@@ -351,3 +351,35 @@ def test_a_finished_run_redoing_a_damaged_shard_is_unfinished_until_it_is_done(
     assert not shards.Dataset(run).complete
     assert generate.main([*RUN, "--out", str(run), "--resume"]).redone == (1,)
     assert files(run) == files(reference)
+
+
+@pytest.mark.parametrize("fast", [False, True])
+def test_a_run_from_before_the_finer_steps_resumes_only_if_they_do_not_apply(
+    tmp_path, fast, capsys
+):
+    """A manifest written before fast acrobots took finer steps names no
+    ``sub_steps``: every instance then took 20. Resuming it is right for nominal
+    instances, but would mix 10 ms shards with finer ones for fast instances."""
+    vary = ["link_mass_2=0.2:0.25", "link_length_2=0.2:0.25"] if fast else []
+    args = [
+        "--domain", "acrobot", "--policy", "open-loop", "--instances", "2",
+        "--shard-size", "1", "--episodes-per-instance", "1", "--max-steps", "5",
+        "--seed", "3", "--no-progress", "--out", str(tmp_path),
+        *[f"--vary={v}" for v in vary],
+    ]  # fmt: skip
+    generate.main(args)
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    steps = {n for e in manifest["shards"] for n in e.pop("sub_steps")}
+    assert steps == ({20 * 2**5} if fast else {20})
+    manifest["complete"] = False
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    (tmp_path / "shard-00001.npz").write_bytes(b"damaged")
+    if fast:
+        with pytest.raises(SystemExit):
+            generate.main([*args, "--resume"])
+        assert "shard 0 was simulated with other steps per action" in (
+            capsys.readouterr().err
+        )
+        assert (tmp_path / "shard-00001.npz").read_bytes() == b"damaged"
+    else:
+        assert generate.main([*args, "--resume"]).redone == (1,)
