@@ -15,10 +15,16 @@ reports, from the first place results can part to the last:
    batch data, the fitted models, ``trials.npz``): identical, or the largest
    absolute difference, or the shapes;
 4. ``metrics``: the values in ``metrics.json`` (timings and environment aside)
-   that differ, summarised per top-level key by count and largest relative
-   difference (every value, with both sides, in ``--out``). A metric added since
-   (``ADDED_METRICS``) that one run has and the other lacks is named, not
-   compared: the run without it is taken to be older than the metric.
+   that both runs have and that differ, summarised per top-level key by count
+   and largest relative difference (every value, with both sides, in
+   ``--out``). A metric added since (``ADDED_METRICS``) that one run has and the
+   other lacks is named, not compared: the run without it is taken to be older
+   than the metric.
+5. ``extra``: what one run has and the other lacks, such as a method added with
+   ``--method``: its metric values (counted per top-level key) and its rows of
+   the arrays indexed by method (``trials.npz``, compared on the methods both
+   runs ran). The verdict is then "identical where both runs have results" when
+   everything shared is identical.
 
 Settings that only change how a run is shown or scheduled (``progress``,
 ``workers``, ``record``) are not counted as differences.
@@ -44,6 +50,7 @@ from hipmdp.data import load_npz
 from tasks.experiment import (
     ADDED_FIT_FIELDS,
     check_out_file,
+    sort_blas,
     with_added_fields,
     write_json,
 )
@@ -64,9 +71,13 @@ class Comparison(NamedTuple):
     ``config``, ``environment`` and ``metrics`` map a dotted key to ``[a, b]``;
     ``arrays`` maps ``file:array`` to ``"identical"``, ``{"max_abs_diff": x,
     "n_differ": k, "size": n}`` (numbers), ``{"json": differences}`` (a JSON
-    string) or ``{"shapes": [a, b]}``; ``only_in`` lists the ``.npz`` files that one
-    folder has and the other lacks; ``not_compared``, the metrics (of
-    ``ADDED_METRICS``) that one run has and the other, older one lacks.
+    string) or ``{"shapes": [a, b]}``, or for a file's ``methods`` where the two
+    runs ran different ones, ``{"methods_only_in": [a's, b's]}`` (the file's other
+    arrays with a row per method are then compared on the shared methods);
+    ``only_in`` lists the ``.npz`` files that one folder has and the other lacks;
+    ``extra``, per run folder, the metric keys (dotted) that only it has;
+    ``not_compared``, the metrics (of ``ADDED_METRICS``) that one run has and the
+    other, older one lacks.
     """
 
     config: dict[str, list]
@@ -75,15 +86,31 @@ class Comparison(NamedTuple):
     metrics: dict[str, list]
     only_in: dict[str, list[str]]
     not_compared: tuple[str, ...] = ()
+    extra: dict[str, list[str]] = {}
+
+    @property
+    def shared_identical(self) -> bool:
+        """Every array and metric that both runs have equal (config, environment
+        and what only one run has aside)."""
+        return not self.metrics and all(
+            v == "identical" or _is_extra(v) for v in self.arrays.values()
+        )
 
     @property
     def identical(self) -> bool:
-        """Every array and every metric equal (config and environment aside)."""
+        """Every array and every metric equal, and neither run has more (config
+        and environment aside)."""
         return (
-            not self.metrics
+            self.shared_identical
             and not any(self.only_in.values())
+            and not any(self.extra.values())
             and all(v == "identical" for v in self.arrays.values())
         )
+
+
+def _is_extra(value: Any) -> bool:
+    """An ``arrays`` entry that says what one run has more, not a difference."""
+    return isinstance(value, dict) and "methods_only_in" in value
 
 
 def flatten(x: Any, prefix: str = "") -> dict[str, Any]:
@@ -133,6 +160,8 @@ def read_run(run: Path) -> tuple[dict, dict, dict | None]:
     env = metrics.pop("environment", None)
     if "refit" in config:
         env = config["refit"].pop("environment", env)
+    if env and isinstance(env.get("blas"), list):  # a run before the order was fixed
+        env["blas"] = sort_blas(env["blas"])
     for key in IGNORED_METRICS:
         metrics.pop(key, None)
     return config, metrics, env
@@ -193,19 +222,57 @@ def _count(a: np.ndarray, b: np.ndarray) -> dict[str, int]:
 
 
 def _compare_files(fa: Path, fb: Path) -> dict[str, Any]:
-    """Every array of two ``.npz`` files, by ``file:array``."""
+    """Every array of two ``.npz`` files, by ``file:array``. Where both hold a
+    1-D ``methods`` array naming different methods, the arrays with one row per
+    method are compared on the methods both have, in the first file's order."""
     out: dict[str, Any] = {}
     with load_npz(fa) as za, load_npz(fb) as zb:
+        rows = _shared_methods(za, zb)
         for key in sorted(set(za.files) | set(zb.files)):
             name = f"{fa.name}:{key}"
             if key not in za.files or key not in zb.files:
                 out[name] = {"only_in": str(fa.parent if key in za else fb.parent)}
                 continue
             try:
-                out[name] = compare_arrays(za[key], zb[key])
+                a, b = za[key], zb[key]
+                if rows is not None and key == "methods":
+                    ma, mb = a.tolist(), b.tolist()
+                    only = [
+                        [m for m in ma if m not in mb],
+                        [m for m in mb if m not in ma],
+                    ]
+                    out[name] = {"methods_only_in": only}
+                    continue
+                out[name] = compare_arrays(*_on_shared(a, b, za, zb, rows))
             except (ValueError, TypeError) as err:  # e.g. an object array (pickle)
                 out[name] = {"unreadable": str(err)}
     return out
+
+
+def _shared_methods(za, zb) -> tuple[list[int], list[int]] | None:
+    """Row indexes of the methods two files both name (``methods``, 1-D strings),
+    in the first file's order; None if either names none or they name the same."""
+    if "methods" not in za.files or "methods" not in zb.files:
+        return None
+    ma, mb = za["methods"], zb["methods"]
+    if ma.ndim != 1 or mb.ndim != 1 or ma.dtype.kind != "U" or mb.dtype.kind != "U":
+        return None
+    if np.array_equal(ma, mb):
+        return None
+    names_b = mb.tolist()
+    shared = [m for m in ma.tolist() if m in names_b]
+    return [ma.tolist().index(m) for m in shared], [names_b.index(m) for m in shared]
+
+
+def _on_shared(a: np.ndarray, b: np.ndarray, za, zb, rows) -> tuple:
+    """``a`` and ``b`` cut to the shared methods' rows where each has one row per
+    method of its file; else as they are."""
+    if rows is None:
+        return a, b
+    n_a, n_b = len(za["methods"]), len(zb["methods"])
+    if a.ndim >= 1 and b.ndim >= 1 and a.shape[0] == n_a and b.shape[0] == n_b:
+        return a[rows[0]], b[rows[1]]
+    return a, b
 
 
 def main(run_a: str | Path, run_b: str | Path, out: str | Path | None = None):
@@ -223,14 +290,23 @@ def main(run_a: str | Path, run_b: str | Path, out: str | Path | None = None):
     for key in not_compared:  # one run is older than the metric
         metrics_a.pop(key, None)
         metrics_b.pop(key, None)
-    metrics = differences(metrics_a, metrics_b)
+    flat_a, flat_b = flatten(metrics_a), flatten(metrics_b)
+    extra = {str(a): sorted(flat_a.keys() - flat_b.keys())}
+    extra[str(b)] = sorted(flat_b.keys() - flat_a.keys())
+    metrics = {
+        k: [flat_a[k], flat_b[k]]
+        for k in sorted(flat_a.keys() & flat_b.keys())
+        if flat_a[k] != flat_b[k]
+    }
     names_a = {p.name for p in a.glob("*.npz")}
     names_b = {p.name for p in b.glob("*.npz")}
     arrays: dict[str, Any] = {}
     for name in sorted(names_a & names_b):
         arrays |= _compare_files(a / name, b / name)
     only_in = {str(a): sorted(names_a - names_b), str(b): sorted(names_b - names_a)}
-    result = Comparison(config, environment, arrays, metrics, only_in, not_compared)
+    result = Comparison(
+        config, environment, arrays, metrics, only_in, not_compared, extra
+    )
     if out is not None:
         write_json(out, result._asdict() | {"identical": result.identical})
     return result
@@ -274,26 +350,50 @@ def report(result: Comparison, limit: int = 10) -> str:
         lines.append("environment: " + ("the same" if not env else "differs in"))
         lines += _show(env, limit)
     same = [k for k, v in result.arrays.items() if v == "identical"]
-    parted = {k: v for k, v in result.arrays.items() if v != "identical"}
+    parted = {
+        k: v for k, v in result.arrays.items() if v != "identical" and not _is_extra(v)
+    }
     lines.append(f"arrays: {len(same)} identical, {len(parted)} differ")
     lines += _show(parted, limit)
+    for name, v in result.arrays.items():
+        if _is_extra(v):
+            a_only, b_only = v["methods_only_in"]
+            lines.append(
+                f"  {name}: compared on the methods both ran"
+                + (f"; only the first ran {a_only}" if a_only else "")
+                + (f"; only the second ran {b_only}" if b_only else "")
+            )
     lines += [
         f"  only in {run}: {', '.join(n)}" for run, n in result.only_in.items() if n
     ]
     lines.append(
         "metrics: "
         + ("the same" if not result.metrics else f"{len(result.metrics)} values differ")
+        + " (of those both runs have)"
     )
     lines += _show(metric_groups(result.metrics), limit)
+    for run, keys in result.extra.items():
+        if keys:
+            groups = {}
+            for key in keys:
+                groups[key.split(".", 1)[0]] = groups.get(key.split(".", 1)[0], 0) + 1
+            counts = ", ".join(f"{k} ({n})" for k, n in groups.items())
+            lines.append(f"  only in {run}: {len(keys)} values: {counts}")
     if result.not_compared:
         lines.append(
             "  not compared (one run is older than them): "
             + ", ".join(result.not_compared)
         )
-    lines.append(
-        "verdict: "
-        + ("identical results" if result.identical else "the results differ")
-    )
+    if result.identical:
+        verdict = "identical results"
+    elif result.shared_identical:
+        verdict = (
+            "identical where both runs have results (one run has more: an added "
+            "method?)"
+        )
+    else:
+        verdict = "the results differ"
+    lines.append("verdict: " + verdict)
     return "\n".join(lines)
 
 

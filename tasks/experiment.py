@@ -93,12 +93,20 @@ def environment() -> dict[str, Any]:
         "packages": packages,
         "git_commit": _git_commit(),
         "numpy_simd": simd,
-        "blas": [
-            {k: info.get(k) for k in BLAS_FIELDS}
-            for info in threadpool_info()
-            if info.get("user_api") == "blas"
-        ],
+        "blas": sort_blas(
+            [
+                {k: info.get(k) for k in BLAS_FIELDS}
+                for info in threadpool_info()
+                if info.get("user_api") == "blas"
+            ]
+        ),
     }
+
+
+def sort_blas(blas: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """BLAS libraries in a fixed order (threadpoolctl lists numpy's and scipy's in
+    the order the process happened to load them)."""
+    return sorted(blas, key=lambda b: json.dumps(b, sort_keys=True))
 
 
 def describe_environment(env: dict[str, Any] | None) -> str:

@@ -142,9 +142,55 @@ def test_a_metric_added_since_is_named_not_compared(tmp_path):
     result = main(b, c)
     assert result.metrics == {"per_setting_loglik.x.0": [1.0, 2.0]}
     assert not result.not_compared and not result.identical
-    # a metric not known to be newer still counts when one run lacks it
+    # a metric not known to be newer: what one run has more, not identical
     d = _run(tmp_path / "d", metrics=base | {"other": 1})
-    assert main(a, d).metrics == {"other": [None, 1]}
+    result = main(a, d)
+    assert result.metrics == {} and result.extra == {str(a): [], str(d): ["other"]}
+    assert not result.identical and result.shared_identical
+    assert f"only in {d}: 1 values: other (1)" in report(result)
+
+
+def test_a_run_with_an_added_method_is_compared_on_what_both_ran(tmp_path):
+    """A run with a method added (``--method``) against one without: the
+    built-in methods' rows of trials.npz and every shared metric are compared,
+    the added method's are named. (They were reported as differing: shapes
+    (3, 4) against (4, 4), and its metric values counted as changed.)"""
+    base = {"returns": {"a": [1.0], "b": [2.0]}, "n": [1, 2]}
+    a = _run(tmp_path / "a", metrics=base)
+    b = _run(
+        tmp_path / "b", metrics={**base, "returns": base["returns"] | {"d": [3.0]}}
+    )
+    returns = np.r_[np.arange(12.0).reshape(3, 4), np.full((1, 4), 7.0)]
+    np.savez(b / "trials.npz", returns=returns, methods=np.array(["a", "b", "c", "d"]))
+    result = main(a, b)
+    assert result.arrays["trials.npz:returns"] == "identical"
+    assert result.arrays["trials.npz:methods"] == {"methods_only_in": [[], ["d"]]}
+    assert result.metrics == {} and result.extra[str(b)] == ["returns.d.0"]
+    assert result.shared_identical and not result.identical
+    text = report(result)
+    assert "compared on the methods both ran; only the second ran ['d']" in text
+    assert "verdict: identical where both runs have results" in text
+    # the rows are matched by name, not position
+    order = [2, 0, 1, 3]
+    names = np.array(["a", "b", "c", "d"])[order]
+    np.savez(b / "trials.npz", returns=returns[order], methods=names)
+    assert main(a, b).arrays["trials.npz:returns"] == "identical"
+    # a built-in method's row that moved is a difference
+    returns[1, 2] += 1.0
+    np.savez(b / "trials.npz", returns=returns[order], methods=names)
+    result = main(a, b)
+    assert result.arrays["trials.npz:returns"]["n_differ"] == 1
+    assert not result.shared_identical
+    assert "verdict: the results differ" in report(result)
+
+
+def test_the_order_blas_libraries_were_loaded_in_is_no_difference(tmp_path):
+    """threadpoolctl lists numpy's and scipy's BLAS in load order, which varies
+    from process to process: two runs in one environment read as differing."""
+    blas = [{"version": "0.3.31"}, {"version": "0.3.30"}]
+    a = _run(tmp_path / "a", env={"blas": blas})
+    b = _run(tmp_path / "b", env={"blas": blas[::-1]})
+    assert main(a, b).environment == {}
 
 
 def test_files_and_arrays_only_one_run_has(tmp_path):
