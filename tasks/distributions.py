@@ -143,6 +143,31 @@ class Distribution:
         defaults = {f.name: f.default for f in dataclasses.fields(self.params_type)}
         return np.array([defaults[name] for name in self.names], dtype=float)
 
+    def far_from_nominal(self, limit: float = 2.0) -> list[str]:
+        """For `relative-normal`: the varied parameters whose nominal value lies
+        more than `limit` σ outside the box their draws are truncated to (the
+        inner box for `train` and `interpolation`, else the outer one), each
+        as a sentence. Their draws then crowd the box's edge nearest the
+        nominal: legal, but rarely what was meant. Empty for other kinds."""
+        if self.kind != "relative-normal":
+            return []
+        inner = self.split in ("train", "interpolation")
+        lows, highs = self.inner_box() if inner else (self.lows, self.highs)
+        box = "inner box" if inner else "range"
+        out = []
+        for name, nominal, lo, hi in zip(
+            self.names, self.nominal(), lows, highs, strict=True
+        ):
+            scale = self.sigma * abs(nominal)
+            gap = max(lo - nominal, nominal - hi, 0.0)
+            if gap > limit * scale:
+                out.append(
+                    f"{name}: the nominal {nominal:g} lies {gap / scale:.1f}σ outside "
+                    f"the {box} [{lo:g}, {hi:g}]; its draws crowd the edge at "
+                    f"{lo if nominal < lo else hi:g}"
+                )
+        return out
+
     def as_json(self) -> dict[str, Any]:
         """The fields that determine the draws, as JSON-ready values (options that
         do not apply to `kind` or `split` are None)."""

@@ -48,6 +48,7 @@ import importlib.util
 import json
 import math
 import multiprocessing
+import sys
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -619,13 +620,16 @@ def main(argv: Sequence[str] | None = None) -> Generated:
         prepared = prepare(config)  # a bad --out stops here, before any writing
     except ValueError as error:
         parser.error(str(error))
+    for warning in config.distribution.far_from_nominal():
+        print(f"{parser.prog}: warning: {warning}", file=sys.stderr)
     try:
         result = generate(config, prepared=prepared)
     except OSError as error:  # a scheduler that cannot be reached, a full disk
         parser.exit(1, f"{parser.prog}: error: {error}\n")
     counts = [e["counts"] for e in result.content["shards"]]
+    done = "wrote" if result.redone else "nothing to do: already finished,"
     print(
-        f"wrote {len(counts)} shards and {result.manifest}: "
+        f"{done} {len(counts)} shards and {result.manifest}: "
         f"{sum(c['transitions'] for c in counts)} transitions, "
         f"{sum(len(e['instances']) for e in result.content['shards'])} instances, "
         f"{sum(c['diverged_episodes'] for c in counts)} diverged episodes "

@@ -178,3 +178,31 @@ def test_draw_rejects_bad_counts_and_unreachable_regions():
     tight = dist(kind="relative-normal", sigma=0.001, split="extrapolation")
     with pytest.raises(ValueError, match="too small"):
         draw(tight, 5, rng=np.random.default_rng(0))
+
+
+def test_a_nominal_far_outside_the_truncation_box_is_named(capsys, tmp_path):
+    """The default cart-pole ranges' inner box, [0.1625, 0.3875] kg, excludes the
+    nominal pole mass 0.1 by 3.1σ at σ = 0.2: every train draw sits at the edge.
+    Named (and warned of by tasks.generate, before any work); a box holding the
+    nominal, or another kind, gives nothing."""
+    from tasks import generate
+
+    vary = {"pole_mass": (0.05, 0.5), "pole_half_length": (0.25, 1.0)}
+    far = Distribution(
+        CartpoleParams, vary, kind="relative-normal", split="train", sigma=0.2
+    )
+    (message,) = far.far_from_nominal()
+    assert message.startswith("pole_mass: the nominal 0.1 lies 3.1σ outside")
+    masses = draw(far, 200, rng=np.random.default_rng(0)).varied[:, 0]
+    # what the message warns of: half the draws within 0.01 of the edge, of 0.225
+    assert np.median(masses) < 0.1625 + 0.01
+    assert dataclasses.replace(far, split="all").far_from_nominal() == []
+    assert dataclasses.replace(far, kind="uniform").far_from_nominal() == []
+    near = dataclasses.replace(far, vary=vary | {"pole_mass": (0.05, 0.2)})
+    assert near.far_from_nominal() == []
+    generate.main([
+        "--domain", "cartpole", "--distribution", "relative-normal", "--sigma",
+        "0.2", "--split", "train", "--instances", "2", "--max-steps", "5",
+        "--out", str(tmp_path / "run"), "--no-progress",
+    ])  # fmt: skip
+    assert "warning: pole_mass: the nominal 0.1 lies 3.1σ" in capsys.readouterr().err

@@ -49,6 +49,11 @@ def test_main_writes_loadable_shards_and_a_manifest(tmp_path, capsys):
     np.testing.assert_array_equal(everything.values[:, 2:], 1.0)  # nominal lengths
     assert len(dataset.load()) == 3 * 2 * 10
     assert "wrote 2 shards" in capsys.readouterr().out
+    # run again on the finished folder: nothing written, and it says so
+    generate.main(
+        ["--domain", "acrobot", "--seed", "3", "--out", str(out), *TINY, *QUIET]
+    )
+    assert "nothing to do: already finished, 2 shards" in capsys.readouterr().out
 
 
 def random_policy_shard(entry: dict, *, seed: int) -> Transitions:
