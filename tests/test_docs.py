@@ -114,7 +114,7 @@ def test_readmes_model_example_runs_as_written(tmp_path, monkeypatch):
     exec(compile(code, "README.md", "exec"), namespace)
     assert namespace["model"].weights.shape[1] == 2  # fitted on all but one
     assert namespace["mean"].shape == (50, 4)
-    assert (tmp_path / "model.npz").exists()
+    assert (tmp_path / "runs" / "model.npz").exists()
 
 
 def test_readmes_dataset_example_runs_on_the_default_generate_run(
