@@ -20,11 +20,11 @@ reports, from the first place results can part to the last:
    ``--out``). A metric added since (``ADDED_METRICS``) that one run has and the
    other lacks is named, not compared: the run without it is taken to be older
    than the metric.
-5. ``extra``: what one run has and the other lacks, such as a method added with
-   ``--method``: its metric values (counted per top-level key) and its rows of
-   the arrays indexed by method (``trials.npz``, compared on the methods both
-   runs ran). The verdict is then "identical where both runs have results" when
-   everything shared is identical.
+5. ``extra``: the entries of a method one run added (``--method``, named in its
+   config) and the other did not: its metric values (counted per top-level key)
+   and its rows of ``trials.npz`` (compared on the methods both runs ran). The
+   verdict is then "identical where both runs have results" when everything
+   else is identical. Anything else one run lacks is a difference.
 
 Settings that only change how a run is shown or scheduled (``progress``,
 ``workers``, ``record``) are not counted as differences.
@@ -90,10 +90,12 @@ class Comparison(NamedTuple):
 
     @property
     def shared_identical(self) -> bool:
-        """Every array and metric that both runs have equal (config, environment
-        and what only one run has aside)."""
-        return not self.metrics and all(
-            v == "identical" or _is_extra(v) for v in self.arrays.values()
+        """Every file, array and metric equal but an added method's (config and
+        environment aside): the methods both runs ran gave the same results."""
+        return (
+            not self.metrics
+            and not any(self.only_in.values())
+            and all(v == "identical" or _is_extra(v) for v in self.arrays.values())
         )
 
     @property
@@ -102,7 +104,6 @@ class Comparison(NamedTuple):
         and environment aside)."""
         return (
             self.shared_identical
-            and not any(self.only_in.values())
             and not any(self.extra.values())
             and all(v == "identical" for v in self.arrays.values())
         )
@@ -111,6 +112,34 @@ class Comparison(NamedTuple):
 def _is_extra(value: Any) -> bool:
     """An ``arrays`` entry that says what one run has more, not a difference."""
     return isinstance(value, dict) and "methods_only_in" in value
+
+
+def added_methods(config: dict) -> set[str]:
+    """The names of the methods a run added (``--method NAME=module:attribute``)."""
+    return {str(spec).split("=", 1)[0] for spec in config.get("methods") or ()}
+
+
+def _method_entry(key: str, methods: set[str], other: dict) -> bool:
+    """Whether the dotted metric ``key``, which one run has and ``other`` (the
+    other run's metrics) lacks, is an entry of a method only the first run
+    added: a part of it names one of ``methods`` (alone, or in a pair ``x -
+    y``) and ``other`` holds the dict that part would be a key of, without it.
+    Anything else one run lacks (a shorter list, a None for a dict) is a
+    difference."""
+    if not methods:
+        return False
+    parts = key.split(".")
+    node: Any = other
+    for part in parts:
+        if not isinstance(node, dict):
+            return False
+        named = part in methods or any(x in methods for x in part.split(" - "))
+        if named:
+            return part not in node
+        if part not in node:
+            return False
+        node = node[part]
+    return False
 
 
 def flatten(x: Any, prefix: str = "") -> dict[str, Any]:
@@ -241,17 +270,23 @@ def _compare_files(fa: Path, fb: Path) -> dict[str, Any]:
                         [m for m in ma if m not in mb],
                         [m for m in mb if m not in ma],
                     ]
-                    out[name] = {"methods_only_in": only}
+                    # the same methods in another order: rows matched by name
+                    out[name] = {"methods_only_in": only} if any(only) else "identical"
                     continue
-                out[name] = compare_arrays(*_on_shared(a, b, za, zb, rows))
+                out[name] = compare_arrays(*_on_shared(a, b, key, rows))
             except (ValueError, TypeError) as err:  # e.g. an object array (pickle)
                 out[name] = {"unreadable": str(err)}
     return out
 
 
+#: Arrays with one row per entry of their file's ``methods`` (``trials.npz``).
+PER_METHOD = ("returns", "steps")
+
+
 def _shared_methods(za, zb) -> tuple[list[int], list[int]] | None:
     """Row indexes of the methods two files both name (``methods``, 1-D strings),
-    in the first file's order; None if either names none or they name the same."""
+    in the first file's order; None if either names none, they name the same,
+    or they share none (then the files simply differ)."""
     if "methods" not in za.files or "methods" not in zb.files:
         return None
     ma, mb = za["methods"], zb["methods"]
@@ -261,18 +296,17 @@ def _shared_methods(za, zb) -> tuple[list[int], list[int]] | None:
         return None
     names_b = mb.tolist()
     shared = [m for m in ma.tolist() if m in names_b]
+    if not shared:
+        return None
     return [ma.tolist().index(m) for m in shared], [names_b.index(m) for m in shared]
 
 
-def _on_shared(a: np.ndarray, b: np.ndarray, za, zb, rows) -> tuple:
-    """``a`` and ``b`` cut to the shared methods' rows where each has one row per
-    method of its file; else as they are."""
-    if rows is None:
+def _on_shared(a: np.ndarray, b: np.ndarray, key: str, rows) -> tuple:
+    """``a`` and ``b`` cut to the shared methods' rows if ``key`` is an array of
+    one row per method (``PER_METHOD``); else as they are."""
+    if rows is None or key not in PER_METHOD:
         return a, b
-    n_a, n_b = len(za["methods"]), len(zb["methods"])
-    if a.ndim >= 1 and b.ndim >= 1 and a.shape[0] == n_a and b.shape[0] == n_b:
-        return a[rows[0]], b[rows[1]]
-    return a, b
+    return a[rows[0]], b[rows[1]]
 
 
 def main(run_a: str | Path, run_b: str | Path, out: str | Path | None = None):
@@ -291,12 +325,19 @@ def main(run_a: str | Path, run_b: str | Path, out: str | Path | None = None):
         metrics_a.pop(key, None)
         metrics_b.pop(key, None)
     flat_a, flat_b = flatten(metrics_a), flatten(metrics_b)
-    extra = {str(a): sorted(flat_a.keys() - flat_b.keys())}
-    extra[str(b)] = sorted(flat_b.keys() - flat_a.keys())
+    names_a, names_b = added_methods(config_a), added_methods(config_b)
+    extra = {
+        str(a): [k for k in sorted(flat_a.keys() - flat_b.keys())
+                 if _method_entry(k, names_a - names_b, metrics_b)],
+        str(b): [k for k in sorted(flat_b.keys() - flat_a.keys())
+                 if _method_entry(k, names_b - names_a, metrics_a)],
+    }  # fmt: skip
+    both = set().union(*extra.values())
     metrics = {
-        k: [flat_a[k], flat_b[k]]
-        for k in sorted(flat_a.keys() & flat_b.keys())
-        if flat_a[k] != flat_b[k]
+        k: [flat_a.get(k), flat_b.get(k)]
+        for k in sorted(flat_a.keys() | flat_b.keys())
+        if k not in both
+        and (k not in flat_a or k not in flat_b or flat_a[k] != flat_b[k])
     }
     names_a = {p.name for p in a.glob("*.npz")}
     names_b = {p.name for p in b.glob("*.npz")}
@@ -308,7 +349,11 @@ def main(run_a: str | Path, run_b: str | Path, out: str | Path | None = None):
         config, environment, arrays, metrics, only_in, not_compared, extra
     )
     if out is not None:
-        write_json(out, result._asdict() | {"identical": result.identical})
+        verdicts = {
+            "identical": result.identical,
+            "shared_identical": result.shared_identical,
+        }
+        write_json(out, result._asdict() | verdicts)
     return result
 
 
@@ -388,8 +433,8 @@ def report(result: Comparison, limit: int = 10) -> str:
         verdict = "identical results"
     elif result.shared_identical:
         verdict = (
-            "identical where both runs have results (one run has more: an added "
-            "method?)"
+            "identical where both runs have results (the entries of methods only "
+            "one run added aside)"
         )
     else:
         verdict = "the results differ"

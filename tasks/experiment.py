@@ -106,7 +106,7 @@ def environment() -> dict[str, Any]:
 def sort_blas(blas: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """BLAS libraries in a fixed order (threadpoolctl lists numpy's and scipy's in
     the order the process happened to load them)."""
-    return sorted(blas, key=lambda b: json.dumps(b, sort_keys=True))
+    return sorted(blas, key=lambda b: [str(b.get(k)) for k in BLAS_FIELDS])
 
 
 def describe_environment(env: dict[str, Any] | None) -> str:

@@ -453,8 +453,9 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
             raise ValueError(
                 f"{config.out} holds this run, but its shard {entry['index']} was "
                 "simulated with other steps per action than this version takes "
-                "(fast acrobots integrate with finer steps since 2026-12-04, "
-                "tasks.acrobot.sub_steps); choose another --out"
+                "(fast acrobots integrate with finer steps, tasks.acrobot.sub_steps; "
+                "a manifest that records no sub_steps is taken to have run the "
+                "nominal count everywhere); choose another --out"
             )
         entry["sub_steps"] = steps
     todo = []
@@ -622,12 +623,13 @@ def main(argv: Sequence[str] | None = None) -> Generated:
         parser.error(str(error))
     for warning in config.distribution.far_from_nominal():
         print(f"{parser.prog}: warning: {warning}", file=sys.stderr)
+    finished = prepared[0]["complete"] and not prepared[1]
     try:
         result = generate(config, prepared=prepared)
     except OSError as error:  # a scheduler that cannot be reached, a full disk
         parser.exit(1, f"{parser.prog}: error: {error}\n")
     counts = [e["counts"] for e in result.content["shards"]]
-    done = "wrote" if result.redone else "nothing to do: already finished,"
+    done = "nothing to do: already finished," if finished else "wrote"
     print(
         f"{done} {len(counts)} shards and {result.manifest}: "
         f"{sum(c['transitions'] for c in counts)} transitions, "

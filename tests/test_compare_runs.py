@@ -142,12 +142,11 @@ def test_a_metric_added_since_is_named_not_compared(tmp_path):
     result = main(b, c)
     assert result.metrics == {"per_setting_loglik.x.0": [1.0, 2.0]}
     assert not result.not_compared and not result.identical
-    # a metric not known to be newer: what one run has more, not identical
+    # a metric not known to be newer, nor an added method's, is a difference
     d = _run(tmp_path / "d", metrics=base | {"other": 1})
     result = main(a, d)
-    assert result.metrics == {} and result.extra == {str(a): [], str(d): ["other"]}
-    assert not result.identical and result.shared_identical
-    assert f"only in {d}: 1 values: other (1)" in report(result)
+    assert result.metrics == {"other": [None, 1]}
+    assert not result.identical and not result.shared_identical
 
 
 def test_a_run_with_an_added_method_is_compared_on_what_both_ran(tmp_path):
@@ -156,10 +155,10 @@ def test_a_run_with_an_added_method_is_compared_on_what_both_ran(tmp_path):
     the added method's are named. (They were reported as differing: shapes
     (3, 4) against (4, 4), and its metric values counted as changed.)"""
     base = {"returns": {"a": [1.0], "b": [2.0]}, "n": [1, 2]}
+    added = {"seed": 0, "progress": True, "methods": ["d=mine:D"]}
     a = _run(tmp_path / "a", metrics=base)
-    b = _run(
-        tmp_path / "b", metrics={**base, "returns": base["returns"] | {"d": [3.0]}}
-    )
+    more = {**base, "returns": base["returns"] | {"d": [3.0]}}
+    b = _run(tmp_path / "b", metrics=more, config=added)
     returns = np.r_[np.arange(12.0).reshape(3, 4), np.full((1, 4), 7.0)]
     np.savez(b / "trials.npz", returns=returns, methods=np.array(["a", "b", "c", "d"]))
     result = main(a, b)
@@ -182,6 +181,50 @@ def test_a_run_with_an_added_method_is_compared_on_what_both_ran(tmp_path):
     assert result.arrays["trials.npz:returns"]["n_differ"] == 1
     assert not result.shared_identical
     assert "verdict: the results differ" in report(result)
+
+
+def test_only_an_added_methods_entries_are_set_apart(tmp_path):
+    """What one run lacks counts as a difference unless it is an entry of a
+    method only the other run added: a shorter list, a None against a value,
+    an empty list against a filled one, a missing file, or two runs that share
+    no method do not pass as "identical where both runs have results"."""
+    added = {"seed": 0, "progress": True, "methods": ["d=mine:D"]}
+    base = {"returns": {"a": [1.0, 2.0]}, "floor": {"a": 1.0}, "n": [1]}
+    a = _run(tmp_path / "a", metrics=base)
+    for name, changed in [
+        ("shorter", {"returns": {"a": [1.0]}}),
+        ("none", {"floor": None}),
+        ("empty", {"n": []}),
+    ]:
+        b = _run(tmp_path / name, metrics=base | changed, config=added)
+        result = main(a, b)
+        assert result.metrics and not result.shared_identical, name
+        assert "verdict: the results differ" in report(result), name
+    more = base | {"returns": {"a": [1.0, 2.0], "d": [3.0]}}
+    b = _run(tmp_path / "more", metrics=more, config=added)
+    assert main(a, b).shared_identical and main(a, b).extra[str(b)] == ["returns.d.0"]
+    (b / "model.npz").unlink()
+    assert not main(a, b).shared_identical  # a missing file
+    c = _run(tmp_path / "other_methods", metrics=base)
+    np.savez(c / "trials.npz", returns=np.arange(12.0).reshape(3, 4),
+             methods=np.array(["x", "y", "z"]))  # fmt: skip
+    result = main(a, c)
+    assert result.arrays["trials.npz:methods"]["n_differ"] == 3
+    assert not result.shared_identical
+    # only per-method arrays are cut to the shared rows: test_masses of as many
+    # settings as methods is compared whole; the same methods reordered match
+    masses = np.arange(6.0).reshape(3, 2)
+    for run, names, m in (
+        (a, ["a", "b", "c"], masses),
+        (c, ["c", "a", "b"], masses + np.eye(3, 2)),
+    ):
+        order = [["a", "b", "c"].index(n) for n in names]
+        np.savez(run / "trials.npz", returns=np.arange(12.0).reshape(3, 4)[order],
+                 methods=np.array(names), test_masses=m)  # fmt: skip
+    result = main(a, c)
+    assert result.arrays["trials.npz:returns"] == "identical"
+    assert result.arrays["trials.npz:methods"] == "identical"
+    assert result.arrays["trials.npz:test_masses"]["n_differ"] == 2
 
 
 def test_the_order_blas_libraries_were_loaded_in_is_no_difference(tmp_path):

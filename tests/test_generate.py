@@ -54,6 +54,14 @@ def test_main_writes_loadable_shards_and_a_manifest(tmp_path, capsys):
         ["--domain", "acrobot", "--seed", "3", "--out", str(out), *TINY, *QUIET]
     )
     assert "nothing to do: already finished, 2 shards" in capsys.readouterr().out
+    # every shard done but the manifest killed before it said so: finished now
+    manifest["complete"] = False
+    (out / "manifest.json").write_text(json.dumps(manifest))
+    generate.main(
+        ["--domain", "acrobot", "--seed", "3", "--out", str(out), *TINY, *QUIET]
+    )
+    assert "wrote 2 shards" in capsys.readouterr().out
+    assert json.loads((out / "manifest.json").read_text())["complete"]
 
 
 def random_policy_shard(entry: dict, *, seed: int) -> Transitions:
