@@ -325,19 +325,19 @@ def main(run_a: str | Path, run_b: str | Path, out: str | Path | None = None):
         metrics_a.pop(key, None)
         metrics_b.pop(key, None)
     flat_a, flat_b = flatten(metrics_a), flatten(metrics_b)
-    names_a, names_b = added_methods(config_a), added_methods(config_b)
+    added_a, added_b = added_methods(config_a), added_methods(config_b)
     extra = {
         str(a): [k for k in sorted(flat_a.keys() - flat_b.keys())
-                 if _method_entry(k, names_a - names_b, metrics_b)],
+                 if _method_entry(k, added_a - added_b, metrics_b)],
         str(b): [k for k in sorted(flat_b.keys() - flat_a.keys())
-                 if _method_entry(k, names_b - names_a, metrics_a)],
+                 if _method_entry(k, added_b - added_a, metrics_a)],
     }  # fmt: skip
-    both = set().union(*extra.values())
+    apart = set().union(*extra.values())
+    absent = object()  # unlike any value, None included
     metrics = {
         k: [flat_a.get(k), flat_b.get(k)]
         for k in sorted(flat_a.keys() | flat_b.keys())
-        if k not in both
-        and (k not in flat_a or k not in flat_b or flat_a[k] != flat_b[k])
+        if k not in apart and flat_a.get(k, absent) != flat_b.get(k, absent)
     }
     names_a = {p.name for p in a.glob("*.npz")}
     names_b = {p.name for p in b.glob("*.npz")}
