@@ -209,31 +209,41 @@ FAST_ACROBOTS = [
 ]
 
 
+def one_action(module, params):
+    """``act(s, u)``: the state after one action of control ``u`` from state
+    ``s``, at the instance's own step (``module.sub_steps``) and at a quarter of
+    it. Fourth order: the quarter step's own error is 256 times smaller."""
+    n_sub = module.sub_steps(params)
+    model, fine = module.make_model(params), module.make_model(params)
+    assert model.opt.timestep * n_sub == pytest.approx(module.CONTROL_TIMESTEP)
+    fine.opt.timestep = model.opt.timestep / 4
+    data, fine_data = mujoco.MjData(model), mujoco.MjData(fine)
+
+    def act(s, u):
+        for d in (data, fine_data):
+            d.qpos[:], d.qvel[:], d.ctrl[0] = s[:2], s[2:], u
+        mujoco.mj_step(model, data, n_sub)
+        mujoco.mj_step(fine, fine_data, 4 * n_sub)
+        return np.r_[data.qpos, data.qvel], np.r_[fine_data.qpos, fine_data.qvel]
+
+    return act
+
+
 @pytest.mark.parametrize(
     "params, n_actions", [(acrobot.AcrobotParams(), 300), *FAST_ACROBOTS]
 )
 def test_one_action_is_accurate_under_random_torques(params, n_actions):
     """Along random-torque actions from near hanging (a new start after the
     goal, as the task's episodes end there), each action at the instance's own
-    step (``acrobot.sub_steps``) agrees with the same action at a quarter of
-    that step to 1e-4 (measured: at most 2e-5). Fourth order: the quarter
-    step's own error is 256 times smaller."""
-    model = acrobot.make_model(params)
-    n_sub = acrobot.sub_steps(params)
-    assert model.opt.timestep * n_sub == pytest.approx(acrobot.CONTROL_TIMESTEP)
-    fine = acrobot.make_model(params)
-    fine.opt.timestep = model.opt.timestep / 4
-    data, fine_data = mujoco.MjData(model), mujoco.MjData(fine)
+    step agrees with the same action at a quarter of that step to 1e-4
+    (measured: at most 2e-5)."""
+    act = one_action(acrobot, params)
     rng = np.random.default_rng(0)
     s = rng.uniform(-0.1, 0.1, 4)
     worst = 0.0
     for u in acrobot.ACTIONS[rng.integers(3, size=n_actions)]:
-        for d in (data, fine_data):
-            d.qpos[:], d.qvel[:], d.ctrl[0] = s[:2], s[2:], u
-        mujoco.mj_step(model, data, n_sub)
-        mujoco.mj_step(fine, fine_data, 4 * n_sub)
-        s = np.r_[fine_data.qpos, fine_data.qvel]
-        worst = max(worst, np.abs(np.r_[data.qpos, data.qvel] - s).max())
+        coarse, s = act(s, u)
+        worst = max(worst, np.abs(coarse - s).max())
         if acrobot.goal_reached(s, params):
             s = rng.uniform(-0.1, 0.1, 4)
     assert worst < 1e-4, (params, worst)
@@ -245,23 +255,15 @@ def test_a_light_cart_pole_is_accurate_under_random_forces():
     the instance's own step against a quarter of it, to 1e-5 (at 10 ms: 6.5e-4;
     measured now: below 1e-9)."""
     params = cartpole.CartpoleParams(0.1, 0.01, 0.1)
-    n_sub = cartpole.sub_steps(params)
-    assert n_sub == 2 * 2**5
-    model, fine = cartpole.make_model(params), cartpole.make_model(params)
-    fine.opt.timestep = model.opt.timestep / 4
-    data, fine_data = mujoco.MjData(model), mujoco.MjData(fine)
+    assert cartpole.sub_steps(params) == 2 * 2**5
+    act = one_action(cartpole, params)
     rng = np.random.default_rng(0)
     worst = 0.0
     for _ in range(20):
         s = rng.uniform(-0.05, 0.05, 4)
         while not cartpole.failed(s):
-            u = rng.choice(cartpole.ACTIONS)
-            for d in (data, fine_data):
-                d.qpos[:], d.qvel[:], d.ctrl[0] = s[:2], s[2:], u
-            mujoco.mj_step(model, data, n_sub)
-            mujoco.mj_step(fine, fine_data, 4 * n_sub)
-            s = np.r_[fine_data.qpos, fine_data.qvel]
-            worst = max(worst, np.abs(np.r_[data.qpos, data.qvel] - s).max())
+            coarse, s = act(s, rng.choice(cartpole.ACTIONS))
+            worst = max(worst, np.abs(coarse - s).max())
     assert worst < 1e-5, worst
 
 
