@@ -57,6 +57,8 @@ from tasks.experiment import (
     to_jsonable,
     trial_seeds,
     write_json,
+    writes_metrics,
+    wrote_line,
 )
 from tasks.methods import (
     add_method_argument,
@@ -404,15 +406,8 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
         training_weights=np.asarray(hip.weights).tolist(),
         n_batch_transitions=len(batch),
     )
-    t0 = time.perf_counter()
-    try:  # metrics.json is written even if a figure or the recording fails
+    with writes_metrics(path, metrics, timings, started, machine):
         swingup_report.write_artefacts(path, config, metrics, trials, hip)
-    finally:
-        timings["artefacts"] = time.perf_counter() - t0
-        timings["total"] = time.perf_counter() - started
-        metrics["seconds"] = timings
-        metrics["environment"] = machine
-        write_json(path / "metrics.json", metrics)
     swingup_report.write_report(path, config, metrics)
     return Results(path, to_jsonable(metrics))
 
@@ -641,9 +636,7 @@ def cli(argv: list[str] | None = None) -> int:
     config, out = parse_args(argv)
     results = main(config, out)
     m = results.metrics
-    recorded = (results.out / "acrobot.rrd").exists()
-    written = "figures, recording" if recorded else "figures"
-    print(f"wrote {results.out}/ (report.md, metrics.json, {written})")
+    print(wrote_line(results.out, "acrobot.rrd"))
     print("episodes to within 10% of the true model:", m["episodes_to_near_optimal"])
     print("the same on medians:", m["episodes_to_near_optimal_median"])
     return 0

@@ -49,6 +49,8 @@ from tasks.experiment import (
     run_dir,
     to_jsonable,
     write_json,
+    writes_metrics,
+    wrote_line,
 )
 from tasks.methods import (
     add_method_argument,
@@ -280,15 +282,8 @@ def main(config: PredictionConfig, out: str | os.PathLike | None = None) -> Resu
         ],
         "n_batch_transitions": len(batch),
     }
-    t0 = time.perf_counter()
-    try:  # metrics.json is written even if a figure or the recording fails
+    with writes_metrics(path, metrics, seconds, started, machine):
         prediction_report.write_artefacts(path, config, metrics, hips[0], splits)
-    finally:
-        seconds["artefacts"] = time.perf_counter() - t0
-        seconds["total"] = time.perf_counter() - started
-        metrics["seconds"] = seconds
-        metrics["environment"] = machine
-        write_json(path / "metrics.json", metrics)
     prediction_report.write_report(path, config, metrics)
     return Results(path, to_jsonable(metrics))
 
@@ -359,9 +354,7 @@ def parse_args(argv: list[str] | None = None) -> tuple[PredictionConfig, str | N
 def cli(argv: list[str] | None = None) -> int:
     config, out = parse_args(argv)
     results = main(config, out)
-    recorded = (results.out / "cartpole.rrd").exists()
-    written = "figures, recording" if recorded else "figures"
-    print(f"wrote {results.out}/ (report.md, metrics.json, {written})")
+    print(wrote_line(results.out, "cartpole.rrd"))
     print("HiP-MDP MSE / best baseline:", results.metrics["mse_ratio_to_best_baseline"])
     return 0
 

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import json
 import sys
+from collections import Counter
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -294,11 +295,11 @@ def _shared_methods(za, zb) -> tuple[list[int], list[int]] | None:
         return None
     if np.array_equal(ma, mb):
         return None
-    names_b = mb.tolist()
-    shared = [m for m in ma.tolist() if m in names_b]
+    names_a, names_b = ma.tolist(), mb.tolist()
+    shared = [m for m in names_a if m in names_b]
     if not shared:
         return None
-    return [ma.tolist().index(m) for m in shared], [names_b.index(m) for m in shared]
+    return [names_a.index(m) for m in shared], [names_b.index(m) for m in shared]
 
 
 def _on_shared(a: np.ndarray, b: np.ndarray, key: str, rows) -> tuple:
@@ -419,9 +420,7 @@ def report(result: Comparison, limit: int = 10) -> str:
     lines += _show(metric_groups(result.metrics), limit)
     for run, keys in result.extra.items():
         if keys:
-            groups = {}
-            for key in keys:
-                groups[key.split(".", 1)[0]] = groups.get(key.split(".", 1)[0], 0) + 1
+            groups = Counter(key.split(".", 1)[0] for key in keys)
             counts = ", ".join(f"{k} ({n})" for k, n in groups.items())
             lines.append(f"  only in {run}: {len(keys)} values: {counts}")
     if result.not_compared:

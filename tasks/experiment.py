@@ -11,6 +11,7 @@ spawned from one ``np.random.SeedSequence``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import contextvars
 import dataclasses
 import functools
@@ -20,6 +21,7 @@ import pickle
 import platform
 import subprocess
 import sys
+import time
 import traceback
 from collections.abc import Callable, Sequence
 from importlib import metadata
@@ -101,6 +103,33 @@ def environment() -> dict[str, Any]:
             ]
         ),
     }
+
+
+@contextlib.contextmanager
+def writes_metrics(
+    path: Path, metrics: dict, seconds: dict, started: float, machine: dict
+):
+    """Around a run's artefacts (figures, recording): times them as
+    ``seconds["artefacts"]``, then writes ``path/metrics.json`` with
+    ``metrics["seconds"]`` (``total`` since ``started``) and
+    ``metrics["environment"] = machine``, even if an artefact fails: the
+    numbers of a run are never lost to a figure."""
+    t0 = time.perf_counter()
+    try:
+        yield
+    finally:
+        seconds["artefacts"] = time.perf_counter() - t0
+        seconds["total"] = time.perf_counter() - started
+        metrics["seconds"] = seconds
+        metrics["environment"] = machine
+        write_json(path / "metrics.json", metrics)
+
+
+def wrote_line(out: Path, recording: str) -> str:
+    """The command line's last word on a run: what it wrote in ``out`` (the
+    ``recording`` file too, if there is one)."""
+    written = "figures, recording" if (out / recording).exists() else "figures"
+    return f"wrote {out}/ (report.md, metrics.json, {written})"
 
 
 def sort_blas(blas: list[dict[str, Any]]) -> list[dict[str, Any]]:

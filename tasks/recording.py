@@ -19,6 +19,7 @@ recording is closed, so an interrupted run never leaves a half-written ``.rrd``.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 import shutil
@@ -46,8 +47,6 @@ def recording_enabled() -> bool:
 def resolve_record(config):
     """``config`` with ``record`` False under ``RERUN=off``, so that the run's
     ``config.json``, report and traced trial say what it writes."""
-    import dataclasses
-
     if config.record and not recording_enabled():
         return dataclasses.replace(config, record=False)
     return config
@@ -181,18 +180,10 @@ class Recording:
         strips = np.asarray(strips, dtype=np.float32)
         if strips.ndim != 3 or strips.shape[2] != 3:
             raise ValueError(f"strips: expected shape (T, P, 3), got {strips.shape}")
-        indexes = self._indexes(strips.shape[0], episode, step)
-        if indexes is None:
-            return
-        self._rec.send_columns(
-            entity,
-            indexes=indexes,
-            columns=self._rr.LineStrips3D.columns(strips=strips),
-        )
-        style = {"radii": [radius]}
-        if color is not None:
-            style["colors"] = [color]
-        self._style(entity, self._rr.LineStrips3D, style)
+        self._moving(
+            entity, "LineStrips3D", strips=strips, episode=episode, step=step,
+            style={"radii": [radius]}, color=color,
+        )  # fmt: skip
 
     def boxes(
         self,
@@ -209,22 +200,30 @@ class Recording:
         centers = np.asarray(centers, dtype=np.float32)
         if centers.ndim != 2 or centers.shape[1] != 3:
             raise ValueError(f"centers: expected shape (T, 3), got {centers.shape}")
-        indexes = self._indexes(centers.shape[0], episode, step)
+        self._moving(
+            entity, "Boxes3D", centers=centers, episode=episode, step=step,
+            style={"half_sizes": [half_size], "fill_mode": "solid"}, color=color,
+        )  # fmt: skip
+
+    def _moving(
+        self, entity: str, archetype: str, *, episode, step, style, color, **moving
+    ) -> None:
+        """Rows of the rerun ``archetype`` whose one field in ``moving`` changes
+        row by row (one ``send_columns``), its constant ``style`` and ``color``
+        logged once per entity, statically."""
+        ((field, values),) = moving.items()
+        indexes = self._indexes(len(values), episode, step)
         if indexes is None:
             return
+        kind = getattr(self._rr, archetype)
         self._rec.send_columns(
-            entity, indexes=indexes, columns=self._rr.Boxes3D.columns(centers=centers)
+            entity, indexes=indexes, columns=kind.columns(**{field: values})
         )
-        style = {"half_sizes": [half_size], "fill_mode": "solid"}
-        if color is not None:
-            style["colors"] = [color]
-        self._style(entity, self._rr.Boxes3D, style)
-
-    def _style(self, entity: str, archetype, style: dict) -> None:
-        """An entity's constant style, logged once, statically."""
         if entity not in self._styled:
             self._styled.add(entity)
-            self._rec.log(entity, archetype.from_fields(**style), static=True)
+            if color is not None:
+                style = style | {"colors": [color]}
+            self._rec.log(entity, kind.from_fields(**style), static=True)
 
     def text(self, entity: str, text: str) -> None:
         """A static Markdown note (e.g. what the panels show)."""

@@ -39,8 +39,8 @@ from tasks.collect import Collection, Divergence, _check_positive_int, get_domai
 
 Array = np.ndarray
 
-#: Per domain: its module (`make_model`, `ACTIONS`, `CONTROL_TIMESTEP`,
-#: `N_SUB_STEPS`, `INITIAL_NOISE`).
+#: Per domain: its module (`make_model`, `ACTIONS`, `N_SUB_STEPS`, `sub_steps`,
+#: `INITIAL_NOISE`).
 MODULES = {"acrobot": acrobot, "cartpole": cartpole}
 STATE_SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS
 #: Control steps per `mujoco.rollout` call.
@@ -125,10 +125,9 @@ def rollout_episodes(
         raise ValueError(f"actions must be indices in [0, {spec.n_actions})")
     _check_positive_int("chunk", chunk)
 
-    models = [module.make_model(p) for p in instances]
-    # MuJoCo steps per action: the instance's own (an acrobot whose links swing
-    # fast takes shorter steps, tasks.acrobot.sub_steps); one rollout per count
-    n_subs = np.array([round(module.CONTROL_TIMESTEP / m.opt.timestep) for m in models])
+    # MuJoCo steps per action: the instance's own (a fast instance takes shorter
+    # steps, `sub_steps`); one rollout per count
+    n_subs = np.array([module.sub_steps(p) for p in instances])
     counts = np.unique(n_subs[episode_instance])
     if len(counts) > 1:
         out = OpenLoop(
@@ -145,6 +144,7 @@ def rollout_episodes(
             for whole, piece in zip(out, part, strict=True):
                 whole[rows] = piece
         return out
+    models = [module.make_model(p) for p in instances]
     tasks = [agents.DOMAINS[domain].planning_task(p, n_steps) for p in instances]
     nq, n_sub = models[0].nq, int(counts[0])
     # the same MuJoCo steps per call whatever the instance's step: memory bounded
