@@ -79,7 +79,9 @@ def record(file: Path, config, metrics: dict, hip, splits) -> None:
             for d in (2, 3):  # Δẋ and Δθ̇, the dimensions the parameters act on
                 rec.scalars(f"/mse/{d}/{entity(m)}", mse[:, d], episode=setting)
         # the cart's drawn size (box geom half-sizes), the same on every instance
-        cart_half = tuple(float(v) for v in cartpole.make_model(None).geom("cart").size)
+        nominal = cartpole.make_model(None)
+        cart_half = tuple(float(v) for v in nominal.geom("cart").size)
+        pole_radius = float(nominal.geom("pole").size[0])  # the pole's capsule geom
         firsts = [_first_episode(split.episodes) for split in splits]
         transitions = offset_steps([len(split.train) + 1 for split in splits])
         steps = offset_steps([len(first) + 1 for first in firsts])
@@ -104,8 +106,8 @@ def record(file: Path, config, metrics: dict, hip, splits) -> None:
             real = np.concatenate([first.states, first.next_states[-1:]])
             real_points = cartpole.link_points(real, params)
             step = steps[e]
-            rec.strips("/rollout/real", real_points, episode=e, step=step,
-                       color=(40, 110, 220))  # fmt: skip
+            rec.capsules("/rollout/real", real_points[:, 1:], pole_radius,
+                         episode=e, step=step, color=(40, 110, 220))  # fmt: skip
             rec.boxes("/rollout/cart", real_points[:, 0], cart_half,
                       episode=e, step=step, color=(180, 130, 80))  # fmt: skip
             rec.strips("/rollout/predicted", cartpole.link_points(predicted, params),

@@ -68,6 +68,39 @@ def offset_steps(lengths) -> list[Array]:
     return [np.arange(end - n, end) for n, end in zip(lengths, ends, strict=True)]
 
 
+def capsule_poses(points: Array) -> tuple[Array, Array, Array]:
+    """The capsules joining consecutive points, in rerun's terms: a capsule runs
+    from its translation along its local +z for its length.
+
+    Args:
+        points: shape (T, P, 3).
+
+    Returns:
+        ``translations`` (T, P − 1, 3), the segments' starts; ``lengths``
+        (T, P − 1); ``quaternions`` (T, P − 1, 4), unit, scalar last (x, y, z, w),
+        each turning +z onto its segment (the identity for a segment of length 0,
+        a half turn about x for one along −z).
+    """
+    points = np.asarray(points, dtype=float)
+    start, segment = points[:, :-1], np.diff(points, axis=1)
+    lengths = np.linalg.norm(segment, axis=-1)
+    unit = np.divide(
+        segment, lengths[..., None], out=np.zeros_like(segment),
+        where=lengths[..., None] > 0,
+    )  # fmt: skip
+    unit[lengths == 0] = (0.0, 0.0, 1.0)
+    # the half-way quaternion: axis z × u, angle between z and u
+    q = np.concatenate(
+        [-unit[..., 1:2], unit[..., 0:1], np.zeros_like(lengths)[..., None],
+         1.0 + unit[..., 2:3]],
+        axis=-1,
+    )  # fmt: skip
+    opposite = q[..., 3] < 1e-12  # u = −z: any half turn about an axis ⟂ z
+    q[opposite] = (1.0, 0.0, 0.0, 0.0)
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    return start, lengths, q
+
+
 class Recording:
     """One headless ``.rrd`` file, written atomically.
 
@@ -205,20 +238,61 @@ class Recording:
             style={"half_sizes": [half_size], "fill_mode": "solid"}, color=color,
         )  # fmt: skip
 
-    def _moving(
-        self, entity: str, archetype: str, *, episode, step, style, color, **moving
+    def capsules(
+        self,
+        entity: str,
+        points: Array,
+        radius: float,
+        *,
+        episode: int | Array,
+        step: Array | None = None,
+        color: tuple[int, int, int] | None = None,
     ) -> None:
-        """Rows of the rerun ``archetype`` whose one field in ``moving`` changes
-        row by row (one ``send_columns``), its constant ``style`` and ``color``
-        logged once per entity, statically."""
-        ((field, values),) = moving.items()
-        indexes = self._indexes(len(values), episode, step)
+        """Moving solid links: per row of ``points`` (shape (T, P, 3)) a capsule
+        of ``radius`` from each point to the next (P − 1 per row), posed by
+        :func:`capsule_poses`."""
+        points = np.asarray(points, dtype=float)
+        if points.ndim != 3 or points.shape[1] < 2 or points.shape[2] != 3:
+            raise ValueError(
+                f"points: expected shape (T, P, 3) with P >= 2, got {points.shape}"
+            )
+        if not radius > 0:
+            raise ValueError(f"radius: expected a value > 0, got {radius}")
+        translations, lengths, quaternions = capsule_poses(points)
+        per_row = points.shape[1] - 1
+        self._moving(
+            entity, "Capsules3D", episode=episode, step=step,
+            style={"radii": [radius], "fill_mode": "solid"}, color=color,
+            per_row=per_row,
+            translations=translations.reshape(-1, 3).astype(np.float32),
+            lengths=lengths.reshape(-1).astype(np.float32),
+            quaternions=quaternions.reshape(-1, 4).astype(np.float32),
+        )  # fmt: skip
+
+    def _moving(
+        self,
+        entity: str,
+        archetype: str,
+        *,
+        episode,
+        step,
+        style,
+        color,
+        per_row: int = 1,
+        **moving,
+    ) -> None:
+        """Rows of the rerun ``archetype`` whose fields in ``moving`` change row
+        by row, ``per_row`` instances each (one ``send_columns``), its constant
+        ``style`` and ``color`` logged once per entity, statically."""
+        n_rows = len(next(iter(moving.values()))) // per_row
+        indexes = self._indexes(n_rows, episode, step)
         if indexes is None:
             return
         kind = getattr(self._rr, archetype)
-        self._rec.send_columns(
-            entity, indexes=indexes, columns=kind.columns(**{field: values})
-        )
+        columns = kind.columns(**moving)
+        if per_row > 1:
+            columns = columns.partition(np.full(n_rows, per_row))
+        self._rec.send_columns(entity, indexes=indexes, columns=columns)
         if entity not in self._styled:
             self._styled.add(entity)
             if color is not None:

@@ -115,6 +115,8 @@ def record(file: Path, config, metrics: dict, trials: list) -> None:
         collapse_panels=True,
     )
     traced = {r.method: r for r in trials if r.traces}
+    # the links drawn as the model's capsule geoms, posed from the simulator
+    link_radius = float(acrobot.make_model(params).geom("link_1").size[0])
     with Recording(file, application_id="hipmdp_acrobot", blueprint=blueprint) as rec:
         rec.text("/notes", _NOTES.format(m1=m1, m2=m2))
         for m in methods:
@@ -125,9 +127,9 @@ def record(file: Path, config, metrics: dict, trials: list) -> None:
             steps = offset_steps([len(t.states) for t in result.traces])
             for e, (trace, step) in enumerate(zip(result.traces, steps, strict=True)):
                 real = acrobot.link_points(trace.states, params)
-                rec.strips(
-                    f"/rollout/{m}/real", real, episode=e + 1, step=step,
-                    color=color(m, methods),
+                rec.capsules(
+                    f"/rollout/{m}/real", real, link_radius, episode=e + 1,
+                    step=step, color=color(m, methods),
                 )  # fmt: skip
                 if trace.predicted is not None:  # None: a policy, without a model
                     pred = acrobot.link_points(trace.predicted, params)

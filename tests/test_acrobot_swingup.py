@@ -27,7 +27,7 @@ from tasks.prediction import score_settings
 from tasks.recording import rrd_contents
 from tasks.transfer import METHODS, TransferConfig, TrialResult, run_trial
 from tests._prediction import assert_coverage_schema
-from tests._rrd import rrd_times
+from tests._rrd import rrd_components, rrd_times
 from tests._seed_spread import assert_reads_the_run
 
 TINY = SwingupConfig(
@@ -193,6 +193,10 @@ def test_recording_has_the_panels(run):
     assert rows["/rollout/hipmdp/real"] == int(hip_steps.sum()) + len(hip_steps) + 1
     has_belief = any(e.startswith("/belief/w") for e in rows)
     assert has_belief == (metrics["n_latent_features"] > 0)
+    # the links as bodies (solid capsules), the predictions as thin lines
+    file = run.out / "acrobot.rrd"
+    assert "Capsules3D:quaternions" in rrd_components(file, "/rollout/hipmdp/real")
+    assert "LineStrips3D:strips" in rrd_components(file, "/rollout/hipmdp/predicted")
 
 
 def test_recording_timelines_play_the_episodes_in_turn(run):

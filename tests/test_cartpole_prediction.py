@@ -22,7 +22,7 @@ from tasks.cartpole_prediction import (
 from tasks.prediction import PREDICTION_METHODS, best_baseline, mse_table
 from tasks.recording import rrd_contents
 from tests._prediction import assert_coverage_schema
-from tests._rrd import rrd_times
+from tests._rrd import rrd_components, rrd_times
 from tests._seed_spread import assert_reads_the_run
 
 TINY = PredictionConfig(
@@ -129,6 +129,8 @@ def test_recording_timelines_play_the_settings_in_turn(run):
     np.testing.assert_array_equal(predicted["step"], np.delete(real["step"], firsts))
     cart = rrd_times(file, "/rollout/cart")
     np.testing.assert_array_equal(cart["step"], real["step"])
+    assert "Boxes3D:centers" in rrd_components(file, "/rollout/cart")
+    assert "Capsules3D:translations" in rrd_components(file, "/rollout/real")
 
 
 def test_cli_bad_option(capsys):

@@ -7,14 +7,17 @@ import dataclasses
 import numpy as np
 import pytest
 import rerun.blueprint as rrb
+from scipy.spatial.transform import Rotation
 
 from tasks.recording import (
     Recording,
+    capsule_poses,
     offset_steps,
     recording_enabled,
     resolve_record,
     rrd_contents,
 )
+from tests._rrd import rrd_components, rrd_times
 
 
 def _blueprint():
@@ -34,12 +37,22 @@ def test_recording_reads_back_with_entities_and_rows(tmp_path):
             step = np.arange(n)
             rec.scalars("/belief/w1/mean", np.sin(step), episode=ep, step=step)
             rec.strips("/rollout/real", np.zeros((n, 3, 3)), episode=ep, step=step)
+            links = np.random.default_rng(ep).normal(size=(n, 3, 3))
+            rec.capsules("/rollout/links", links, 0.04, episode=ep, step=step)
         rec.scalars("/returns/hipmdp", [-100.0, -80.0], episode=[0, 1])
         rec.text("/notes", "what the panels show")
     rows = rrd_contents(path)
     assert rows["/belief/w1/mean"] == sum(n_steps)
     # the strips entity: one row per step plus one static style row
     assert rows["/rollout/real"] == sum(n_steps) + 1
+    assert rows["/rollout/links"] == sum(n_steps) + 1
+    np.testing.assert_array_equal(
+        rrd_times(path, "/rollout/links")["step"],
+        np.concatenate([np.arange(n) for n in n_steps]),
+    )
+    assert {"Capsules3D:translations", "Capsules3D:radii"} <= rrd_components(
+        path, "/rollout/links"
+    )
     assert rows["/returns/hipmdp"] == 2
     assert any(e.startswith("/view/") for e in rows)  # the blueprint is in the file
     assert [p.name for p in tmp_path.iterdir()] == ["r.rrd"]  # no temp file left
@@ -63,6 +76,10 @@ def test_rerun_off_wins_over_enabled_and_input_is_still_checked(tmp_path, monkey
             rec.strips("/s", np.zeros((3, 2)), episode=0)
         with pytest.raises(ValueError, match="centers: expected shape"):
             rec.boxes("/b", np.zeros((3, 2)), (1.0, 1.0, 1.0), episode=0)
+        with pytest.raises(ValueError, match="points: expected shape"):
+            rec.capsules("/c", np.zeros((3, 1, 3)), 0.1, episode=0)
+        with pytest.raises(ValueError, match="radius: expected a value > 0"):
+            rec.capsules("/c", np.zeros((3, 2, 3)), 0.0, episode=0)
         with pytest.raises(ValueError, match="step: expected shape"):
             rec.scalars("/x", [1.0, 2.0], episode=0, step=np.arange(3))
     assert list(tmp_path.iterdir()) == []
@@ -76,6 +93,24 @@ def test_resolve_record_turns_recording_off_under_rerun_off(monkeypatch):
     monkeypatch.setenv("RERUN", "off")
     assert not resolve_record(config).record
     assert resolve_record(config) == dataclasses.replace(config, record=False)
+
+
+def test_capsules_join_consecutive_points():
+    """Each capsule runs from its point along its rotated +z, for its length, to
+    the next point: at random, along ±z and for a segment of length 0."""
+    points = np.random.default_rng(0).normal(size=(40, 3, 3))
+    points[0, 1] = points[0, 0] + (0.0, 0.0, -2.0)  # the half turn
+    points[1, 1] = points[1, 0] + (0.0, 0.0, 3.0)  # the identity
+    points[2, 2] = points[2, 1]  # length 0
+    start, lengths, q = capsule_poses(points)
+    assert start.shape == (40, 2, 3) and lengths.shape == (40, 2)
+    np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0, atol=1e-12)
+    axis = np.zeros((80, 3))
+    axis[:, 2] = lengths.ravel()
+    ends = start + Rotation.from_quat(q.reshape(-1, 4)).apply(axis).reshape(40, 2, 3)
+    np.testing.assert_allclose(ends, points[:, 1:], atol=1e-12)
+    np.testing.assert_array_equal(start, points[:, :-1])
+    assert lengths[2, 1] == 0.0
 
 
 def test_offset_steps_count_on_across_episodes():
