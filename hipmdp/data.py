@@ -266,10 +266,29 @@ def check_angle_dims(angle_dims: Any, d: int | None) -> tuple[int, ...]:
 def wanted_instances(instances: int | Iterable[int]) -> Array:
     """The instance ids a load asks for, as int64 (n >= 1,); a ValueError names
     ``instances`` for none, bools or non-integers."""
-    raw = np.atleast_1d(np.asarray(instances))
-    if raw.ndim != 1 or raw.size == 0:
-        raise ValueError(f"instances: expected one or more ids, got {instances!r}")
-    return _int_array("instances", raw, raw.size)
+    return _ids("instances", instances, empty=False)
+
+
+def _ids(name: str, ids: int | Iterable[int], *, empty: bool) -> Array:
+    """``ids`` (an integer, a sequence, an array or a set, taken sorted) as int64
+    (n,); a ValueError naming ``name`` for bools, non-integers or, unless
+    ``empty``, none."""
+    if isinstance(ids, set | frozenset):
+        ids = sorted(ids)
+    raw = np.atleast_1d(np.asarray(ids))
+    if raw.ndim != 1 or (raw.size == 0 and not empty):
+        raise ValueError(f"{name}: expected one or more ids, got {ids!r}")
+    if raw.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    return _int_array(name, raw, raw.size)
+
+
+def _scalar_dt(path, dt: Array):
+    """A file's stored ``dt``, a 0-d array, as its scalar (checked by the
+    constructor)."""
+    if dt.shape != ():
+        raise ValueError(f"{path}: dt: expected a scalar, got shape {dt.shape}")
+    return dt[()]
 
 
 def _finite_float(name: str, x, shape_desc: str, ndim: int) -> Array:
@@ -302,6 +321,11 @@ def _int_array(name: str, x, n: int) -> Array:
     if np.issubdtype(arr.dtype, np.floating):
         if not np.all(np.isfinite(arr)) or np.any(arr != np.round(arr)):
             raise ValueError(f"{name}: expected integers, got non-integer values")
+        if arr.size and np.abs(arr).max() > 2**53:  # beyond, floats skip integers
+            raise ValueError(
+                f"{name}: expected integers of magnitude <= 2**53 as floats (pass "
+                f"an integer array for larger ids), got {np.abs(arr).max():g}"
+            )
     elif not np.issubdtype(arr.dtype, np.integer) or arr.dtype == bool:
         raise ValueError(f"{name}: expected an integer array, got dtype {arr.dtype}")
     elif arr.dtype == np.uint64 and arr.size and arr.max() > np.iinfo(np.int64).max:
@@ -518,12 +542,25 @@ class Transitions:
         instances: int | Iterable[int] | None = None,
         actions: int | Iterable[int] | None = None,
     ) -> Transitions:
-        """The transitions of the given instance ids and/or action indices."""
+        """The transitions of the given instance ids and/or action indices (each
+        an integer, a sequence, an array or a set).
+
+        Raises:
+            ValueError: for ids or actions that are not integers, and for
+                instance ids that are not in the data (an action without
+                transitions only selects none).
+        """
         mask = np.ones(len(self), dtype=bool)
         if instances is not None:
-            mask &= np.isin(self.instances, np.atleast_1d(np.asarray(instances)))
+            ids = _ids("instances", instances, empty=True)
+            unknown = np.setdiff1d(ids, self.instance_ids)
+            if unknown.size:
+                raise ValueError(
+                    f"instances: ids {unknown.tolist()[:10]} are not in the data"
+                )
+            mask &= np.isin(self.instances, ids)
         if actions is not None:
-            mask &= np.isin(self.actions, np.atleast_1d(np.asarray(actions)))
+            mask &= np.isin(self.actions, _ids("actions", actions, empty=True))
         return self.take(mask)
 
     def head(self, n: int) -> Transitions:
@@ -649,10 +686,11 @@ class Transitions:
                 raise ValueError(
                     f"{path}: not a hipmdp Transitions file (no format_version)"
                 )
-            version = int(f["format_version"])
-            if version != FORMAT_VERSION:
+            version = f["format_version"]
+            if version.shape != () or version != FORMAT_VERSION:
                 raise ValueError(
-                    f"{path}: format_version {version}, expected {FORMAT_VERSION}"
+                    f"{path}: format_version {version.tolist()}, expected "
+                    f"{FORMAT_VERSION}"
                 )
             required = ("states", "actions", "next_states", "instances", "angle_dims")
             missing = [k for k in required if k not in f]
@@ -668,6 +706,6 @@ class Transitions:
                 instances=f["instances"],
                 rewards=f["rewards"] if "rewards" in f else None,
                 dones=f["dones"] if "dones" in f else None,
-                angle_dims=tuple(int(i) for i in f["angle_dims"]),
-                dt=float(f["dt"]) if "dt" in f else None,
+                angle_dims=f["angle_dims"].tolist(),  # checked as integers
+                dt=_scalar_dt(path, f["dt"]) if "dt" in f else None,
             )

@@ -274,7 +274,9 @@ class Dataset:
                 continue
             data = self._read(entry)
             part = Transitions.load(io.BytesIO(data))
-            parts.append(part if wanted is None else part.select(instances=wanted))
+            if wanted is not None:  # the shard's own of the ids asked for
+                part = part.select(instances=np.intersect1d(wanted, part.instance_ids))
+            parts.append(part)
         return Transitions.concatenate(parts)
 
     def _read(self, entry: Mapping[str, Any]) -> bytes:

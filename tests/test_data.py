@@ -82,6 +82,25 @@ def test_select_by_instance_and_action():
     np.testing.assert_array_equal(sub.dones, t.dones[expected])
 
 
+def test_select_takes_sets_and_names_what_is_wrong():
+    """A set was a 0-d object array to ``np.isin`` and selected nothing, and so
+    did an id not in the data."""
+    t = make(n=200)
+    for ids, actions in [({1, 2}, {0}), (frozenset({2, 1}), (0,))]:
+        expected = t.select(instances=[1, 2], actions=0)
+        got = t.select(instances=ids, actions=actions)
+        assert len(got) == len(expected) > 0
+        np.testing.assert_array_equal(got.states, expected.states)
+    with pytest.raises(ValueError, match=r"instances: ids \[7\] are not in the data"):
+        t.select(instances=[1, 7])
+    with pytest.raises(ValueError, match="actions: expected integers"):
+        t.select(actions=[0.5])
+    with pytest.raises(ValueError, match="instances: expected an integer array"):
+        t.select(instances=["1"])
+    assert len(t.select(actions=[5])) == 0  # an action without transitions
+    assert len(t.select(instances=[])) == 0
+
+
 def test_concatenate_keeps_order_and_drops_missing_optional_fields():
     a, b = make(seed=1), make(seed=2, rewards=None)
     c = Transitions.concatenate([a, b])
@@ -386,6 +405,9 @@ def test_dt_is_kept_by_selection_files_and_checked(tmp_path):
             dict(actions=np.array([2**63, 0], dtype=np.uint64)),
             r"actions: expected values below 2\*\*63",
         ),
+        # a float at 2**63 or above was cast to -2**63 without an error
+        (dict(instances=[1e19, 0.0]), r"instances: expected integers of magnitude"),
+        (dict(instances=[2.0**53 + 2, 0.0]), r"instances: expected integers of magni"),
     ],
 )
 def test_constructor_names_the_field_of_malformed_input(change, match):
@@ -417,5 +439,26 @@ def test_load_errors_name_what_is_wrong(tmp_path):
     np.savez(tmp_path / "other.npz", a=np.zeros(3))
     with pytest.raises(ValueError, match="not a hipmdp Transitions file"):
         Transitions.load(tmp_path / "other.npz")
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "match"),
+    [  # each was truncated by int() or float() and loaded as if valid
+        ("angle_dims", np.array([0.9, 1.7]), "angle_dims: expected integer indices"),
+        ("format_version", np.array(1.9), r"format_version 1.9, expected"),
+        ("format_version", np.array([1]), r"format_version \[1\], expected"),
+        ("dt", np.array([0.2]), r"dt: expected a scalar, got shape \(1,\)"),
+        ("dt", np.array("0.2"), "dt: expected a finite number > 0"),
+    ],
+)
+def test_load_checks_the_stored_metadata_as_the_constructor_does(
+    tmp_path, key, value, match
+):
+    path = make(n=10, dt=0.2).save(tmp_path / "t.npz")
+    with np.load(path, allow_pickle=False) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    np.savez(tmp_path / "changed.npz", **(arrays | {key: value}))
+    with pytest.raises(ValueError, match=match):
+        Transitions.load(tmp_path / "changed.npz")
     with pytest.raises(FileNotFoundError, match="nope.json: no such file"):
         Transitions.load(tmp_path / "nope.json")
