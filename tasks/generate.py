@@ -422,7 +422,8 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
     Raises:
         ValueError: if `config.out` holds a manifest of another run (listing the
             differences), or of this run unfinished without `config.resume`, or
-            shard files without a manifest. (This run finished: nothing to do.)
+            shard files or a progress log without a manifest. (This run
+            finished: nothing to do.)
     """
     check_folder_out(config.out, "--out")
     fresh = plan(config)
@@ -431,6 +432,12 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
         if any(config.out.glob("shard-*.npz")):
             raise ValueError(
                 f"{config.out} holds shard files but no manifest; choose another --out"
+            )
+        if (config.out / shards.PROGRESS).exists():  # a run writes its manifest first
+            raise ValueError(
+                f"{config.out} holds a {shards.PROGRESS} that no run of "
+                "tasks.generate left (it has no manifest), which a run would "
+                "replace; choose another --out"
             )
         return fresh, [e["index"] for e in fresh["shards"]]
     differences = shards.config_differences(old["config"], fresh["config"])

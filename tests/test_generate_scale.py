@@ -268,6 +268,20 @@ def test_shards_without_a_manifest_are_refused_untouched(reference, tmp_path, ca
     assert files(run) == before
 
 
+def test_a_progress_log_without_a_manifest_is_refused_untouched(tmp_path, capsys):
+    """A folder's own progress.jsonl (a training log, say) was deleted by a run
+    started there."""
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "progress.jsonl").write_text('{"epoch": 1}\n')
+    (run / "notes.txt").write_text("mine")
+    before = files(run)
+    with pytest.raises(SystemExit):
+        generate.main([*RUN, "--out", str(run)])
+    assert "holds a progress.jsonl that no run" in capsys.readouterr().err
+    assert files(run) == before
+
+
 @pytest.mark.parametrize(
     "extra, unfinished, message",
     [
