@@ -32,7 +32,6 @@ Splits (`split`):
 from __future__ import annotations
 
 import dataclasses
-import itertools
 from collections.abc import Mapping
 from typing import Any, NamedTuple
 
@@ -47,6 +46,8 @@ KINDS = ("grid", "uniform", "relative-normal")
 SPLITS = ("all", "train", "interpolation", "extrapolation")
 #: Rejection rounds for `extrapolation` before giving up (each draws ≥ 64 points).
 MAX_REJECTION_ROUNDS = 1000
+#: The most points a grid may have (`K^p`): refused before any is built.
+MAX_GRID_POINTS = 10_000_000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -99,8 +100,27 @@ class Distribution:
             raise ValueError(f"split must be one of {SPLITS}, got {self.split!r}")
         if (self.kind == "grid") != (self.grid is not None):
             raise ValueError("grid (points per parameter K) goes with kind 'grid' only")
-        if self.grid is not None and (isinstance(self.grid, bool) or self.grid < 1):
-            raise ValueError(f"grid must be a positive int, got {self.grid!r}")
+        if self.grid is not None:
+            if (
+                isinstance(self.grid, bool)
+                or not isinstance(self.grid, int | np.integer)
+                or self.grid < 1
+            ):
+                raise ValueError(f"grid must be a positive int, got {self.grid!r}")
+            object.__setattr__(self, "grid", int(self.grid))  # JSON-ready
+            size = self.grid ** len(vary)
+            if size > MAX_GRID_POINTS:
+                raise ValueError(
+                    f"grid: K^p = {self.grid}^{len(vary)} = {size:,} points, more "
+                    f"than {MAX_GRID_POINTS:,}; use a smaller --grid"
+                )
+        for name in ("sigma", "inner_fraction"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(
+                value, int | float | np.number
+            ):
+                raise ValueError(f"{name} must be a number, got {value!r}")
+            object.__setattr__(self, name, float(value))  # JSON-ready
         if not (np.isfinite(self.sigma) and self.sigma > 0):
             raise ValueError(f"sigma must be a positive number, got {self.sigma!r}")
         if not 0 < self.inner_fraction < 1:
@@ -242,9 +262,8 @@ def _grid(distribution: Distribution) -> Array:
         np.linspace(lo, hi, distribution.grid)
         for lo, hi in zip(distribution.lows, distribution.highs, strict=True)
     ]
-    indices = np.array(
-        list(itertools.product(range(distribution.grid), repeat=len(axes)))
-    ).reshape(-1, len(axes))
+    shape = (distribution.grid,) * len(axes)  # itertools.product's order: C order
+    indices = np.stack(np.unravel_index(np.arange(np.prod(shape)), shape), axis=1)
     points = np.stack([axis[indices[:, j]] for j, axis in enumerate(axes)], axis=1)
     if distribution.split == "all":
         return points

@@ -147,6 +147,11 @@ class Config:
                 raise ValueError(
                     f"{name}: expected True or False, got {getattr(self, name)!r}"
                 )
+        for name in ("instances", "episodes_per_instance", "seed", "max_steps",
+                     "shard_size", "workers"):  # fmt: skip
+            value = getattr(self, name)
+            if value is not None:  # a numpy integer as a Python one: JSON-ready
+                object.__setattr__(self, name, int(value))
         if self.book_inertia:
             _check_book_inertia(self.domain, self.distribution)
 

@@ -5,6 +5,7 @@ ranges stop with a message."""
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 import pytest
@@ -26,6 +27,8 @@ def test_grid_splits_partition_the_grid_like_a_checkerboard():
     full = draw(dist(kind="grid", grid=5), None, rng=np.random.default_rng(0)).varied
     assert full.shape == (25, 2)
     np.testing.assert_allclose(full[:5, 1], np.linspace(0.8, 1.2, 5))  # last fastest
+    axes = (np.linspace(0.6, 1.4, 5), np.linspace(0.8, 1.2, 5))
+    np.testing.assert_array_equal(full, list(itertools.product(*axes)))
     parts = {
         split: draw(dist(kind="grid", grid=5, split=split), None, rng=None).varied
         for split in ("train", "interpolation", "extrapolation")
@@ -155,6 +158,10 @@ def test_parameter_matrix_takes_one_type_and_any_field_count():
         ({"split": "test"}, "split must be one of"),
         ({"sigma": -1.0}, "sigma must be a positive"),
         ({"inner_fraction": 0.0}, "inner_fraction must be in (0, 1)"),
+        ({"sigma": "0.1"}, "sigma must be a number"),
+        ({"kind": "grid", "grid": 2.5}, "grid must be a positive int"),
+        # built as a list of 25 million tuples (2.7 GB) before failing
+        ({"kind": "grid", "grid": 5000}, "K^p = 5000^2 = 25,000,000 points"),
         (
             {"vary": {"link_mass_1": (1.0, 1.0)}, "split": "extrapolation"},
             "no point lies outside",

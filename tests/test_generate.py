@@ -304,6 +304,28 @@ def test_config_built_in_python_is_checked_when_built(tmp_path, field, value, ma
         dataclasses.replace(config, **{field: value})
 
 
+def test_numpy_numbers_in_a_config_built_in_python_plan_as_json(tmp_path):
+    """np.int64 counts and a np.float32 σ passed the checks, then the manifest
+    failed to serialise (a TypeError naming no field)."""
+    config = generate.parse_config(["--domain", "acrobot", "--out", str(tmp_path)])
+    distribution = dataclasses.replace(
+        config.distribution, kind="relative-normal", sigma=np.float32(0.25),
+        inner_fraction=np.float64(0.5),
+    )  # fmt: skip
+    numpy_config = dataclasses.replace(
+        config, instances=np.int64(5), seed=np.uint8(3), shard_size=np.int32(2),
+        episodes_per_instance=np.int64(1), max_steps=np.int16(4),
+        distribution=distribution,
+    )  # fmt: skip
+    python_config = dataclasses.replace(
+        config, instances=5, seed=3, shard_size=2, episodes_per_instance=1,
+        max_steps=4, distribution=dataclasses.replace(
+            distribution, sigma=float(np.float32(0.25)), inner_fraction=0.5),
+    )  # fmt: skip
+    manifest = generate.plan(numpy_config)
+    assert json.loads(json.dumps(manifest)) == generate.plan(python_config)
+
+
 def test_an_out_that_is_a_file_is_refused(tmp_path, capsys):
     out = tmp_path / "file"
     out.write_text("mine")
