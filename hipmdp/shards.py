@@ -279,6 +279,16 @@ class Dataset:
             parts.append(part)
         return Transitions.concatenate(parts)
 
+    def verify(self) -> None:
+        """Check every shard against its checksum, reading each once.
+
+        Raises:
+            ValueError: naming the first shard that is not finished or does not
+                match its checksum.
+        """
+        for entry in self.manifest["shards"]:
+            self._read(entry)
+
     def _read(self, entry: Mapping[str, Any]) -> bytes:
         path = self.directory / entry["file"]
         if entry.get("sha256") is None or not path.is_file():

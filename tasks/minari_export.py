@@ -22,8 +22,10 @@ failure); otherwise the episode was cut by the step limit (`truncations[-1]`).
 Needs `pyarrow` (installed with rerun-sdk, which the project already depends on);
 Minari itself is not needed, and is not installed in the project's environment, so
 the export is checked by reading it back the way Minari's `ArrowStorage` does
-(`tests/test_minari_export.py`), not with Minari itself. The export is built in a
-temporary folder and renamed into place; an existing dataset is never overwritten.
+(`tests/test_minari_export.py`), not with Minari itself. Every shard is checked
+against its checksum before anything is written; the export is built in a temporary
+folder and renamed into place (an error removes it, the next export clears one a
+kill left); an existing dataset is never overwritten.
 """
 
 from __future__ import annotations
@@ -31,14 +33,13 @@ from __future__ import annotations
 import argparse
 import json
 import re
-import shutil
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from hipmdp import shards
-from hipmdp.data import ParameterTable, Transitions
+from hipmdp.data import ParameterTable, Transitions, atomic_folder
 from tasks import agents
 from tasks.collect import get_domain
 from tasks.experiment import check_folder_out, path_argument
@@ -66,8 +67,6 @@ def export(run: str | Path, out: str | Path, *, dataset_id: str | None = None) -
             folder, the run is not complete or a shard fails its checksum, or if
             `out/<dataset_id>` exists already (nothing is written then).
     """
-    import pyarrow as pa
-
     if dataset_id is not None:
         check_dataset_id(dataset_id)
     check_folder_out(Path(out), "--out")
@@ -85,11 +84,18 @@ def export(run: str | Path, out: str | Path, *, dataset_id: str | None = None) -
     spec = get_domain(domain)
     max_steps = config["max_steps"] or agents.DOMAINS[domain].max_steps
     table = dataset.parameters
-    building = target.parent / f".{target.name}.tmp"
-    if building.exists():
-        shutil.rmtree(building)  # a previous export killed mid-way
-    data = building / "data"
-    data.mkdir(parents=True)
+    dataset.verify()  # every shard, before anything is written
+    with atomic_folder(target) as building:
+        _export(dataset, building / "data", dataset_id, spec, max_steps, table)
+    return target / "data"
+
+
+def _export(dataset, data: Path, dataset_id: str, spec, max_steps: int, table):
+    """Write the Minari folder `data` (see `export`)."""
+    import pyarrow as pa
+
+    domain = dataset.manifest["config"]["domain"]
+    data.mkdir()
     episode, steps = 0, 0
     for entry in dataset.manifest["shards"]:
         transitions = dataset.load(instances=entry["instances"])
@@ -137,8 +143,6 @@ def export(run: str | Path, out: str | Path, *, dataset_id: str | None = None) -
             "hipmdp_manifest": dataset.manifest["config"],
         },
     )
-    building.rename(target)
-    return target / "data"
 
 
 #: Minari's dataset id (``minari.dataset.minari_dataset.DATASET_ID_RE``, Minari

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -94,6 +95,35 @@ def test_an_existing_export_is_not_overwritten(run, tmp_path):
         minari_export.export(run, tmp_path, dataset_id="cartpole-mine-v1")
     after = (tmp_path / "cartpole-mine-v1" / "data" / "metadata.json").read_bytes()
     assert after == before
+
+
+def test_a_damaged_last_shard_is_found_before_anything_is_written(run, tmp_path):
+    """It was found after the shards before it were exported, and the partial
+    folder stayed."""
+    damaged = tmp_path / "run"
+    shutil.copytree(run, damaged)
+    last = sorted(damaged.glob("shard-*.npz"))[-1]
+    last.write_bytes(last.read_bytes()[:-10])
+    out = tmp_path / "out"
+    with pytest.raises(ValueError, match=f"shard {last.name} does not match"):
+        minari_export.export(damaged, out)
+    assert not out.exists() or list(out.iterdir()) == []
+
+
+def test_an_error_mid_export_leaves_nothing(run, tmp_path, monkeypatch):
+    calls = []
+
+    def fail_on_the_third(*args):
+        calls.append(1)
+        if len(calls) == 3:
+            raise RuntimeError("boom")
+        return columns(*args)
+
+    columns = minari_export._episode_columns
+    monkeypatch.setattr(minari_export, "_episode_columns", fail_on_the_third)
+    with pytest.raises(RuntimeError, match="boom"):
+        minari_export.export(run, tmp_path)
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_a_missing_run_is_a_usage_error(tmp_path, capsys):
