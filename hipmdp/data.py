@@ -230,6 +230,14 @@ def check_queries(
     return states, actions
 
 
+def read_only(value: Any, dtype) -> Array:
+    """A read-only copy of ``value`` as ``dtype``, for the arrays of a frozen
+    object (a model's coefficients are computed from them once)."""
+    out = np.array(value, dtype=dtype)
+    out.setflags(write=False)
+    return out
+
+
 def check_integer(name: str, value: Any, minimum: int) -> None:
     """Raise ``ValueError`` naming ``name`` unless ``value`` is an integer (a
     Python or numpy integer, not a bool, a float or a string) >= ``minimum``."""

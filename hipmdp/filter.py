@@ -25,6 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import linalg
 
+from hipmdp.data import read_only
+
 Array = np.ndarray
 
 
@@ -57,8 +59,8 @@ class Belief:
                 raise ValueError(
                     "Belief: expected a positive-definite precision P"
                 ) from None
-        object.__setattr__(self, "h", h)
-        object.__setattr__(self, "P", P)
+        object.__setattr__(self, "h", read_only(h, float))
+        object.__setattr__(self, "P", read_only(P, float))
 
     @property
     def dim(self) -> int:

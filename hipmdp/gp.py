@@ -20,6 +20,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy import linalg, optimize
 
+from hipmdp.data import read_only
 from hipmdp.kernels import check_periodic, se_kernel, se_kernel_grad
 
 Array = np.ndarray
@@ -90,7 +91,7 @@ class HyperSet:
                 )
             if not np.all(np.isfinite(value) & (value > 0)):
                 raise ValueError(f"HyperSet.{name}: expected finite values > 0")
-            object.__setattr__(self, name, value)
+            object.__setattr__(self, name, read_only(value, float))
         dim = ell.shape[-1]
         object.__setattr__(self, "periodic", check_periodic(self.periodic, dim))
 

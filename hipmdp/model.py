@@ -80,6 +80,7 @@ from hipmdp.data import (
     gaussian_loglik,
     load_npz,
     npz_bytes,
+    read_only,
 )
 from hipmdp.filter import Belief, predictive, prior_belief, update_belief
 from hipmdp.gp import HyperSet
@@ -160,9 +161,33 @@ class HipMDP:
     filter_weights: str = "prior_mean"
 
     def __post_init__(self) -> None:
+        for name in ("support", "f", "weights", "mu_w"):
+            value = np.asarray(getattr(self, name))
+            if not (np.issubdtype(value.dtype, np.number) and value.dtype != bool):
+                raise ValueError(f"{name}: expected numbers, got dtype {value.dtype}")
+            object.__setattr__(self, name, read_only(value, float))
         if np.ndim(self.f) != 4:
             raise ValueError(f"f: expected shape (K, A, D, m), got {np.shape(self.f)}")
         K, A, D, m = self.f.shape
+        z = np.asarray(self.z)
+        if z.dtype != bool:  # 0/1 integers or floats are taken; 0.5 is not a flag
+            if not np.issubdtype(z.dtype, np.number) or not np.isin(z, (0, 1)).all():
+                raise ValueError(
+                    f"z: expected booleans (or 0/1), got dtype {z.dtype} with values "
+                    f"{np.unique(z).tolist()[:5]}"
+                )
+        object.__setattr__(self, "z", read_only(z, bool))
+        ids = np.asarray(self.instance_ids)
+        if ids.ndim != 1 or not np.issubdtype(ids.dtype, np.integer):
+            raise ValueError(
+                f"instance_ids: expected integers (B,), got dtype {ids.dtype} and "
+                f"shape {ids.shape}"
+            )
+        if len(np.unique(ids)) != len(ids):
+            raise ValueError("instance_ids: expected distinct ids (one per column)")
+        object.__setattr__(self, "instance_ids", read_only(ids, np.int64))
+        if not np.all(np.isfinite(self.support)):
+            raise ValueError("support: expected finite values")
         if self.hyper.signal_var.shape != (A, D):
             raise ValueError(
                 f"hyper: expected (A, D) = ({A}, {D}) GPs as f has, got "
@@ -187,7 +212,7 @@ class HipMDP:
                     raise ValueError(
                         f"{name}: expected finite values >= 0 of shape ({A}, {D})"
                     )
-                object.__setattr__(self, name, r)
+                object.__setattr__(self, name, read_only(r, float))
         if self.filter_weights not in FILTER_WEIGHTS:
             raise ValueError(
                 f"filter_weights: expected one of {FILTER_WEIGHTS}, got "

@@ -240,6 +240,57 @@ def test_save_bytes_depend_only_on_the_model(fitted, tmp_path):
         fitted.save(tmp_path / "model.bin")
 
 
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [  # each was accepted; a 0.5 flag predicted otherwise once saved and loaded
+        (lambda m: {"z": np.where(m.z, 1.0, 0.5)}, r"z: expected booleans \(or 0/1\)"),
+        (lambda m: {"support": _last_nan(m.support)}, "support: expected finite"),
+        (lambda m: {"support": m.support.astype(str)}, "support: expected numbers"),
+        (
+            lambda m: {"instance_ids": np.r_[m.instance_ids[:1], m.instance_ids[:-1]]},
+            "instance_ids: expected distinct ids",
+        ),
+        (
+            lambda m: {"instance_ids": m.instance_ids.astype(float)},
+            "instance_ids: expected integers",
+        ),
+    ],
+)
+def test_a_model_built_in_python_names_the_field_of_bad_arrays(fitted, change, match):
+    with pytest.raises(ValueError, match=match):
+        dataclasses.replace(fitted, **change(fitted))
+
+
+def test_a_model_takes_lists_and_0_1_flags(fitted, tmp_path):
+    """Lists (an AttributeError on .shape) and a 0/1 z are taken as the arrays
+    they stand for, and predict what the model does."""
+    rebuilt = dataclasses.replace(
+        fitted, support=fitted.support.tolist(), z=fitted.z.astype(np.int8),
+        mu_w=fitted.mu_w.tolist(),
+    )  # fmt: skip
+    assert rebuilt.z.dtype == bool
+    states, actions = fitted.support[:5], np.zeros(5, dtype=int)
+    belief = fitted.prior()
+    np.testing.assert_array_equal(
+        rebuilt.predict_mean(states, actions, belief),
+        fitted.predict_mean(states, actions, belief),
+    )
+
+
+def test_a_models_arrays_are_read_only(fitted):
+    """Its interpolation coefficients are computed once: an array changed in
+    place afterwards predicted with the old coefficients until saved and
+    loaded."""
+    for name in ("support", "z", "f", "weights", "mu_w", "instance_ids"):
+        with pytest.raises(ValueError, match="read-only"):
+            getattr(fitted, name)[...] = 0
+    with pytest.raises(ValueError, match="read-only"):
+        fitted.hyper.noise_var[...] = 1.0
+    belief = fitted.prior()
+    with pytest.raises(ValueError, match="read-only"):
+        belief.P[...] = 0.0
+
+
 def _last_nan(x):
     x = np.array(x, dtype=float)
     x.flat[-1] = np.nan
