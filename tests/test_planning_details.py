@@ -1,0 +1,136 @@
+"""Sarsa and planning details the tabular and corridor tests cannot see (found by
+a mutation review): per-feature step sizes, replacing traces with negative
+features in both update paths, the episode count and start rows of `plan`,
+the reward's argument order, terminal against truncated at the step limit,
+exploration in planning, and wrapped open-loop errors."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from hipmdp.data import Transitions, wrap_angle
+from hipmdp.fourier import FourierBasis
+from hipmdp.planning import (
+    PlanningTask,
+    SimulatedEpisodes,
+    StepwiseModel,
+    open_loop_errors,
+    plan,
+)
+from hipmdp.sarsa import (
+    SarsaConfig,
+    SarsaState,
+    init_state,
+    sarsa_update,
+    sarsa_update_batch,
+)
+
+
+class Corridor:
+    def __init__(self):
+        self.seen = []
+
+    def predict(self, states, actions):
+        self.seen.append((states.copy(), actions.copy()))
+        return np.maximum(states + np.where(actions == 1, 0.1, -0.1)[:, None], 0.0)
+
+
+TASK = PlanningTask(
+    lambda s, a, s2: np.full(s.shape[0], -1.0), lambda s2: s2[:, 0] >= 1 - 1e-9, 60
+)
+
+
+def test_step_sizes_are_per_feature():  # S04
+    cfg = SarsaConfig(alpha=0.5, lam=0.5, gamma=0.9)
+    st = SarsaState(np.zeros((2, 3)), np.zeros((2, 3)))
+    alphas = np.array([0.5, 0.1, 0.02])
+    phi = np.array([1.0, -0.5, 0.25])
+    out = sarsa_update(st, phi, 1, 2.0, None, None, alphas, cfg)
+    np.testing.assert_allclose(out.state.weights[1], 2.0 * alphas * phi)
+
+
+@pytest.mark.parametrize("n", [1, 2])
+def test_replacing_trace_keeps_the_larger_magnitude_with_its_sign(n):  # S02 S05 S06
+    cfg = SarsaConfig(alpha=0.1, lam=1.0, gamma=1.0, traces="replacing")
+    e = np.array([[0.5, -0.1, 0.2], [0.0, 0.0, 0.0]])
+    phi = np.array([-0.8, 0.3, -0.1])
+    st = SarsaState(np.zeros((2, 3)), np.tile(e, (n, 1, 1)))
+    out = sarsa_update_batch(
+        st,
+        np.tile(phi, (n, 1)),
+        np.zeros(n, int),
+        np.zeros(n),
+        np.tile(phi, (n, 1)),
+        np.zeros(n, int),
+        np.ones(n, bool),
+        np.ones(n, bool),
+        np.full(3, 0.1),
+        cfg,
+    )
+    for j in range(n):
+        np.testing.assert_allclose(out.state.traces[j, 0], [-0.8, 0.3, 0.2])
+
+
+def test_plan_runs_exactly_n_episodes_from_every_start_row():  # P05 P04
+    basis = FourierBasis(2, np.array([0.0]), np.array([1.0]))
+    model = Corridor()
+    starts = np.array([[0.0], [0.5], [0.9]])
+    out = plan(
+        init_state(2, basis.n_features),
+        basis,
+        SarsaConfig(alpha=0.1),
+        model,
+        dataclasses.replace(TASK, max_steps=1),
+        starts,
+        30,
+        rng=np.random.default_rng(0),
+        n_parallel=4,
+    )
+    assert out.steps.shape == (30,)  # 30 is not a multiple of 4
+    seen = np.concatenate([s[:, 0] for s, _ in model.seen])
+    assert set(seen.tolist()) == {0.0, 0.5, 0.9}
+
+
+def test_reward_gets_state_action_next_state_in_order():  # P03
+    task = PlanningTask(lambda s, a, s2: s2[:, 0] - s[:, 0], TASK.terminal, 3)
+    ep = SimulatedEpisodes(Corridor(), task, np.array([[0.2]]))
+    r = ep.step(np.array([1]))
+    assert r.rewards[0] == pytest.approx(0.1)
+
+
+def test_terminal_on_the_last_allowed_step_is_not_truncated():  # P01
+    task = dataclasses.replace(TASK, max_steps=3)
+    ep = SimulatedEpisodes(Corridor(), task, np.array([[0.75]]))
+    for _ in range(3):
+        r = ep.step(np.array([1]))
+    assert r.terminal[0] and not r.truncated[0]
+
+
+@pytest.mark.parametrize("max_steps", [1, 200])
+def test_planning_explores_at_rate_epsilon(max_steps):  # P12 (first a), P06 (a')
+    basis = FourierBasis(1, np.array([0.0]), np.array([1.0]))
+    st = SarsaState(np.array([[1.0, 0.0], [0.0, 0.0]]), np.zeros((2, 2)))  # greedy: 0
+    model = Corridor()
+    plan(
+        st,
+        basis,
+        SarsaConfig(alpha=1e-9, epsilon=1.0),
+        model,
+        dataclasses.replace(TASK, max_steps=max_steps),
+        np.zeros((1, 1)),
+        200 if max_steps == 1 else 10,
+        rng=np.random.default_rng(0),
+    )
+    acts = np.concatenate([a for _, a in model.seen])
+    assert len(acts) >= 150 and 0.35 < acts.mean() < 0.65
+
+
+def test_open_loop_errors_wrap_across_pi():  # P11
+    s = np.array([[3.1], [3.12]])  # recorded: stays below pi
+    data = Transitions(s[:1], np.array([0]), s[1:], np.array([0]), angle_dims=(0,))
+    model = StepwiseModel(lambda x, a: wrap_angle(x + 0.25))
+    err = open_loop_errors(model, data, [1])[1]
+    np.testing.assert_allclose(err, [[0.23]], atol=1e-12)  # model crosses pi
