@@ -138,6 +138,10 @@ def fit_gp_baseline(
         raise ValueError(
             f"data: expected hipmdp.Transitions, got {type(data).__name__}"
         )
+    if not isinstance(rng, np.random.Generator):
+        raise ValueError(
+            f"rng: expected numpy.random.Generator, got {type(rng).__name__}"
+        )
     check_integer("n_max", n_max, 1)
     check_integer("n_hyper", n_hyper, 2)
     if n_actions is not None:

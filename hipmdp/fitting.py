@@ -38,26 +38,34 @@ from hipmdp.support import select_support
 Array = np.ndarray
 
 
+#: The priors' documented ranges (FitConfig): α's lower end is any value > 0.
+PRIOR_RANGES = {
+    "alpha": (1e-300, 100.0),
+    "sigma_w": (1e-3, 1e4),
+    "sigma_w0": (1e-3, 1e4),
+}
+
+
 @dataclass(frozen=True)
 class FitConfig:
     """Settings of `fit`.
 
-    | name           | meaning                                    | default    | range |
-    |----------------|--------------------------------------------|------------|-------|
-    | n_support      | m, number of support points S*             | 750        | >= 1  |
-    | n_sweeps       | Gibbs sweeps per chain                     | 250        | >= 1  |
-    | n_chains       | chains; the best sample of all is kept     | 2          | >= 1  |
-    | alpha          | IBP concentration α                        | 2.0        | > 0   |
-    | sigma_w        | σ_w, w[k,b] ~ N(μ_w[k], σ_w²)              | 4.0        | > 0   |
-    | sigma_w0       | σ_w0, μ_w[k] ~ N(0, σ_w0²)                 | 4.0        | > 0   |
-    | n_w            | N_w importance draws of a new feature's w  | 1000       | >= 1  |
-    | n_hyper        | transitions per action, hyperparameter fit | 1000       | >= 2  |
-    | n_candidates   | candidate states for the support selection | 3000       | >= m  |
-    | n_smooth       | transitions per (instance, action), smooth | 1000       | >= 1  |
-    | n_residual     | transitions per action, model-error fit    | 2000       | >= 1  |
-    | periodic       | kernels periodic in data.angle_dims        | False      |       |
-    | filter_weights | the filter's model-error weights (below)   | prior_mean | below |
-    | progress       | show progress bars                         | True       |       |
+    | name           | meaning                             | default    | range       |
+    |----------------|-------------------------------------|------------|-------------|
+    | n_support      | m, number of support points S*      | 750        | >= 1        |
+    | n_sweeps       | Gibbs sweeps per chain              | 250        | >= 1        |
+    | n_chains       | chains; the best sample is kept     | 2          | >= 1        |
+    | alpha          | IBP concentration α                 | 2.0        | (0, 100]    |
+    | sigma_w        | σ_w, w[k,b] ~ N(μ_w[k], σ_w²)       | 4.0        | [1e-3, 1e4] |
+    | sigma_w0       | σ_w0, μ_w[k] ~ N(0, σ_w0²)          | 4.0        | [1e-3, 1e4] |
+    | n_w            | N_w draws of a new feature's w      | 1000       | >= 1        |
+    | n_hyper        | transitions/action, hyperparameters | 1000       | >= 2        |
+    | n_candidates   | candidates for the support points   | 3000       | >= m        |
+    | n_smooth       | transitions/(instance, action)      | 1000       | >= 1        |
+    | n_residual     | transitions/action, model error     | 2000       | >= 1        |
+    | periodic       | kernels periodic in angle_dims      | False      |             |
+    | filter_weights | the filter's model-error weights    | prior_mean | below       |
+    | progress       | show progress bars                  | True       |             |
 
     `periodic`: every kernel measures an angle difference by its chord
     `2 sin(Δθ / 2)` (`hipmdp.kernels`), so states either side of `θ = ±π` are
@@ -108,7 +116,9 @@ class FitConfig:
                     f"FitConfig.{name}: expected an integer >= {low}, got {v!r}"
                 )
             object.__setattr__(self, name, int(v))  # e.g. np.int64: JSON needs int
-        for name in ("alpha", "sigma_w", "sigma_w0"):
+        # beyond these the sampler fails deep inside (σ_w0 = 1e10: an indefinite
+        # matrix; α = 1e300, σ_w = 1e160: overflow) after the costly stages
+        for name, (low, high) in PRIOR_RANGES.items():
             v = getattr(self, name)
             if (
                 isinstance(v, bool)
@@ -117,6 +127,11 @@ class FitConfig:
             ):
                 raise ValueError(
                     f"FitConfig.{name}: expected a finite number > 0, got {v!r}"
+                )
+            if not low <= v <= high:
+                raise ValueError(
+                    f"FitConfig.{name}: expected a value in [{low:g}, {high:g}], "
+                    f"got {v!r}"
                 )
             object.__setattr__(self, name, float(v))
         if self.n_candidates < self.n_support:
@@ -253,7 +268,10 @@ def fit(data: Transitions, config: FitConfig, *, rng: np.random.Generator) -> Hi
     """Fit a HiP-MDP to batch transitions from several instances (pipeline above).
 
     data: transitions of B >= 2 training instances, every action seen in each.
-    Same data, config and generator state → identical model.
+    Same data, config and a generator from the same seed → identical model. The
+    fit's streams are spawned from ``rng``'s seed sequence (``rng.spawn``), not
+    drawn from its state: earlier draws from ``rng`` do not change the fit, and a
+    restored ``bit_generator.state`` does not reproduce one.
     """
     if not isinstance(config, FitConfig):
         raise ValueError(f"config: expected FitConfig, got {type(config).__name__}")

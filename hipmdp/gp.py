@@ -225,6 +225,8 @@ def condition(X: Array, y: Array, hyper: GPHyper) -> GPPosterior:
     """Condition the zero-mean GP on (X (n, D), y (n,))."""
     X = np.atleast_2d(np.asarray(X, dtype=float))
     y = np.asarray(y, dtype=float)
+    if y.ndim != 1:  # (n, 1) gave (n_s, 1) means, broadcast silently downstream
+        raise ValueError(f"y: expected shape (n,), got {y.shape}")
     if X.shape[0] != y.shape[0]:
         raise ValueError(
             f"X and y: expected the same length, got {len(X)} and {len(y)}"
@@ -256,7 +258,8 @@ def fit_hyper_set(
     """Fit the hyperparameters of every `(a, d)` GP on a reproducible subsample.
 
     states: (N, D); actions: (N,); deltas: Δs, (N, D); instances: (N,).
-    For each action a, at most `n_subsample // B` transitions per instance are drawn
+    For each action a, at most `max(2, n_subsample // B)` transitions per instance
+    are drawn
     (without replacement, from `rng`), and for each d the summed per-instance marginal
     likelihood is maximised (`fit_hyperparameters`); periodic: the angle dimensions
     of the states (`hipmdp.kernels`). Returns a HyperSet.

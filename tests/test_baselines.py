@@ -152,6 +152,15 @@ def test_fit_gp_baseline_checks_its_options(kwargs, match):
         fit_gp_baseline(data, rng=np.random.default_rng(0), **kwargs)
 
 
+def test_fit_gp_baseline_checks_its_generator_first():
+    """None (or a seed) worked on small data and failed on large data inside the
+    subsampling, naming no argument."""
+    data = _instance(0, 0.0, 40, np.random.default_rng(6))
+    for rng in (None, 0):
+        with pytest.raises(ValueError, match="rng: expected numpy.random.Generator"):
+            fit_gp_baseline(data, rng=rng)
+
+
 def test_missing_action_needs_hyperparameters():
     rng = np.random.default_rng(6)
     train = _instance(0, 0.0, 20, rng).select(actions=[0])

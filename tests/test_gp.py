@@ -97,6 +97,9 @@ def test_prediction_matches_dense_formula():
     mean_f, var_f = condition(X, y, h).predict(Xs)
     np.testing.assert_array_equal(mean_f, mean)
     np.testing.assert_allclose(var_f, dense_var - h.noise_var, atol=1e-10)
+    # y as a column gave (4, 1) means, which broadcast silently against (4,)
+    with pytest.raises(ValueError, match=r"y: expected shape \(n,\), got \(10, 1\)"):
+        condition(X, y[:, None], h)
 
 
 def test_periodic_nlml_gradient_matches_finite_differences():

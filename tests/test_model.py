@@ -368,6 +368,11 @@ def test_a_belief_is_filtered_on_one_instance(fitted):
         ("alpha", float("nan")),
         ("sigma_w", -1.0),
         ("sigma_w0", 0.0),
+        # each failed deep inside the sampler, after the costly stages
+        ("sigma_w0", 1e10),
+        ("sigma_w", 1e160),
+        ("alpha", 1e300),
+        ("sigma_w0", 1e-200),
         ("n_w", 0),
         ("n_hyper", 1),
         ("n_candidates", 10),
@@ -380,6 +385,16 @@ def test_a_belief_is_filtered_on_one_instance(fitted):
 def test_config_out_of_range(field, value):
     with pytest.raises(ValueError, match=f"FitConfig.{field}"):
         FitConfig(**{field: value})
+
+
+@pytest.mark.parametrize(
+    "prior",
+    [{"sigma_w0": 1e4}, {"sigma_w0": 1e-3}, {"sigma_w": 1e-3}, {"sigma_w": 1e4}],
+)
+def test_a_fit_runs_at_the_ends_of_the_prior_ranges(prior):
+    config = dataclasses.replace(CONFIG, n_sweeps=5, n_chains=1, **prior)
+    model = fit(_batch(), config, rng=np.random.default_rng(1))
+    assert np.all(np.isfinite(model.weights)) and np.all(np.isfinite(model.f))
 
 
 def test_config_takes_numpy_numbers_as_python_ones():
