@@ -14,6 +14,7 @@ meant to explain.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -177,15 +178,27 @@ def fit_hyperparameters(
     if not groups or sum(len(g[1]) for g in groups) < 2:
         raise ValueError("groups: expected at least 2 data points in total")
     theta0, bounds = _bounds(groups)
+    failed = []  # the θ at which the kernel matrix was not positive definite
 
     def fun(theta: Array) -> tuple[float, Array]:
         try:
             res = neg_log_marginal_likelihood(theta, groups, periodic)
         except linalg.LinAlgError:
+            failed.append(theta)
             return 1e300, np.zeros_like(theta)
         return res.value, res.grad
 
     result = optimize.minimize(fun, theta0, jac=True, method="L-BFGS-B", bounds=bounds)
+    if failed and np.array_equal(result.x, theta0):
+        warnings.warn(
+            "fit_hyperparameters: the search stopped at its starting point, where "
+            "its first steps met kernel matrices that were not positive definite "
+            f"({len(failed)} of its evaluations). Inputs far from 0 on the scale "
+            "of their spread lose precision in the kernel's distances: centre the "
+            "states (subtract their mean) before fitting.",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     return GPHyper.from_theta(result.x, periodic)
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -171,3 +173,20 @@ def test_hyper_set_fits_each_action_on_at_most_n_subsample_transitions(monkeypat
             rows = np.flatnonzero((actions == a) & (instances == b))
             i = [int(np.flatnonzero((states[rows] == s).all(axis=1))[0]) for s in x]
             np.testing.assert_array_equal(y, deltas[rows[i], d])
+
+
+def test_a_search_stuck_at_its_start_by_lost_precision_warns():
+    """Inputs 100 spreads from 0 lose the kernel distances' precision at the
+    search's short length scales; it stopped at its starting point silently.
+    The same data centred fit without a warning."""
+    rng = np.random.default_rng(0)
+    X = rng.uniform(0, 1, size=(200, 1))
+    y = np.sin(6 * X[:, 0]) + 1e-3 * rng.normal(size=200)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        centred = fit_hyperparameters([(X - 0.5, y)])
+    with pytest.warns(RuntimeWarning, match="centre the states"):
+        shifted = fit_hyperparameters([(X + 100.0, y)])
+    start = gp._bounds([(X + 100.0, y)])[0]
+    np.testing.assert_array_equal(shifted.to_theta(), start)
+    assert np.abs(centred.to_theta() - start).max() > 0.1  # it moved
