@@ -29,8 +29,10 @@ run starts and when it completes; in between, each finished shard is one line of
 `SeedSequence(seed, spawn_key=(1, split, k))`, so the files are the same whatever
 `--workers` or `--scheduler`. `--resume` keeps the shards whose file matches its
 checksum and redoes the others (an unfinished run in `OUT` needs it; a finished one
-is left as it is); an `OUT` holding another run's manifest, or shards without a
-manifest, is an error and nothing is overwritten.
+is left as it is), unless the run was started by other software (the manifest's
+`software`: package versions and a digest of the source); an `OUT` holding another
+run's manifest, or shards or a progress log without a manifest, is an error and
+nothing is overwritten.
 
 Execution (`concurrent.futures`): in-process (`--workers 1`), a local process pool
 (`--workers N`), or a Dask cluster (`--scheduler ADDRESS`, needs
@@ -44,6 +46,8 @@ import argparse
 import concurrent.futures as cf
 import contextlib
 import dataclasses
+import hashlib
+import importlib.resources
 import importlib.util
 import json
 import math
@@ -417,8 +421,44 @@ def plan(config: Config) -> dict[str, Any]:
         "angle_dims": list(spec.angle_dims),
         "shards": entries,
         "complete": False,
+        "software": software(),
     }
     return manifest
+
+
+#: The packages whose versions a run's data depend on (recorded in the manifest).
+DATA_PACKAGES = ("hipmdp", "numpy", "scipy", "mujoco", "dm-control")
+
+
+def software() -> dict[str, Any]:
+    """What the data depend on besides the config: the packages' versions and a
+    SHA-256 over the source of `hipmdp`, `tasks` and the MJCF models (any edit
+    changes it; a resumed run must not mix shards made by other code)."""
+    from importlib import metadata
+
+    import hipmdp
+    import tasks
+
+    packages = {}
+    for name in DATA_PACKAGES:
+        try:
+            packages[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            packages[name] = None
+    digest = hashlib.sha256()
+    sources = [
+        (name, sorted(Path(package.__file__).parent.glob("*.py")))
+        for name, package in (("hipmdp", hipmdp), ("tasks", tasks))
+    ]
+    models = importlib.resources.files("tasks.mjcf")  # as the models are read
+    sources.append(
+        ("mjcf", sorted(f for f in models.iterdir() if f.name.endswith(".xml")))
+    )
+    for name, files in sources:
+        for file in sorted(files, key=lambda f: f.name):
+            digest.update(f"{name}/{file.name}".encode() + b"\0")
+            digest.update(file.read_bytes() + b"\0")
+    return {"packages": packages, "source_sha256": digest.hexdigest()}
 
 
 def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
@@ -457,6 +497,21 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
             f"{config.out} holds this configuration but other instances (made by "
             "another version of the code?); choose another --out"
         )
+    recorded = old.get("software")  # None: a run from before 2026-12-04
+    if recorded is not None and recorded != fresh["software"]:
+        changed = [
+            name
+            for name in DATA_PACKAGES
+            if recorded["packages"].get(name) != fresh["software"]["packages"][name]
+        ]
+        if recorded.get("source_sha256") != fresh["software"]["source_sha256"]:
+            changed.append("the source of hipmdp, tasks or the MJCF models")
+        raise ValueError(
+            f"{config.out} holds this run, made by other software ("
+            f"{', '.join(changed)} changed since it started): its shards would "
+            "mix with data this version makes; choose another --out"
+        )
+    old["software"] = fresh["software"]
     nominal = MODULES[config.domain].N_SUB_STEPS
     for entry, new in zip(old["shards"], fresh["shards"], strict=True):
         # a run from before 2026-12-04 names none: every instance took nominal steps

@@ -397,3 +397,40 @@ def test_a_run_from_before_the_finer_steps_resumes_only_if_they_do_not_apply(
         assert (tmp_path / "shard-00001.npz").read_bytes() == b"damaged"
     else:
         assert generate.main([*args, "--resume"]).redone == (1,)
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"source_sha256": "0" * 64}, "(the source of hipmdp, tasks or the MJCF"),
+        ({"packages": {"mujoco": "3.16.0"}}, "(numpy, mujoco changed since"),
+        (None, None),  # a run from before the record: resumed as before
+    ],
+)
+def test_resume_refuses_a_run_made_by_other_software(
+    reference, tmp_path, capsys, change, message
+):
+    """--resume compared only the config and the instances: shards made before
+    a code edit or a package upgrade mixed with shards made after it."""
+    run = tmp_path / "run"
+    shutil.copytree(reference, run)
+    manifest = json.loads((run / "manifest.json").read_text())
+    if change is None:
+        del manifest["software"]
+    else:
+        packages = manifest["software"]["packages"]
+        if "packages" in change:
+            packages = packages | change["packages"] | {"numpy": "1.0"}
+        manifest["software"] |= change | {"packages": packages}
+    manifest["complete"] = False
+    (run / "manifest.json").write_text(json.dumps(manifest))
+    (run / "shard-00001.npz").unlink()
+    before = files(run)
+    if change is None:
+        assert generate.main([*RUN, "--out", str(run), "--resume"]).redone == (1,)
+        assert files(run) == files(reference)
+        return
+    with pytest.raises(SystemExit):
+        generate.main([*RUN, "--out", str(run), "--resume"])
+    assert message in capsys.readouterr().err
+    assert files(run) == before
