@@ -497,21 +497,6 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
             f"{config.out} holds this configuration but other instances (made by "
             "another version of the code?); choose another --out"
         )
-    recorded = old.get("software")  # None: a run from before 2026-12-04
-    if recorded is not None and recorded != fresh["software"]:
-        changed = [
-            name
-            for name in DATA_PACKAGES
-            if recorded["packages"].get(name) != fresh["software"]["packages"][name]
-        ]
-        if recorded.get("source_sha256") != fresh["software"]["source_sha256"]:
-            changed.append("the source of hipmdp, tasks or the MJCF models")
-        raise ValueError(
-            f"{config.out} holds this run, made by other software ("
-            f"{', '.join(changed)} changed since it started): its shards would "
-            "mix with data this version makes; choose another --out"
-        )
-    old["software"] = fresh["software"]
     nominal = MODULES[config.domain].N_SUB_STEPS
     for entry, new in zip(old["shards"], fresh["shards"], strict=True):
         # a run from before 2026-12-04 names none: every instance took nominal steps
@@ -530,6 +515,23 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
         if not shards.shard_is_valid(config.out, entry):
             entry.update(sha256=None, counts=None, diverged=[])
             todo.append(entry["index"])
+    recorded = old.get("software")  # None: a run from before 2026-12-04; a
+    # finished run (nothing to do) is left as it is, whatever made it
+    if todo and recorded is not None and recorded != fresh["software"]:
+        changed = [
+            name
+            for name in DATA_PACKAGES
+            if recorded["packages"].get(name) != fresh["software"]["packages"][name]
+        ]
+        if recorded.get("source_sha256") != fresh["software"]["source_sha256"]:
+            changed.append("the source of hipmdp, tasks or the MJCF models")
+        raise ValueError(
+            f"{config.out} holds this run, made by other software ("
+            f"{', '.join(changed)} changed since it started): its shards would "
+            "mix with data this version makes; choose another --out"
+        )
+    if todo:  # what the shards still to do are made by
+        old["software"] = fresh["software"]
     if todo and not config.resume:
         raise ValueError(
             f"{config.out} holds this run, unfinished; pass --resume to continue it"

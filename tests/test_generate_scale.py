@@ -434,3 +434,16 @@ def test_resume_refuses_a_run_made_by_other_software(
         generate.main([*RUN, "--out", str(run), "--resume"])
     assert message in capsys.readouterr().err
     assert files(run) == before
+
+
+def test_a_finished_run_made_by_other_software_is_left_as_it_is(reference, tmp_path):
+    """Nothing to do, so nothing mixes: the same command after an upgrade still
+    finds the run finished."""
+    run = tmp_path / "run"
+    shutil.copytree(reference, run)
+    manifest = json.loads((run / "manifest.json").read_text())
+    manifest["software"]["source_sha256"] = "0" * 64
+    (run / "manifest.json").write_text(json.dumps(manifest))
+    before = files(run)
+    assert generate.main([*RUN, "--out", str(run)]).redone == ()
+    assert files(run) == before
