@@ -65,6 +65,17 @@ def one_blas_thread(fn: Callable) -> Callable:
 BLAS_FIELDS = ("internal_api", "version", "architecture", "num_threads")
 
 
+def package_versions(names: Sequence[str]) -> dict[str, str | None]:
+    """The installed version of each package (None if it is not installed)."""
+    versions = {}
+    for name in names:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    return versions
+
+
 def environment() -> dict[str, Any]:
     """What a run's floating-point results depend on besides its seed and config.
 
@@ -76,12 +87,9 @@ def environment() -> dict[str, Any]:
     uncommitted changes), the CPU, numpy's SIMD extensions and, per loaded BLAS,
     its version, kernel architecture and thread count.
     """
-    packages = {}
-    for name in ("hipmdp", "numpy", "scipy", "mujoco", "dm-control", "rerun-sdk"):
-        try:
-            packages[name] = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            packages[name] = None
+    packages = package_versions(
+        ("hipmdp", "numpy", "scipy", "mujoco", "dm-control", "rerun-sdk")
+    )
     try:
         from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
 

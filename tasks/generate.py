@@ -69,6 +69,7 @@ from tasks.experiment import (
     check_folder_out,
     check_integer,
     one_blas_thread,
+    package_versions,
     path_argument,
     seed_argument,
 )
@@ -434,31 +435,24 @@ def software() -> dict[str, Any]:
     """What the data depend on besides the config: the packages' versions and a
     SHA-256 over the source of `hipmdp`, `tasks` and the MJCF models (any edit
     changes it; a resumed run must not mix shards made by other code)."""
-    from importlib import metadata
-
     import hipmdp
     import tasks
 
-    packages = {}
-    for name in DATA_PACKAGES:
-        try:
-            packages[name] = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            packages[name] = None
     digest = hashlib.sha256()
     sources = [
-        (name, sorted(Path(package.__file__).parent.glob("*.py")))
+        (name, list(Path(package.__file__).parent.glob("*.py")))
         for name, package in (("hipmdp", hipmdp), ("tasks", tasks))
     ]
     models = importlib.resources.files("tasks.mjcf")  # as the models are read
-    sources.append(
-        ("mjcf", sorted(f for f in models.iterdir() if f.name.endswith(".xml")))
-    )
+    sources.append(("mjcf", [f for f in models.iterdir() if f.name.endswith(".xml")]))
     for name, files in sources:
         for file in sorted(files, key=lambda f: f.name):
             digest.update(f"{name}/{file.name}".encode() + b"\0")
             digest.update(file.read_bytes() + b"\0")
-    return {"packages": packages, "source_sha256": digest.hexdigest()}
+    return {
+        "packages": package_versions(DATA_PACKAGES),
+        "source_sha256": digest.hexdigest(),
+    }
 
 
 def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
@@ -527,7 +521,8 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
             changed.append("the source of hipmdp, tasks or the MJCF models")
         raise ValueError(
             f"{config.out} holds this run, made by other software ("
-            f"{', '.join(changed)} changed since it started): its shards would "
+            f"{', '.join(changed) or 'its record'} changed since it started): its "
+            "shards would "
             "mix with data this version makes; choose another --out"
         )
     if todo:  # what the shards still to do are made by
