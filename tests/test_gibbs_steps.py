@@ -78,3 +78,16 @@ def test_eigenvalues_are_floored_for_a_singular_kernel():  # E04
     K = np.exp(-0.5 * (X - X.T) ** 2)
     cache = prepare(GibbsData(np.zeros((1, 2, 4)), K[None], np.array([0.1])))
     assert cache.lam.min() >= fast.EIG_FLOOR * cache.lam.max() * (1 - 1e-12)
+
+
+def test_weight_draw_fallback_refuses_a_covariance_that_is_truly_indefinite(
+    monkeypatch,
+):
+    """Only round-off is clipped: an eigenvalue of -1e-5 of the largest is an
+    error in the covariance, not round-off, and must not be drawn from."""
+    Q = np.linalg.qr(np.random.default_rng(2).normal(size=(3, 3)))[0]
+    cov = Q @ np.diag([1.0, 0.5, -1e-5]) @ Q.T
+    monkeypatch.setattr(fast, "w_posterior", lambda *a: (np.zeros((3, 1)), cov))
+    alg = fast.EigenAlgebra(prepare(small(3)[0]))
+    with pytest.raises(np.linalg.LinAlgError):
+        alg.w_draw(None, None, None, 1.0, rng=np.random.default_rng(0))
