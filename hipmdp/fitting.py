@@ -38,9 +38,9 @@ from hipmdp.support import select_support
 Array = np.ndarray
 
 
-#: The priors' documented ranges (FitConfig): α's lower end is any value > 0.
+#: The priors' documented ranges (FitConfig), ends included but α's 0.
 PRIOR_RANGES = {
-    "alpha": (1e-300, 100.0),
+    "alpha": (0.0, 100.0),
     "sigma_w": (1e-3, 1e4),
     "sigma_w0": (1e-3, 1e4),
 }
@@ -128,10 +128,11 @@ class FitConfig:
                 raise ValueError(
                     f"FitConfig.{name}: expected a finite number > 0, got {v!r}"
                 )
-            if not low <= v <= high:
+            if not low <= v <= high:  # (v > 0 is checked above)
+                opening = "(" if low == 0 else "["
                 raise ValueError(
-                    f"FitConfig.{name}: expected a value in [{low:g}, {high:g}], "
-                    f"got {v!r}"
+                    f"FitConfig.{name}: expected a value in {opening}{low:g}, "
+                    f"{high:g}], got {v!r}"
                 )
             object.__setattr__(self, name, float(v))
         if self.n_candidates < self.n_support:

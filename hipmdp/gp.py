@@ -272,10 +272,10 @@ def fit_hyper_set(
 
     states: (N, D); actions: (N,); deltas: Δs, (N, D); instances: (N,).
     For each action a, at most `max(2, n_subsample // B)` transitions per instance
-    are drawn
-    (without replacement, from `rng`), and for each d the summed per-instance marginal
-    likelihood is maximised (`fit_hyperparameters`); periodic: the angle dimensions
-    of the states (`hipmdp.kernels`). Returns a HyperSet.
+    are drawn (without replacement, from `rng`), and for each d the summed
+    per-instance marginal likelihood is maximised (`fit_hyperparameters`);
+    periodic: the angle dimensions of the states (`hipmdp.kernels`). Returns a
+    HyperSet.
     """
     D = states.shape[1]
     ids = np.unique(instances)

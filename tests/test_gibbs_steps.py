@@ -12,22 +12,11 @@ import pytest
 from hipmdp import gibbs_eigen as fast
 from hipmdp.gibbs import GibbsData, GibbsPriors, prepare
 from hipmdp.gibbs_sweep import new_feature_step, z_step_row
-
-
-def small(seed, R=3, B=4, m=5):
-    rng = np.random.default_rng(seed)
-    A = rng.normal(size=(R, m, m))
-    K = A @ np.swapaxes(A, 1, 2) / m + 0.3 * np.eye(m)
-    return GibbsData(rng.normal(size=(R, B, m)), K, rng.uniform(0.2, 0.5, R)), rng
-
-
-class MeanAlg(fast.EigenAlgebra):
-    def f_draw(self, r, Yr, W, *, rng):
-        return fast.f_posterior(Yr, W, self.cache.lam[r], self.noise[r]).mean
+from tests.test_gibbs_sampler import _MeanEigen, small_problem
 
 
 def test_z_step_leaves_singletons_to_the_new_feature_step():  # G11
-    data, rng = small(3)
+    data, rng = small_problem(3)
     alg = fast.EigenAlgebra(prepare(data))
     z = np.array([[1, 1, 1], [1, 0, 0]], dtype=bool)
     w = np.vstack([np.ones(4), rng.normal(size=4)])
@@ -38,8 +27,8 @@ def test_z_step_leaves_singletons_to_the_new_feature_step():  # G11
 
 
 def test_born_features_take_f_from_the_residual_without_the_old_singletons():  # G06
-    data, rng = small(5)
-    alg = MeanAlg(prepare(data))
+    data, rng = small_problem(5)
+    alg = _MeanEigen(prepare(data))
     priors = GibbsPriors(alpha=6.0, sigma_w=1.0, sigma_w0=1.0, n_w=20)
     z = np.array([[1, 1, 1], [1, 0, 0]], dtype=bool)
     w = np.vstack([np.ones(4), 3 * rng.normal(size=4)])
@@ -64,7 +53,7 @@ def test_weight_draw_fallback_with_a_non_symmetric_eigenbasis(monkeypatch):  # E
     cov = Bm @ Bm.T  # rank 2: w · n is fixed, n = b1 x b2
     n = np.cross(Bm[:, 0], Bm[:, 1])
     monkeypatch.setattr(fast, "w_posterior", lambda *a: (mean, cov))
-    alg = fast.EigenAlgebra(prepare(small(3)[0]))
+    alg = fast.EigenAlgebra(prepare(small_problem(3)[0]))
     rng = np.random.default_rng(4)
     with pytest.raises(np.linalg.LinAlgError):  # singular: the fallback's case
         np.linalg.cholesky(cov)
@@ -88,6 +77,6 @@ def test_weight_draw_fallback_refuses_a_covariance_that_is_truly_indefinite(
     Q = np.linalg.qr(np.random.default_rng(2).normal(size=(3, 3)))[0]
     cov = Q @ np.diag([1.0, 0.5, -1e-5]) @ Q.T
     monkeypatch.setattr(fast, "w_posterior", lambda *a: (np.zeros((3, 1)), cov))
-    alg = fast.EigenAlgebra(prepare(small(3)[0]))
+    alg = fast.EigenAlgebra(prepare(small_problem(3)[0]))
     with pytest.raises(np.linalg.LinAlgError):
         alg.w_draw(None, None, None, 1.0, rng=np.random.default_rng(0))
