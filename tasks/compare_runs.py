@@ -13,7 +13,7 @@ reports, from the first place results can part to the last:
    a run from before it was recorded;
 3. ``arrays``: every array of every ``.npz`` file that both folders hold (the
    batch data, the fitted models, ``trials.npz``): identical, or the largest
-   absolute difference, or the shapes;
+   absolute difference, or the shapes and how the entries both hold compare;
 4. ``metrics``: the values in ``metrics.json`` (timings and environment aside)
    that both runs have and that differ, summarised per top-level key by count
    and largest relative difference (every value, with both sides, in
@@ -72,9 +72,10 @@ class Comparison(NamedTuple):
     ``config``, ``environment`` and ``metrics`` map a dotted key to ``[a, b]``;
     ``arrays`` maps ``file:array`` to ``"identical"``, ``{"max_abs_diff": x,
     "n_differ": k, "size": n}`` (numbers), ``{"json": differences}`` (a JSON
-    string) or ``{"shapes": [a, b]}``, or for a file's ``methods`` where the two
-    runs ran different ones, ``{"methods_only_in": [a's, b's]}`` (the file's other
-    arrays with a row per method are then compared on the shared methods);
+    string) or ``{"shapes": [a, b], "overlap": ...}`` (``compare_arrays``), or
+    for a file's ``methods`` where the two runs ran different ones,
+    ``{"methods_only_in": [a's, b's]}`` (the file's other arrays with a row per
+    method are then compared on the shared methods);
     ``only_in`` lists the ``.npz`` files that one folder has and the other lacks;
     ``extra``, per run folder, the metric keys (dotted) that only it has;
     ``not_compared``, the metrics (of ``ADDED_METRICS``) that one run has and the
@@ -198,12 +199,23 @@ def read_run(run: Path) -> tuple[dict, dict, dict | None]:
 
 
 def compare_arrays(a: np.ndarray, b: np.ndarray) -> Any:
-    """``"identical"`` (NaN equal to NaN), or how the two differ: the shapes; the
-    dtypes, where they cannot be compared; the JSON settings, for a JSON string;
-    else the largest absolute difference (float64; over the entries that are
-    numbers in both) and how many entries differ, NaN placement included."""
+    """``"identical"`` (NaN equal to NaN), or how the two differ: the shapes,
+    with, where both have the same number of axes and some entries, the leading
+    block both hold (``overlap``: its shape and this comparison of it, e.g. the
+    first 3 trials of a rerun with 5); the dtypes, where they cannot be compared;
+    the JSON settings, for a JSON string; else the largest absolute difference
+    (float64; over the entries that are numbers in both) and how many entries
+    differ, NaN placement included."""
     if a.shape != b.shape:
-        return {"shapes": [list(a.shape), list(b.shape)]}
+        out: dict[str, Any] = {"shapes": [list(a.shape), list(b.shape)]}
+        if a.ndim == b.ndim and a.ndim and min(a.shape + b.shape):
+            common = tuple(min(m, n) for m, n in zip(a.shape, b.shape, strict=True))
+            block = tuple(slice(n) for n in common)
+            out["overlap"] = {
+                "shape": list(common),
+                "comparison": compare_arrays(a[block], b[block]),
+            }
+        return out
     if a.dtype.kind == "U" and b.dtype.kind == "U" and a.ndim == 0:
         try:  # a JSON string, e.g. a model's metadata: compare its settings
             ja, jb = json.loads(str(a)), json.loads(str(b))

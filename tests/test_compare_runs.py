@@ -273,7 +273,23 @@ def test_compare_arrays_nan_shapes_dtypes_and_strings():
     assert compare_arrays(big, big + [0, 5]) == {
         "max_abs_diff": 5.0, "n_differ": 1, "size": 2
     }  # fmt: skip
-    assert compare_arrays(np.zeros(2), np.zeros(3)) == {"shapes": [[2], [3]]}
+    assert compare_arrays(np.zeros(2), np.zeros(3)) == {
+        "shapes": [[2], [3]], "overlap": {"shape": [2], "comparison": "identical"}
+    }  # fmt: skip
+    # a rerun with more trials: the rows both hold are compared, axis by axis
+    rows = np.arange(12.0).reshape(4, 3)
+    more = np.vstack([rows, rows])
+    more[1, 2] += 0.5  # outside the first comparison's overlap, inside the second's
+    assert compare_arrays(rows[:, :2], more) == {
+        "shapes": [[4, 2], [8, 3]],
+        "overlap": {"shape": [4, 2], "comparison": "identical"},
+    }
+    assert compare_arrays(rows, more)["overlap"] == {
+        "shape": [4, 3],
+        "comparison": {"max_abs_diff": 0.5, "n_differ": 1, "size": 12},
+    }
+    for a, b in [(np.zeros(2), np.zeros((2, 1))), (np.zeros(0), np.zeros(2))]:
+        assert compare_arrays(a, b) == {"shapes": [list(a.shape), list(b.shape)]}
     assert compare_arrays(np.array(["x", "y"]), np.array(["x", "zz"])) == {
         "n_differ": 1, "size": 2
     }  # fmt: skip
