@@ -30,7 +30,9 @@ run starts and when it completes; in between, each finished shard is one line of
 `--workers` or `--scheduler`. `--resume` keeps the shards whose file matches its
 checksum and redoes the others (an unfinished run in `OUT` needs it; a finished one
 is left as it is), unless the run was started by other software (the manifest's
-`software`: package versions and a digest of the source); an `OUT` holding another
+`software`: package versions and a digest of the source; `--mixed-software`
+continues it all the same, listing in the manifest's `earlier_software` which
+shards each earlier software made); an `OUT` holding another
 run's manifest, or shards or a progress log without a manifest, is an error and
 nothing is overwritten.
 
@@ -88,7 +90,8 @@ class Config:
     """A validated generation request (see the module docstring for the options).
 
     `manifest_config()` is what determines the data; `out`, `workers`,
-    `scheduler`, `resume` and `progress` only say where and how it runs.
+    `scheduler`, `resume`, `mixed_software` and `progress` only say where and how
+    it runs.
 
     Raises:
         ValueError: naming the field (and its command-line option) for a value of
@@ -110,6 +113,7 @@ class Config:
     workers: int = 1
     scheduler: str | None = None
     resume: bool = False
+    mixed_software: bool = False
     progress: bool = True
     book_inertia: bool = False
 
@@ -147,11 +151,13 @@ class Config:
                 raise ValueError(
                     "--workers and --scheduler are exclusive (Dask decides)"
                 )
-        for name in ("resume", "progress", "book_inertia"):
+        for name in ("resume", "mixed_software", "progress", "book_inertia"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(
                     f"{name}: expected True or False, got {getattr(self, name)!r}"
                 )
+        if self.mixed_software and not self.resume:
+            raise ValueError("mixed_software (--mixed-software): needs --resume")
         for name in ("instances", "episodes_per_instance", "seed", "max_steps",
                      "shard_size", "workers"):  # fmt: skip
             value = getattr(self, name)
@@ -257,6 +263,13 @@ def build_parser() -> argparse.ArgumentParser:
     add("--workers", type=int, default=1, help="local worker processes")
     add("--scheduler", metavar="ADDRESS", help="Dask scheduler (tcp://host:port)")
     add("--resume", action="store_true", help="continue the run in --out")
+    add(
+        "--mixed-software",
+        action="store_true",
+        help="with --resume: continue a run started by other software (another "
+        "version of a package or an edited source); the manifest records which "
+        "shards each made",
+    )
     add("--no-progress", action="store_true", help="no progress bar")
     return parser
 
@@ -336,6 +349,7 @@ def _validate(args: argparse.Namespace) -> Config:
         workers=args.workers,
         scheduler=args.scheduler,
         resume=args.resume,
+        mixed_software=args.mixed_software,
         progress=not args.no_progress,
         book_inertia=args.book_inertia,
     )
@@ -461,6 +475,7 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
     Raises:
         ValueError: if `config.out` holds a manifest of another run (listing the
             differences), or of this run unfinished without `config.resume`, or
+            started by other software without `config.mixed_software`, or
             shard files or a progress log without a manifest. (This run
             finished: nothing to do.)
     """
@@ -512,19 +527,35 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
     recorded = old.get("software")  # None: a run from before 2026-12-04; a
     # finished run (nothing to do) is left as it is, whatever made it
     if todo and recorded is not None and recorded != fresh["software"]:
-        changed = [
-            name
-            for name in DATA_PACKAGES
-            if recorded["packages"].get(name) != fresh["software"]["packages"][name]
-        ]
-        if recorded.get("source_sha256") != fresh["software"]["source_sha256"]:
-            changed.append("the source of hipmdp, tasks or the MJCF models")
-        raise ValueError(
-            f"{config.out} holds this run, made by other software ("
-            f"{', '.join(changed) or 'its record'} changed since it started): its "
-            "shards would "
-            "mix with data this version makes; choose another --out"
+        if not config.mixed_software:
+            changed = [
+                name
+                for name in DATA_PACKAGES
+                if recorded["packages"].get(name) != fresh["software"]["packages"][name]
+            ]
+            if recorded.get("source_sha256") != fresh["software"]["source_sha256"]:
+                changed.append("the source of hipmdp, tasks or the MJCF models")
+            raise ValueError(
+                f"{config.out} holds this run, made by other software ("
+                f"{', '.join(changed) or 'its record'} changed since it started): "
+                "its shards would mix with data this version makes; choose another "
+                "--out, or pass --mixed-software to continue it all the same (the "
+                "manifest then records which shards each software made)"
+            )
+        earlier = old.setdefault("earlier_software", [])
+        listed = {i for entry in earlier for i in entry["shards"]}
+        kept = [e["index"] for e in old["shards"] if e["index"] not in todo]
+        earlier.append(
+            {"software": recorded, "shards": [i for i in kept if i not in listed]}
         )
+    if todo and "earlier_software" in old:  # a shard redone is made by this version
+        old["earlier_software"] = [
+            entry | {"shards": [i for i in entry["shards"] if i not in todo]}
+            for entry in old["earlier_software"]
+        ]
+        old["earlier_software"] = [e for e in old["earlier_software"] if e["shards"]]
+        if not old["earlier_software"]:
+            del old["earlier_software"]
     if todo:  # what the shards still to do are made by
         old["software"] = fresh["software"]
     if todo and not config.resume:

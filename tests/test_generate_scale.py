@@ -436,6 +436,46 @@ def test_resume_refuses_a_run_made_by_other_software(
     assert files(run) == before
 
 
+def test_mixed_software_continues_and_records_which_shards_each_made(
+    reference, tmp_path, capsys
+):
+    """The refusal had no way round: any source edit stranded a long run.
+    --mixed-software continues it and the manifest says which shards the
+    earlier software made (here twice: two earlier versions, shards redone by
+    the last one leave their lists)."""
+    run = tmp_path / "run"
+    shutil.copytree(reference, run)
+    manifest = json.loads((run / "manifest.json").read_text())
+    fresh = manifest["software"]
+    first = fresh | {"source_sha256": "1" * 64}
+    second = fresh | {"source_sha256": "2" * 64}
+    manifest |= {"software": first, "complete": False}
+    (run / "manifest.json").write_text(json.dumps(manifest))
+    (run / "shard-00001.npz").unlink()
+    with pytest.raises(SystemExit):
+        generate.main([*RUN, "--out", str(run), "--mixed-software"])
+    assert "(--mixed-software): needs --resume" in capsys.readouterr().err
+    resume = [*RUN, "--out", str(run), "--resume", "--mixed-software"]
+    assert generate.main(resume).redone == (1,)
+    manifest = json.loads((run / "manifest.json").read_text())
+    assert manifest["earlier_software"] == [{"software": first, "shards": [0, 2]}]
+    assert manifest["software"] == fresh and manifest["complete"]
+    # the same code made every shard here, so the data equal the reference's
+    assert {k: v for k, v in files(run).items() if k != "manifest.json"} == {
+        k: v for k, v in files(reference).items() if k != "manifest.json"
+    }
+    manifest |= {"software": second, "complete": False}
+    (run / "manifest.json").write_text(json.dumps(manifest))
+    (run / "shard-00000.npz").unlink()
+    assert generate.main(resume).redone == (0,)
+    manifest = json.loads((run / "manifest.json").read_text())
+    assert manifest["earlier_software"] == [
+        {"software": first, "shards": [2]},
+        {"software": second, "shards": [1]},
+    ]
+    assert manifest["software"] == fresh
+
+
 def test_a_finished_run_made_by_other_software_is_left_as_it_is(reference, tmp_path):
     """Nothing to do, so nothing mixes: the same command after an upgrade still
     finds the run finished."""
