@@ -347,13 +347,16 @@ def mean_ci(x: Sequence[float] | Array, axis: int = 0, level: float = 0.95) -> d
     """Mean and Student-t ``level`` confidence interval along ``axis``.
 
     Returns ``{"mean", "low", "high", "n"}`` (arrays if more than one dimension
-    remains). With one sample the interval is the point itself.
+    remains). With one sample there is no interval: ``low`` and ``high`` are NaN
+    (null in JSON; :func:`fmt_ci` says so), not the point itself, which would read
+    as certainty.
     """
     x = np.asarray(x, dtype=float)
     n = x.shape[axis]
     mean = x.mean(axis=axis)
     if n < 2:
-        return {"mean": mean, "low": mean, "high": mean, "n": n}
+        none = np.full_like(mean, np.nan) if np.ndim(mean) else np.nan
+        return {"mean": mean, "low": none, "high": none, "n": n}
     sem = x.std(axis=axis, ddof=1) / np.sqrt(n)
     half = stats.t.ppf(0.5 + level / 2, df=n - 1) * sem
     return {"mean": mean, "low": mean - half, "high": mean + half, "n": n}
@@ -452,10 +455,14 @@ def fmt_value(v: float, digits: int = 3, sign: str = "") -> str:
 
 
 def fmt_ci(ci: dict, digits: int = 3, signed: bool = False) -> str:
-    """``mean [low, high]`` (:func:`fmt_value`); ``signed`` puts ``+`` before a
-    positive mean (for differences)."""
+    """``mean [low, high]`` (:func:`fmt_value`), or ``mean [no interval: one
+    sample]`` where the bounds are NaN or None (:func:`mean_ci` of one sample);
+    ``signed`` puts ``+`` before a positive mean (for differences)."""
     mean = fmt_value(ci["mean"], digits, "+" if signed else "")
-    return f"{mean} [{fmt_value(ci['low'], digits)}, {fmt_value(ci['high'], digits)}]"
+    low, high = ci["low"], ci["high"]
+    if low is None or high is None or np.isnan(low) or np.isnan(high):
+        return f"{mean} [no interval: one sample]"
+    return f"{mean} [{fmt_value(low, digits)}, {fmt_value(high, digits)}]"
 
 
 def seed_value(ss: np.random.SeedSequence) -> tuple[int, tuple[int, ...]]:

@@ -232,11 +232,17 @@ def read_runs(
 
 
 def _interval(value: Any, label: str, run: str) -> dict[str, Any]:
-    """``{"value", "low", "high", "n"}`` (None where the run gives no interval)."""
+    """``{"value", "low", "high", "n"}`` (None where the run gives no interval:
+    a single number, or an interval of one sample, whose bounds are null)."""
     if isinstance(value, dict):
         try:
+            n = int(value["n"])
+            bounds = [value["low"], value["high"]]
+            if n < 2 and bounds == [None, None]:  # experiment.mean_ci of one sample
+                return {"value": float(value["mean"]), "low": None, "high": None,
+                        "n": n}  # fmt: skip
             return {"value": float(value["mean"]), "low": float(value["low"]),
-                    "high": float(value["high"]), "n": int(value["n"])}  # fmt: skip
+                    "high": float(value["high"]), "n": n}  # fmt: skip
         except (KeyError, TypeError, ValueError) as err:
             raise ValueError(
                 f"{run}: {label}: expected an interval of numbers "

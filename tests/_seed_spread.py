@@ -24,7 +24,9 @@ def assert_reads_the_run(out: Path, tmp_path: Path, experiment: str) -> dict:
     metrics = json.loads((out / "metrics.json").read_text())
     shifted = json.loads((other / "metrics.json").read_text())
     for ci in shifted["loglik_difference"].values():
-        ci.update({k: ci[k] + 1.0 for k in ("mean", "low", "high")})
+        ci.update(
+            {k: ci[k] + 1.0 for k in ("mean", "low", "high") if ci[k] is not None}
+        )
     write_json(other / "metrics.json", shifted)
     result = seed_spread.main([out, other])
     assert result["experiment"] == experiment

@@ -64,9 +64,19 @@ def test_an_older_config_reads_with_the_values_it_ran_with():
     assert old == {"seed": 0, "fit": {"n_sweeps": 60}}  # not changed in place
 
 
-def test_mean_ci_single_sample_is_a_point():
+def test_mean_ci_of_one_sample_has_no_interval():
+    """It was the point itself, printed as "+91.5 [91.5, 91.5]": a zero-width
+    interval that reads as certainty (README's --trials 1 prediction runs)."""
     ci = mean_ci([2.5])
-    assert ci["low"] == ci["mean"] == ci["high"] == 2.5 and ci["n"] == 1
+    assert ci["mean"] == 2.5 and ci["n"] == 1
+    assert np.isnan(ci["low"]) and np.isnan(ci["high"])
+    assert fmt_ci(ci, signed=True) == "+2.5 [no interval: one sample]"
+    rows = mean_ci(np.array([[1.0, 2.0]]), axis=0)  # per column, one sample each
+    assert rows["low"].shape == (2,) and np.isnan(rows["high"]).all()
+    assert fmt_ci({"mean": 1.0, "low": None, "high": None}) == (
+        "1 [no interval: one sample]"
+    )  # as a metrics.json read back holds it
+    assert fmt_ci(mean_ci([1.0, 3.0])) == "2 [-10.7, 14.7]"
 
 
 def test_first_episode_within_uses_negative_returns():
