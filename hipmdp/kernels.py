@@ -57,11 +57,18 @@ def _check_params(lengthscales: Array, signal_var: float, dim: int) -> Array:
 def check_periodic(periodic, dim: int) -> tuple[int, ...]:
     """`periodic` as a sorted tuple of distinct dimensions in [0, dim), or raise."""
     try:
-        dims = tuple(sorted(int(j) for j in periodic))
-    except (TypeError, ValueError):
+        raw = tuple(periodic)
+    except TypeError:
         raise ValueError(
             f"periodic: expected a sequence of dimension indices, got {periodic!r}"
         ) from None
+    if isinstance(periodic, str) or not all(
+        isinstance(j, int | np.integer) and not isinstance(j, bool) for j in raw
+    ):  # int() made 1.5 dimension 1 and "01" dimensions 0 and 1
+        raise ValueError(
+            f"periodic: expected integer dimension indices, got {periodic!r}"
+        )
+    dims = tuple(sorted(int(j) for j in raw))
     if len(set(dims)) != len(dims) or any(not 0 <= j < dim for j in dims):
         raise ValueError(
             f"periodic: expected distinct dimensions in [0, {dim}), got {periodic!r}"
@@ -204,12 +211,20 @@ class KernelMeans:
         col = embedded_columns(D, self.periodic)
         self._scaled, self._sqnorm, self._coef = [], [], []
         for a in range(A):
-            x = np.asarray(inputs[a], dtype=float).reshape(-1, D)
-            beta = np.asarray(coefficients[a], dtype=float)
-            if beta.shape != (E, len(x)):
+            x = np.asarray(inputs[a], dtype=float)
+            if x.ndim != 2 or x.shape[1] != D or not np.all(np.isfinite(x)):
+                # reshape(-1, D) read a (4, 2) input as (2, 4) when D = 4
                 raise ValueError(
-                    f"coefficients[{a}]: expected shape ({E}, {len(x)}), "
-                    f"got {beta.shape}"
+                    f"inputs[{a}]: expected finite values of shape (n, {D}), got "
+                    f"shape {x.shape}"
+                    + ("" if x.ndim != 2 or x.shape[1] != D else " with non-finite")
+                )
+            beta = np.asarray(coefficients[a], dtype=float)
+            if beta.shape != (E, len(x)) or not np.all(np.isfinite(beta)):
+                raise ValueError(
+                    f"coefficients[{a}]: expected finite values of shape "
+                    f"({E}, {len(x)}), got shape {beta.shape}"
+                    + ("" if beta.shape != (E, len(x)) else " with non-finite")
                 )
             for d in range(E):
                 _check_params(ell[a, d], float(sf2[a, d]), D)

@@ -81,8 +81,19 @@ def test_kernel_means_are_the_per_output_kernel_sums(monkeypatch):
 
 def test_kernel_means_reject_bad_input():
     x, ell, sf2 = np.zeros((2, 3)), np.ones((1, 2, 3)), np.ones((1, 2))
-    with pytest.raises(ValueError, match=r"coefficients\[0\]: expected shape \(2, 2\)"):
+    with pytest.raises(
+        ValueError, match=r"coefficients\[0\]: expected finite .*\(2, 2\)"
+    ):
         KernelMeans([x], ell, sf2, [np.zeros((2, 3))])
+    with pytest.raises(ValueError, match=r"coefficients\[0\]: .* with non-finite"):
+        KernelMeans([x], ell, sf2, [np.full((2, 2), np.nan)])
+    # inputs were reshaped to (-1, D): six numbers of shape (3, 2) read as (2, 3)
+    with pytest.raises(
+        ValueError, match=r"inputs\[0\]: expected .*\(n, 3\), got shape \(3, 2\)"
+    ):
+        KernelMeans([np.zeros((3, 2))], ell, sf2, [np.zeros((2, 2))])
+    with pytest.raises(ValueError, match=r"inputs\[0\]: .* with non-finite"):
+        KernelMeans([np.full((2, 3), np.inf)], ell, sf2, [np.zeros((2, 2))])
     with pytest.raises(ValueError, match="lengthscales"):
         KernelMeans([x], -ell, sf2, [np.zeros((2, 2))])
     with pytest.raises(ValueError, match="expected 1 actions"):
@@ -174,10 +185,13 @@ def test_periodic_kernel_means_are_the_per_output_kernel_sums():
 
 @pytest.mark.parametrize(
     ("periodic", "match"),
-    [((3,), r"\[0, 3\)"), ((0, 0), "distinct"), ((-1,), r"\[0, 3\)"), (1, "sequence")],
-)
+    [((3,), r"\[0, 3\)"), ((0, 0), "distinct"), ((-1,), r"\[0, 3\)"), (1, "sequence"),
+     # int() truncated these: 1.5 was dimension 1, "01" dimensions 0 and 1
+     ((1.5,), "integer"), ("01", "integer"), ((True,), "integer")],
+)  # fmt: skip
 def test_bad_periodic_dimensions_raise(periodic, match):
     assert kernels.check_periodic((2, 0), 3) == (0, 2)  # sorted
+    assert kernels.check_periodic(np.array([1]), 3) == (1,)  # numpy integers
     X = np.zeros((2, 3))
     with pytest.raises(ValueError, match=f"periodic: expected.*{match}"):
         se_kernel(X, X, np.ones(3), 1.0, periodic=periodic)
