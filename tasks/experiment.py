@@ -15,10 +15,12 @@ import contextlib
 import contextvars
 import dataclasses
 import functools
+import glob
 import json
 import os
 import pickle
 import platform
+import re
 import subprocess
 import sys
 import time
@@ -222,23 +224,37 @@ def to_jsonable(x: Any) -> Any:
     return x
 
 
+def _write(path: str | os.PathLike, write: Callable) -> Path:
+    """:func:`hipmdp.data.atomic_write`, then remove the temporary files that
+    killed writes of this same file left (``.<name>.<8 characters>.tmp``:
+    a check killed while writing its JSON into a run folder left one that no
+    later run removed)."""
+    path = atomic_write(path, write)
+    stale = re.compile(rf"\.{re.escape(path.name)}\.[A-Za-z0-9_]{{8}}\.tmp")
+    for tmp in atomic_temporaries(path.parent, glob.escape(path.name)):
+        if stale.fullmatch(tmp.name):
+            tmp.unlink(missing_ok=True)
+    return path
+
+
 def write_json(path: str | os.PathLike, obj: Any) -> Path:
-    """Write ``obj`` as indented JSON, atomically."""
+    """Write ``obj`` as indented JSON, atomically (:func:`_write`)."""
     text = json.dumps(to_jsonable(obj), indent=2, sort_keys=False) + "\n"
-    return atomic_write(path, lambda fh: fh.write(text.encode()))
+    return _write(path, lambda fh: fh.write(text.encode()))
 
 
 def write_text(path: str | os.PathLike, text: str) -> Path:
-    """Write a text file atomically."""
-    return atomic_write(path, lambda fh: fh.write(text.encode()))
+    """Write a text file atomically (:func:`_write`)."""
+    return _write(path, lambda fh: fh.write(text.encode()))
 
 
 def save_figure(fig, path: str | os.PathLike) -> Path:
-    """Save a matplotlib figure as PNG, atomically, and close it."""
+    """Save a matplotlib figure as PNG, atomically (:func:`_write`), and close
+    it."""
     import matplotlib.pyplot as plt
 
     try:
-        return atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=120))
+        return _write(path, lambda fh: fig.savefig(fh, format="png", dpi=120))
     finally:
         plt.close(fig)
 

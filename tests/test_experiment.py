@@ -34,6 +34,7 @@ from tasks.experiment import (
     trial_seeds,
     with_added_fields,
     write_json,
+    write_text,
 )
 
 
@@ -171,6 +172,23 @@ def test_json_artefacts_are_plain_and_nan_free(tmp_path):
     assert to_jsonable(obj) == {"a": [0, 1, 2], "b": None, "c": [1, 2]}
     path = write_json(tmp_path / "m.json", obj)
     assert json.loads(path.read_text())["a"] == [0, 1, 2]
+
+
+def test_a_write_removes_what_killed_writes_of_the_same_file_left(tmp_path):
+    """A check (tasks.acrobot_horizon, say) killed while writing its JSON into a
+    run folder left .horizon.json.<random>.tmp there for good: no later run or
+    check removed it."""
+    stale = [".m.json.k2x_9abc.tmp", ".m.json.00000000.tmp"]
+    kept = [".m.json.backup.tmp", ".m.json.x.abcdefgh.tmp", ".n.json.abcdefgh.tmp",
+            ".m.jsonXabcdefgh.tmp", "m.json.abcdefgh.tmp"]  # fmt: skip
+    for name in stale + kept:
+        (tmp_path / name).write_text('{"half')
+    write_json(tmp_path / "m.json", {"a": 1})
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(kept + ["m.json"])
+    write_text(tmp_path / "[r].md", "x")  # a name that is a glob pattern
+    (tmp_path / ".[r].md.abcdefgh.tmp").write_text("half")
+    write_text(tmp_path / "[r].md", "y")
+    assert not (tmp_path / ".[r].md.abcdefgh.tmp").exists()
 
 
 def test_fmt_ci_signs_a_positive_mean_only_when_asked():
