@@ -508,7 +508,7 @@ def main(
             "noise: expected a σ (--noise) exactly when the models include 'noisy', "
             f"got noise={noise} with models {tuple(names)}"
         )
-    config, hip, batch = read_run(run)
+    config, hip, batch = read_run(run, seed)
     transfer = TransferConfig(**config["transfer"])
     if last > transfer.initial_planning_episodes:
         raise ValueError(

@@ -83,13 +83,16 @@ def main(
     machine = environment()  # the code and machine as the check starts
     run = Path(run)
     check_run(run)
+    horizons = tuple(horizons)  # int() made 1.5 a horizon of 1
+    if not horizons:
+        raise ValueError("horizons: expected integers >= 1, got none")
+    for i, k in enumerate(horizons):
+        check_integer(f"horizons[{i}]", k, 1)
     horizons = tuple(int(k) for k in horizons)
-    if not horizons or min(horizons) < 1:
-        raise ValueError(f"horizons: expected integers >= 1, got {horizons}")
     check_counts(identify=identify, evaluate=evaluate)
     check_integer("seed", seed, 0)
     path = run / "horizon.json" if out is None else check_out_file(out)
-    config, hip, batch = read_run(run)
+    config, hip, batch = read_run(run, seed)
     masses = [tuple(m) for m in config["test_masses"]]
     instances = run_test_instances(config)
     inputs_checked()  # the run read and checked; from here on, the work

@@ -240,11 +240,20 @@ class FinishedRun(NamedTuple):
     batch: hipmdp.Transitions
 
 
-def read_run(run: Path) -> RunFiles:
+def read_run(run: Path, seed: int | None = None) -> RunFiles:
     """A finished run's config, HiP-MDP and batch data, as its files hold them,
     and the config's settings for the average model checked (an error names the
-    file): the checks' input, read before their work."""
+    file): the checks' input, read before their work.
+
+    ``seed``, a check's own: refused if it is the run's, whose first streams
+    (``SeedSequence(seed).spawn``) the run drew its batch data and fit from, so
+    the check's would repeat them for another purpose."""
     config = json.loads((run / "config.json").read_text())
+    if seed is not None and seed == config.get("seed"):
+        raise ValueError(
+            f"seed: {seed} is the run's own seed (its streams made the run's batch "
+            "data and fit; a check spawned from it would reuse them); choose another"
+        )
     hip = hipmdp.load(run / "hipmdp_model.npz")
     batch = hipmdp.Transitions.load(run / "batch.npz")
     try:
@@ -321,7 +330,7 @@ def main(
     ):
         if value is not None and value < 0:
             raise ValueError(f"{name}: expected >= 0 or None, got {value}")
-    config, hip, batch = read_run(run)
+    config, hip, batch = read_run(run, seed)
     if run_seeds and trials > config["n_trials"]:
         raise ValueError(
             f"trials: expected at most the run's {config['n_trials']} trials per "

@@ -85,8 +85,14 @@ def test_setting_0_rebuilt_from_the_seed(run):
 def test_rejects_bad_options(tmp_path, run):
     with pytest.raises(FileNotFoundError, match="has no config.json"):
         acrobot_horizon.main(tmp_path)
-    with pytest.raises(ValueError, match="horizons: expected integers >= 1"):
+    with pytest.raises(ValueError, match=r"horizons\[0\]: expected >= 1"):
         acrobot_horizon.main(run[0], horizons=(0,))
+    with pytest.raises(ValueError, match="horizons: expected integers >= 1, got none"):
+        acrobot_horizon.main(run[0], horizons=())
+    # int() made these horizons of 1 and 3
+    for bad in [(1.5,), (1, True), ("3",)]:
+        with pytest.raises(ValueError, match=r"horizons\[\d\]: expected an integer"):
+            acrobot_horizon.main(run[0], horizons=bad)
     with pytest.raises(ValueError, match="evaluate: expected >= 1"):
         acrobot_horizon.main(run[0], evaluate=0)
 

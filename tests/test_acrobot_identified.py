@@ -105,6 +105,23 @@ def test_checks_refuse_bad_options_before_any_work(run, monkeypatch, check, bad,
         module.main(run[0], **bad)
 
 
+@pytest.mark.parametrize("check", ["identified", "energy", "horizon"])
+def test_checks_refuse_the_runs_own_seed(run, monkeypatch, check):
+    """SeedSequence(seed).spawn gave a check the run's own streams when --seed
+    was the run's: the identification data of test setting 0 came from the bits
+    that chose the fit's hyperparameter subsample."""
+    module = importlib.import_module(f"tasks.acrobot_{check}")
+    seed = json.loads((run[0] / "config.json").read_text())["seed"]
+
+    def average_model(*args, **kwargs):
+        raise AssertionError("the work began before the seed was checked")
+
+    monkeypatch.setattr(module, "average_model", average_model)
+    with pytest.raises(ValueError, match=f"seed: {seed} is the run's own seed"):
+        module.main(run[0], seed=seed, out=run[0].parent / "never.json")
+    assert not (run[0].parent / "never.json").exists()
+
+
 @pytest.mark.parametrize(
     "check, options",
     [
