@@ -103,12 +103,32 @@ def random_policy(n_actions: int, *, rng: np.random.Generator) -> Policy:
     return lambda state: int(rng.integers(n_actions))
 
 
+def instance_streams(rng: Any, n: int) -> list[np.random.Generator]:
+    """Each instance's stream: ``rng.spawn(n)`` for one Generator, or ``rng``
+    itself for a sequence of ``n`` Generators (one per instance, as
+    ``tasks.generate`` gives them, so an instance's data do not depend on the
+    instances collected beside it). Raises ValueError naming ``rng``."""
+    if isinstance(rng, np.random.Generator):
+        return rng.spawn(n)
+    streams = list(rng) if isinstance(rng, Sequence) else None
+    if (
+        streams is None
+        or len(streams) != n
+        or not all(isinstance(g, np.random.Generator) for g in streams)
+    ):
+        raise ValueError(
+            f"rng: expected a numpy Generator or a sequence of {n} (one per "
+            f"instance), got {rng!r}"
+        )
+    return streams
+
+
 def collect(
     domain: str,
     instances: Sequence[Any],
     *,
     episodes_per_instance: int,
-    rng: np.random.Generator,
+    rng: np.random.Generator | Sequence[np.random.Generator],
     policy: Policy | None = None,
     instance_ids: Sequence[int] | None = None,
     max_steps: int | None = None,
@@ -122,7 +142,11 @@ def collect(
             `CartpoleParams`), length `B`.
         episodes_per_instance: episodes per instance, ≥ 1.
         rng: all randomness (initial states, and the random policy when `policy`
-            is None) is drawn from streams spawned from it.
+            is None) is drawn from streams spawned from it: instance `i`'s
+            environment from `rng.spawn(B)[i]`, the random policy from one more
+            stream shared by the instances in turn. Or one Generator per
+            instance (`instance_streams`): each spawns two, the environment's
+            and its own random policy's.
         policy: `state (D,) -> action index`, or None for `random_policy`.
         instance_ids: the id `b` of each instance, default `0, …, B-1`.
         max_steps: step limit per episode, default the task's.
@@ -137,14 +161,23 @@ def collect(
     _check_positive_int("episodes_per_instance", episodes_per_instance)
     if max_steps is not None:
         _check_positive_int("max_steps", max_steps)
-    if not isinstance(rng, np.random.Generator):
-        raise ValueError(f"rng must be a numpy Generator, got {rng!r}")
+    per_instance = not isinstance(rng, np.random.Generator)
+    streams = instance_streams(rng, len(instances))
     if policy is not None and not callable(policy):
         raise ValueError(f"policy must be callable or None, got {policy!r}")
 
-    env_rngs = rng.spawn(len(instances))
-    if policy is None:
-        policy = random_policy(spec.n_actions, rng=rng.spawn(1)[0])
+    if per_instance:
+        pairs = [stream.spawn(2) for stream in streams]
+        env_rngs = [env_rng for env_rng, _ in pairs]
+        policies = [
+            policy or random_policy(spec.n_actions, rng=policy_rng)
+            for _, policy_rng in pairs
+        ]
+    else:
+        env_rngs = streams
+        if policy is None:
+            policy = random_policy(spec.n_actions, rng=rng.spawn(1)[0])
+        policies = [policy] * len(instances)
     kwargs = {} if max_steps is None else {"max_steps": max_steps}
     episodes: list[dict[str, Array]] = []
     diverged: list[Divergence] = []
@@ -154,7 +187,9 @@ def collect(
         disable=not progress,
     )
     with bar:
-        for b, params, env_rng in zip(ids, instances, env_rngs, strict=True):
+        for b, params, env_rng, policy in zip(
+            ids, instances, env_rngs, policies, strict=True
+        ):
             env = spec.make_env(params, seed=env_rng, **kwargs)
             for episode in range(episodes_per_instance):
                 result = run_episode(env, policy, spec.n_actions)
@@ -181,7 +216,7 @@ def collect_sarsa(
     instances: Sequence[Any],
     *,
     episodes_per_instance: int,
-    rng: np.random.Generator,
+    rng: np.random.Generator | Sequence[np.random.Generator],
     instance_ids: Sequence[int] | None = None,
     max_steps: int | None = None,
 ) -> Collection:
@@ -189,8 +224,9 @@ def collect_sarsa(
     instance (`tasks.agents.learn` with the domain's defaults); every transition it
     saw is kept.
 
-    Instance `i` gets `rng.spawn(B)[i]`, which spawns the environment's seed
-    (initial states) and the agent's exploration stream. If the simulation
+    Instance `i` gets `rng.spawn(B)[i]` (or `rng[i]`, `instance_streams`), which
+    spawns the environment's seed (initial states) and the agent's exploration
+    stream. If the simulation
     diverges (`PhysicsError`), the instance's episodes are all dropped and
     reported as one `Divergence` with `episode = -1` (learning cannot continue
     past a diverged step).
@@ -205,7 +241,8 @@ def collect_sarsa(
     n_steps = agent_domain.max_steps if max_steps is None else max_steps
     _check_positive_int("max_steps", n_steps)
     parts, diverged = [], []
-    for b, params, stream in zip(ids, instances, rng.spawn(len(ids)), strict=True):
+    streams = instance_streams(rng, len(ids))
+    for b, params, stream in zip(ids, instances, streams, strict=True):
         env_rng, agent_rng = stream.spawn(2)
         env = spec.make_env(params, seed=env_rng, max_steps=n_steps)
         try:

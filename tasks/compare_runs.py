@@ -201,8 +201,10 @@ def read_run(run: Path) -> tuple[dict, dict, dict | None]:
 def compare_arrays(a: np.ndarray, b: np.ndarray) -> Any:
     """``"identical"`` (NaN equal to NaN), or how the two differ: the shapes,
     with, where both have the same number of axes and some entries, the leading
-    block both hold (``overlap``: its shape and this comparison of it, e.g. the
-    first 3 trials of a rerun with 5); the dtypes, where they cannot be compared;
+    block both hold (``overlap``: its shape and this comparison of it; rows
+    line up only where both runs gave them the same seeds: a rerun with other
+    ``--trials`` runs other trials on every setting but the first, README
+    Reproducibility); the dtypes, where they cannot be compared;
     the JSON settings, for a JSON string; else the largest absolute difference
     (float64; over the entries that are numbers in both) and how many entries
     differ, NaN placement included."""

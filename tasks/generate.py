@@ -25,9 +25,13 @@ each written to a temporary name and renamed, and `OUT/manifest.json` (config, s
 each shard's instances, parameters, counts and SHA-256), written atomically when the
 run starts and when it completes; in between, each finished shard is one line of
 `OUT/progress.jsonl` (see `hipmdp.shards`). Streams: the instance parameters come from
-`SeedSequence(seed, spawn_key=(0, split))`, shard `k`'s episodes from
-`SeedSequence(seed, spawn_key=(1, split, k))`, so the files are the same whatever
-`--workers` or `--scheduler`. `--resume` keeps the shards whose file matches its
+`SeedSequence(seed, spawn_key=(0, split))`, instance `g`'s episodes (initial
+states, and the random or open-loop actions or the Sarsa agent's exploration)
+from `SeedSequence(seed, spawn_key=(2, split, g))`, so the files are the same
+whatever `--workers` or `--scheduler`, and an instance's data the same whatever
+`--shard-size` (until 2026-12-04, shard `k`'s episodes came from one stream
+`(1, split, k)`, so they depended on the shard size and, for the random policy,
+on the other instances in the shard). `--resume` keeps the shards whose file matches its
 checksum and redoes the others (an unfinished run in `OUT` needs it; a finished one
 is left as it is), unless the run was started by other software (the manifest's
 `software`: package versions and a digest of the source; `--mixed-software`
@@ -191,7 +195,7 @@ class ShardJob(NamedTuple):
     episodes_per_instance: int
     max_steps: int | None
     entropy: int
-    spawn_key: tuple[int, ...]
+    spawn_key: tuple[int, ...]  # instance g's stream: spawn_key + (g,)
 
 
 class ShardOutput(NamedTuple):
@@ -441,6 +445,9 @@ def plan(config: Config) -> dict[str, Any]:
     return manifest
 
 
+#: The first spawn key of each instance's episode stream (module docstring).
+INSTANCE_STREAMS = 2
+
 #: The packages whose versions a run's data depend on (recorded in the manifest).
 DATA_PACKAGES = ("hipmdp", "numpy", "scipy", "mujoco", "dm-control")
 
@@ -524,23 +531,17 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
         if not shards.shard_is_valid(config.out, entry):
             entry.update(sha256=None, counts=None, diverged=[])
             todo.append(entry["index"])
-    recorded = old.get("software")  # None: a run from before 2026-12-04; a
-    # finished run (nothing to do) is left as it is, whatever made it
-    if todo and recorded is not None and recorded != fresh["software"]:
+    recorded = old.get("software")  # None: a run from before 2026-12-04, made
+    # by code that seeded shards, not instances; a finished run (nothing to do)
+    # is left as it is, whatever made it
+    if todo and recorded != fresh["software"]:
         if not config.mixed_software:
-            changed = [
-                name
-                for name in DATA_PACKAGES
-                if recorded["packages"].get(name) != fresh["software"]["packages"][name]
-            ]
-            if recorded.get("source_sha256") != fresh["software"]["source_sha256"]:
-                changed.append("the source of hipmdp, tasks or the MJCF models")
             raise ValueError(
-                f"{config.out} holds this run, made by other software ("
-                f"{', '.join(changed) or 'its record'} changed since it started): "
-                "its shards would mix with data this version makes; choose another "
-                "--out, or pass --mixed-software to continue it all the same (the "
-                "manifest then records which shards each software made)"
+                f"{config.out} holds this run, made by other software "
+                f"({_software_change(recorded, fresh['software'])}): its shards "
+                "would mix with data this version makes; choose another --out, or "
+                "pass --mixed-software to continue it all the same (the manifest "
+                "then records which shards each software made)"
             )
         earlier = old.setdefault("earlier_software", [])
         listed = {i for entry in earlier for i in entry["shards"]}
@@ -567,6 +568,23 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
     return old, todo
 
 
+def _software_change(recorded: dict | None, fresh: dict) -> str:
+    """What changed between the software that started a run and this one."""
+    if recorded is None:
+        return (
+            "it records none: made before 2026-12-04, when each shard's episodes "
+            "were drawn from one stream; each instance has its own now"
+        )
+    changed = [
+        name
+        for name in DATA_PACKAGES
+        if recorded["packages"].get(name) != fresh["packages"][name]
+    ]
+    if recorded.get("source_sha256") != fresh["source_sha256"]:
+        changed.append("the source of hipmdp, tasks or the MJCF models")
+    return f"{', '.join(changed) or 'its record'} changed since it started"
+
+
 @one_blas_thread
 def run_shard(job: ShardJob) -> ShardOutput:
     """Gather one shard's transitions (runs in a worker, in-process, forkserver or
@@ -574,13 +592,18 @@ def run_shard(job: ShardJob) -> ShardOutput:
     where it runs)."""
     spec = get_domain(job.domain)
     params = [spec.params_type(*row) for row in job.values]
-    seq = np.random.SeedSequence(job.entropy, spawn_key=job.spawn_key)
+    streams = [
+        np.random.default_rng(
+            np.random.SeedSequence(job.entropy, spawn_key=(*job.spawn_key, g))
+        )
+        for g in job.instances
+    ]
     kwargs = {} if job.max_steps is None else {"max_steps": job.max_steps}
     collection = POLICIES[job.policy](
         job.domain,
         params,
         episodes_per_instance=job.episodes_per_instance,
-        rng=np.random.default_rng(seq),
+        rng=streams,
         instance_ids=list(job.instances),
         **kwargs,
     )
@@ -665,7 +688,7 @@ def generate(
             config.episodes_per_instance,
             config.max_steps,
             config.seed,
-            (1, split, k),
+            (INSTANCE_STREAMS, split),
         )
         for k in todo
     ]

@@ -35,7 +35,13 @@ from mujoco import rollout as mj_rollout
 from hipmdp.data import ParameterTable, Transitions
 from tasks import acrobot, agents, cartpole
 from tasks._common import parameter_names, parameter_values
-from tasks.collect import Collection, Divergence, _check_positive_int, get_domain
+from tasks.collect import (
+    Collection,
+    Divergence,
+    _check_positive_int,
+    get_domain,
+    instance_streams,
+)
 
 Array = np.ndarray
 
@@ -216,14 +222,15 @@ def collect_open_loop(
     instances: Sequence[Any],
     *,
     episodes_per_instance: int,
-    rng: np.random.Generator,
+    rng: np.random.Generator | Sequence[np.random.Generator],
     instance_ids: Sequence[int] | None = None,
     max_steps: int | None = None,
     chunk: int = DEFAULT_CHUNK,
 ) -> Collection:
     """Open-loop uniformly random action sequences on every instance.
 
-    Instance `b` (the `i`-th) gets `rng.spawn(B)[i]`, which spawns two streams: the
+    Instance `b` (the `i`-th) gets `rng.spawn(B)[i]` (or `rng[i]`,
+    `tasks.collect.instance_streams`), which spawns two streams: the
     first draws the `E` initial states `U[-c, c]^{E×D}` (the draws the environment
     would make with that stream as its seed), the second the actions
     `a ~ Uniform{0, …, A-1}^{E×T}`.
@@ -245,7 +252,7 @@ def collect_open_loop(
     _check_positive_int("max_steps", n_steps)
     e_per = episodes_per_instance
     initial, actions = [], []
-    for stream in rng.spawn(len(instances)):
+    for stream in instance_streams(rng, len(instances)):
         init_rng, action_rng = stream.spawn(2)
         c = module.INITIAL_NOISE
         initial.append(init_rng.uniform(-c, c, size=(e_per, spec.state_dim)))

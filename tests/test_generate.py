@@ -65,15 +65,18 @@ def test_main_writes_loadable_shards_and_a_manifest(tmp_path, capsys):
 
 
 def random_policy_shard(entry: dict, *, seed: int) -> Transitions:
-    """What `collect` gathers on a TINY acrobot run's shard `entry` (split `all`)
-    with the stream `SeedSequence(seed, spawn_key=(1, split, shard))`."""
-    stream = np.random.SeedSequence(seed, spawn_key=(1, 0, entry["index"]))
+    """What `collect` gathers on a TINY acrobot run's shard `entry` (split `all`),
+    instance `g` with the stream `SeedSequence(seed, spawn_key=(2, split, g))`."""
+    streams = [
+        np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(2, 0, g)))
+        for g in entry["instances"]
+    ]
     return collect.collect(
         "acrobot",
         [AcrobotParams(*row) for row in entry["parameters"]],
         episodes_per_instance=2,
         max_steps=10,
-        rng=np.random.default_rng(stream),
+        rng=streams,
         instance_ids=entry["instances"],
     ).transitions
 
@@ -95,9 +98,9 @@ def test_plan_is_the_manifest_as_json_reads_it_back(tmp_path, book):
     assert len(set(params)) == 7
 
 
-def test_shard_is_the_random_policy_on_its_instances_with_the_shard_stream(tmp_path):
-    """A shard holds exactly what `collect` gathers on its instances with the
-    stream `SeedSequence(seed, spawn_key=(1, split, shard))`."""
+def test_shard_is_the_random_policy_on_its_instances_with_their_streams(tmp_path):
+    """A shard holds exactly what `collect` gathers on its instances, instance
+    `g` with the stream `SeedSequence(seed, spawn_key=(2, split, g))`."""
     out = tmp_path / "data"
     generate.main(
         ["--domain", "acrobot", "--seed", "5", "--out", str(out), *TINY, *QUIET]

@@ -15,7 +15,7 @@ import sys
 import numpy as np
 import pytest
 
-from hipmdp import shards
+from hipmdp import Transitions, shards
 from tasks import acrobot, cartpole, collect, generate, rollout
 from tasks._common import wrap_scalar_angle
 
@@ -404,7 +404,8 @@ def test_a_run_from_before_the_finer_steps_resumes_only_if_they_do_not_apply(
     [
         ({"source_sha256": "0" * 64}, "(the source of hipmdp, tasks or the MJCF"),
         ({"packages": {"mujoco": "3.16.0"}}, "(numpy, mujoco changed since"),
-        (None, None),  # a run from before the record: resumed as before
+        # a run from before the record seeded each shard, not each instance
+        (None, "(it records none: made before 2026-12-04, when each shard's"),
     ],
 )
 def test_resume_refuses_a_run_made_by_other_software(
@@ -426,10 +427,6 @@ def test_resume_refuses_a_run_made_by_other_software(
     (run / "manifest.json").write_text(json.dumps(manifest))
     (run / "shard-00001.npz").unlink()
     before = files(run)
-    if change is None:
-        assert generate.main([*RUN, "--out", str(run), "--resume"]).redone == (1,)
-        assert files(run) == files(reference)
-        return
     with pytest.raises(SystemExit):
         generate.main([*RUN, "--out", str(run), "--resume"])
     assert message in capsys.readouterr().err
@@ -474,6 +471,26 @@ def test_mixed_software_continues_and_records_which_shards_each_made(
         {"software": second, "shards": [1]},
     ]
     assert manifest["software"] == fresh
+
+
+@pytest.mark.parametrize("policy", ["random", "sarsa", "open-loop"])
+def test_an_instances_data_do_not_depend_on_the_shard_size(tmp_path, policy):
+    """Shard k's episodes came from one stream (1, split, k): an instance's data
+    changed with --shard-size and, under the random policy, with the lengths of
+    the episodes of the instances before it in its shard."""
+    argv = ["--domain", "acrobot", "--instances", "5", "--episodes-per-instance",
+            "2", "--max-steps", "15", "--policy", policy, "--seed", "3",
+            "--no-progress"]  # fmt: skip
+    runs = {}
+    for size in (1, 2, 5):
+        out = tmp_path / f"size{size}"
+        generate.main([*argv, "--shard-size", str(size), "--out", str(out)])
+        runs[size] = Transitions.load(out, instances=range(5))
+    for size in (2, 5):
+        for name in ("states", "actions", "next_states", "instances", "rewards"):
+            np.testing.assert_array_equal(
+                getattr(runs[size], name), getattr(runs[1], name), err_msg=name
+            )
 
 
 def test_a_finished_run_made_by_other_software_is_left_as_it_is(reference, tmp_path):
