@@ -27,7 +27,7 @@ import numpy as np
 from scipy import optimize
 from tqdm.auto import tqdm
 
-from hipmdp.data import Transitions
+from hipmdp.data import Transitions, check_integer
 from hipmdp.filter import prior_belief, update_belief
 from hipmdp.gibbs import GibbsData, GibbsPriors, run_chains
 from hipmdp.gp import HyperSet, condition, fit_hyper_set, subsample
@@ -228,9 +228,37 @@ def smooth_onto_support(
 
     At most `n_smooth` transitions per (b, a) are used (a uniform subsample from
     `rng`). support: S*, (m, D). Returns Y with shape (A, D, B, m).
+
+    Raises:
+        ValueError: before any work, if `hyper` is not for `data`'s actions and
+            state dimension, `support` is not finite (m, D), `n_smooth` < 1, or
+            an (instance, action) has no transitions (its Y would be 0).
     """
+    if not isinstance(data, Transitions):
+        raise ValueError(f"data: expected Transitions, got {type(data).__name__}")
     A, D = hyper.signal_var.shape
+    if (A, D) != (data.n_actions, data.state_dim):
+        raise ValueError(
+            f"hyper: expected {data.n_actions} actions and state dimension "
+            f"{data.state_dim} (the data's), got {A} and {D}"
+        )  # an action without hyperparameters was dropped
+    support = np.asarray(support, dtype=float)
+    if support.ndim != 2 or support.shape[1] != D or not np.all(np.isfinite(support)):
+        raise ValueError(
+            f"support: expected finite values of shape (m, {D}), got shape "
+            f"{support.shape}"
+        )
+    check_integer("n_smooth", n_smooth, 1)  # 0 gave Y = 0 everywhere
+    if not isinstance(rng, np.random.Generator):
+        raise ValueError(f"rng: expected a numpy Generator, got {rng!r}")
     ids = data.instance_ids
+    for a in range(A):
+        missing = np.setdiff1d(ids, data.instances[data.actions == a])
+        if len(missing):
+            raise ValueError(
+                f"data: action {a} has no transitions in instances "
+                f"{missing.tolist()} (their Y would be 0)"
+            )
     deltas = data.deltas
     Y = np.empty((A, D, len(ids), len(support)))
     cells = [(bi, b, a) for bi, b in enumerate(ids) for a in range(A)]
@@ -253,8 +281,23 @@ def posterior_weights(
     with rows of F over every (r, support point). Y: (R, B, m); f: (K, R, m);
     z: bool (K, R); noise: (R,); mu_w: (K,). Returns (K, B) with row 0 = 1.
     """
+    f = np.asarray(f, dtype=float)
+    if f.ndim != 3:
+        raise ValueError(f"f: expected shape (K, R, m), got {np.shape(f)}")
     K, R, m = f.shape
-    B = Y.shape[1]
+    Y = np.asarray(Y, dtype=float)
+    B = Y.shape[1] if Y.ndim == 3 else "B"
+    for name, value, shape in (
+        ("Y", Y, (R, B, m)),
+        ("z", z, (K, R)),
+        ("noise", noise, (R,)),
+        ("mu_w", mu_w, (K,)),
+    ):  # a Y of (R, B, 1) broadcast against f's m support points
+        if np.shape(value) != shape:
+            raise ValueError(
+                f"{name}: expected shape {shape} (f is (K, R, m) = {f.shape}), "
+                f"got {np.shape(value)}"
+            )
     W = np.ones((K, B))
     F = np.transpose(f[1:] * z[1:, :, None], (2, 1, 0))  # (m, R, K - 1)
     noise_rows = np.broadcast_to(noise, (m, R))
@@ -269,10 +312,13 @@ def fit(data: Transitions, config: FitConfig, *, rng: np.random.Generator) -> Hi
     """Fit a HiP-MDP to batch transitions from several instances (pipeline above).
 
     data: transitions of B >= 2 training instances, every action seen in each.
-    Same data, config and a generator from the same seed → identical model. The
-    fit's streams are spawned from ``rng``'s seed sequence (``rng.spawn``), not
-    drawn from its state: earlier draws from ``rng`` do not change the fit, and a
-    restored ``bit_generator.state`` does not reproduce one.
+    Same data, config and a fresh generator from the same seed → identical
+    model. The fit's streams are spawned from ``rng``'s seed sequence
+    (``rng.spawn``), not drawn from its state: earlier draws from ``rng`` do not
+    change the fit, and a restored ``bit_generator.state`` does not reproduce
+    one; but earlier spawns do (an earlier ``fit``, ``run_chains`` or
+    ``rng.spawn`` on the same object): a second ``fit`` with the same generator
+    is another fit.
     """
     if not isinstance(config, FitConfig):
         raise ValueError(f"config: expected FitConfig, got {type(config).__name__}")

@@ -32,6 +32,7 @@ from typing import NamedTuple
 import numpy as np
 from tqdm.auto import tqdm
 
+from hipmdp.data import check_integer
 from hipmdp.gp import HyperSet, subsample
 from hipmdp.kernels import check_periodic, embed, se_kernel
 
@@ -153,6 +154,18 @@ def select_support(
     refers to rows of `states`.
     """
     states = np.asarray(states, dtype=float)
+    dim = hyper.lengthscales.shape[2]
+    if states.ndim != 2 or states.shape[1] != dim:
+        raise ValueError(
+            f"states: expected shape (N, {dim}), the hyperparameters' state "
+            f"dimension, got {states.shape}"
+        )  # a narrower one was fitted with the first length scales
+    if not np.all(np.isfinite(states)):
+        raise ValueError("states: expected finite values")  # NaN rows were chosen
+    check_integer("n_support (m)", m, 1)
+    check_integer("n_candidates", n_candidates, 1)
+    if not isinstance(rng, np.random.Generator):
+        raise ValueError(f"rng: expected a numpy Generator, got {rng!r}")
     _, first = np.unique(states, axis=0, return_index=True)
     first = np.sort(first)
     cand = first[subsample(len(first), n_candidates, rng=rng)]

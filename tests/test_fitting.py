@@ -7,6 +7,7 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
+import pytest
 
 from hipmdp import FitConfig, fit
 from hipmdp import gibbs_dense as dense
@@ -98,3 +99,58 @@ def test_data_at_the_magnitude_limit_fit_without_overflow():
         warnings.simplefilter("error")  # an overflow warns before it shows
         model = fit(big, config, rng=np.random.default_rng(1))
     assert np.all(np.isfinite(model.f)) and np.all(np.isfinite(model.weights))
+
+
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [
+        ({"n_smooth": 0}, "n_smooth: expected >= 1"),  # was Y = 0 everywhere
+        ({"n_smooth": -1}, "n_smooth: expected >= 1"),
+        ({"hyper": 1}, r"hyper: expected 2 actions .* got 1 and 3"),  # dropped a
+        ({"support": np.zeros((7, 2))}, r"support: expected .* \(m, 3\)"),
+        ({"support": np.full((7, 3), np.nan)}, "support: expected finite"),
+        ({"rng": 1}, "rng: expected a numpy Generator"),
+        ({"data": "empty cell"}, r"action 1 has no transitions in instances \[3\]"),
+    ],
+)
+def test_smoothing_refuses_what_it_would_fill_with_zeros(change, match):
+    rng = np.random.default_rng(0)
+    data, hyper = _batch(rng), _hyper(rng)
+    args = {"data": data, "support": rng.uniform(-1, 1, size=(7, 3)),
+            "hyper": hyper, "n_smooth": 10,
+            "rng": np.random.default_rng(1)}  # fmt: skip
+    args |= change
+    if change.get("hyper") == 1:
+        args["hyper"] = HyperSet(
+            hyper.lengthscales[:1], hyper.signal_var[:1], hyper.noise_var[:1]
+        )
+    if change.get("data") == "empty cell":
+        keep = ~((data.instances == 3) & (data.actions == 1))
+        args["data"] = Transitions(
+            data.states[keep], data.actions[keep], data.next_states[keep],
+            data.instances[keep],
+        )  # fmt: skip
+    with pytest.raises(ValueError, match=match):
+        smooth_onto_support(
+            args.pop("data"), args.pop("support"), args.pop("hyper"), **args
+        )
+
+
+@pytest.mark.parametrize(
+    ("name", "bad", "match"),
+    [
+        ("Y", np.zeros((5, 6, 1)), r"Y: expected shape \(5, 6, 8\)"),  # broadcast
+        ("Y", np.zeros((5, 6)), r"Y: expected shape \(5, 'B', 8\)"),
+        ("z", np.ones((4, 4), bool), r"z: expected shape \(4, 5\)"),
+        ("noise", np.ones(4), r"noise: expected shape \(5,\)"),
+        ("mu_w", np.zeros(3), r"mu_w: expected shape \(4,\)"),  # blamed F
+    ],
+)
+def test_posterior_weights_refuse_mismatched_shapes(name, bad, match):
+    K, R, B, m = 4, 5, 6, 8
+    args = {"Y": np.zeros((R, B, m)), "f": np.zeros((K, R, m)),
+            "z": np.ones((K, R), bool), "noise": np.ones(R),
+            "mu_w": np.zeros(K)}  # fmt: skip
+    args[name] = bad
+    with pytest.raises(ValueError, match=match):
+        posterior_weights(**args, sigma_w=0.7)

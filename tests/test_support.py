@@ -53,6 +53,26 @@ def test_too_many_support_points_raises():
         select_support(S, _hyper(), 6, n_candidates=100, rng=np.random.default_rng(0))
 
 
+@pytest.mark.parametrize(
+    ("states", "kwargs", "match"),
+    [
+        # a narrower state was fitted with the first length scales, silently
+        (np.zeros((10, 1)), {}, r"states: expected shape \(N, 2\)"),
+        (np.zeros((10, 3)), {}, r"states: expected shape \(N, 2\)"),
+        (np.zeros(10), {}, r"states: expected shape \(N, 2\)"),
+        # a NaN row was chosen as a support point
+        (np.vstack([np.eye(2), [[np.nan, 0.0]]]), {}, "states: expected finite"),
+        (np.eye(2), {"n_candidates": 0}, "n_candidates: expected >= 1"),
+        (np.eye(2), {"m": True}, r"n_support \(m\): expected an integer"),
+        (np.eye(2), {"rng": 0}, "rng: expected a numpy Generator"),
+    ],
+)
+def test_select_support_refuses_bad_input(states, kwargs, match):
+    args = {"m": 1, "n_candidates": 10, "rng": np.random.default_rng(0)} | kwargs
+    with pytest.raises(ValueError, match=match):
+        select_support(states, _hyper(), args.pop("m"), **args)
+
+
 def test_periodic_incremental_matches_dense_reference():
     rng = np.random.default_rng(2)
     X = rng.uniform(-np.pi, np.pi, size=(120, 2))
