@@ -60,6 +60,32 @@ __all__ = [
 Array = np.ndarray
 
 
+def _check_rng(rng, where: str) -> None:
+    if not isinstance(rng, np.random.Generator):
+        raise ValueError(f"{where}: rng must be a numpy Generator, got {rng!r}")
+
+
+def _check_cache(data: GibbsData, cache: GibbsCache) -> GibbsCache:
+    """``cache`` if it was prepared from ``data``, else a ValueError: what reads
+    the cache never looks at ``data`` again, so other data went unnoticed (a
+    log_joint of Y * 2 scored the original Y). Compares the shapes, σ², Y
+    (rotated back) and K's diagonal (from its eigendecomposition):
+    O(R B m² + R m²), against the O(R m³) of preparing."""
+    Y = np.asarray(data.Y, dtype=float)
+    if Y.shape != cache.Yt.shape or not np.array_equal(data.noise, cache.noise):
+        raise ValueError("cache: prepared from other data; use prepare(data)")
+    scale = max(np.abs(Y).max(initial=0.0), 1e-300)
+    Yback = cache.Yt @ np.swapaxes(cache.U, 1, 2)
+    diag = np.diagonal(np.asarray(data.K, dtype=float), axis1=1, axis2=2)
+    diag_back = np.einsum("rij,rj->ri", cache.U**2, cache.lam)
+    top = cache.lam.max(axis=1, keepdims=True)
+    if not np.allclose(Yback, Y, rtol=0, atol=1e-8 * scale) or not np.allclose(
+        diag_back, diag, rtol=0, atol=1e-6 * top
+    ):
+        raise ValueError("cache: prepared from other data; use prepare(data)")
+    return cache
+
+
 def init_state(
     data: GibbsData,
     priors: GibbsPriors,
@@ -73,7 +99,8 @@ def init_state(
     features from the IBP prior instead begins far from the data and climbs slowly.
     `priors` is validated for symmetry with the sweep; `rng` draws f[0]."""
     data, priors = check_data(data), check_priors(priors)
-    cache = prepare(data) if cache is None else cache
+    _check_rng(rng, "init_state")
+    cache = prepare(data) if cache is None else _check_cache(data, cache)
     R, B, m = data.Y.shape
     z, w, mu_w = np.ones((1, R), dtype=bool), np.ones((1, B)), np.zeros(1)
     ft = f_block(EigenAlgebra(cache), z, w, np.zeros((1, R, m)), rng=rng)
@@ -95,9 +122,8 @@ def gibbs_sweep(
     for the conditionals, O(N_w B m) per new-feature proposal.
     """
     priors = check_priors(priors)
-    # the sweep reads everything from the cache: other data would go unnoticed
-    if data.Y.shape != cache.Yt.shape or not np.array_equal(data.noise, cache.noise):
-        raise ValueError("cache: prepared from other data; use prepare(data)")
+    _check_rng(rng, "gibbs_sweep")
+    _check_cache(data, cache)
     check_state(state, *cache.Yt.shape)
     ft = to_eigen(state.f, cache)
     z, w, ft, mu_w = sweep(
@@ -119,7 +145,7 @@ def log_joint(
     + log P_IBP([z[1:]])   (`hipmdp.gibbs_model.ibp_log_prior`)
     """
     priors = check_priors(priors)
-    cache = prepare(data) if cache is None else cache
+    cache = prepare(data) if cache is None else _check_cache(data, cache)
     check_state(state, *cache.Yt.shape)
     ft = to_eigen(state.f, cache)
     return log_joint_eigen(state.z, state.w, ft, state.mu_w, priors, cache)
@@ -133,7 +159,7 @@ def log_marginal(
 ) -> float:
     """log p(Y, z, w, μ_w) with every f marginalised (`log_marginal_eigen`)."""
     priors = check_priors(priors)
-    cache = prepare(data) if cache is None else cache
+    cache = prepare(data) if cache is None else _check_cache(data, cache)
     check_state(state, *cache.Yt.shape)
     return log_marginal_eigen(state.z, state.w, state.mu_w, priors, cache)
 
@@ -191,6 +217,7 @@ def run_chains(
     switches it off.
     """
     data, priors = check_data(data), check_priors(priors)
+    _check_rng(rng, "run_chains")
     check_integer("run_chains: n_sweeps", n_sweeps, 1)
     check_integer("run_chains: n_chains", n_chains, 1)
     if select not in ("marginal", "joint"):

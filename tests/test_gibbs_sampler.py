@@ -456,9 +456,44 @@ def test_a_sweep_refuses_a_cache_of_other_data():
     data, _ = small_problem(12)
     priors = GibbsPriors(alpha=1.0, sigma_w=1.0, sigma_w0=1.0, n_w=5)
     state, cache = init_state(data, priors, rng=np.random.default_rng(0)), prepare(data)
-    for other in (data._replace(noise=2 * data.noise), small_problem(12, B=3)[0]):
-        with pytest.raises(ValueError, match="cache: prepared from other data"):
-            gibbs_sweep(state, other, priors, cache, rng=np.random.default_rng(0))
+    others = (
+        data._replace(noise=2 * data.noise),
+        small_problem(12, B=3)[0],
+        data._replace(Y=2 * data.Y),  # log_joint scored the original Y
+        data._replace(K=2 * data.K),
+    )
+    for other in others:
+        calls = (
+            lambda o: gibbs_sweep(
+                state, o, priors, cache, rng=np.random.default_rng(0)
+            ),
+            lambda o: log_joint(state, o, priors, cache),
+            lambda o: log_marginal(state, o, priors, cache),
+            lambda o: init_state(o, priors, rng=np.random.default_rng(0), cache=cache),
+        )
+        for call in calls:
+            with pytest.raises(ValueError, match="cache: prepared from other data"):
+                call(other)
+    # the cache of these very data passes, the round trip's round-off included
+    assert log_joint(state, data, priors, cache) == log_joint(state, data, priors)
+
+
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda d, p, c: run_chains(d, p, n_sweeps=2, n_chains=1, rng=42),
+        lambda d, p, c: init_state(d, p, rng=None),
+        lambda d, p, c: gibbs_sweep(init_state(d, p, rng=np.random.default_rng(0)),
+                                    d, p, c, rng=0),
+    ],
+)  # fmt: skip
+def test_a_rng_that_is_not_a_generator_is_refused_first(call):
+    """run_chains failed with AttributeError after preparing the data (seconds
+    at the paper's sizes); init_state with AttributeError."""
+    data, _ = small_problem(12)
+    priors = GibbsPriors(alpha=1.0, sigma_w=1.0, sigma_w0=1.0, n_w=5)
+    with pytest.raises(ValueError, match="rng must be a numpy Generator"):
+        call(data, priors, prepare(data))
 
 
 @pytest.mark.parametrize(
