@@ -96,6 +96,31 @@ def prior_belief(mu_w: Array, sigma_w: float) -> Belief:
     return Belief(h=P0 @ mu_w, P=P0)
 
 
+def _check_rows(belief: Belief, F: Array, **rows: Array) -> tuple[Array, ...]:
+    """``F`` and the (n, D) arrays ``rows`` as finite float arrays of matching
+    shapes, ``noise_var`` > 0, or a ValueError naming the argument (NaN in F or
+    the innovation was blamed on the Belief; predictive broadcast an f1 of shape
+    (D,) and took a negative σ²)."""
+    if not isinstance(belief, Belief):
+        raise ValueError(f"belief: expected a Belief, got {type(belief).__name__}")
+    F = np.asarray(F, dtype=float)
+    if F.ndim != 3 or F.shape[2] != belief.dim:
+        raise ValueError(f"F: expected shape (n, D, {belief.dim}), got {F.shape}")
+    out = [F]
+    for name, x in rows.items():
+        x = np.asarray(x, dtype=float)
+        if x.shape != F.shape[:2]:
+            raise ValueError(f"{name}: expected shape {F.shape[:2]}, got {x.shape}")
+        out.append(x)
+    for name, x in zip(["F", *rows], out, strict=True):
+        if not np.all(np.isfinite(x)):
+            raise ValueError(f"{name}: expected finite values")
+    named = dict(zip(rows, out[1:], strict=True))
+    if "noise_var" in named and not np.all(named["noise_var"] > 0):
+        raise ValueError("noise_var: expected finite values > 0")
+    return tuple(out)
+
+
 def update_belief(
     belief: Belief, F: Array, innovation: Array, noise_var: Array
 ) -> Belief:
@@ -106,16 +131,9 @@ def update_belief(
 
     F: (n, D, K - 1); innovation: Δ - f_1, shape (n, D); noise_var: σ², shape (n, D).
     """
-    F, innovation, noise_var = (
-        np.asarray(x, dtype=float) for x in (F, innovation, noise_var)
+    F, innovation, noise_var = _check_rows(
+        belief, F, innovation=innovation, noise_var=noise_var
     )
-    if F.ndim != 3 or F.shape[2] != belief.dim:
-        raise ValueError(f"F: expected shape (n, D, {belief.dim}), got {F.shape}")
-    for name, x in (("innovation", innovation), ("noise_var", noise_var)):
-        if x.shape != F.shape[:2]:
-            raise ValueError(f"{name}: expected shape {F.shape[:2]}, got {x.shape}")
-    if not (np.all(np.isfinite(noise_var)) and np.all(noise_var > 0)):
-        raise ValueError("noise_var: expected finite values > 0")
     inv = 1.0 / noise_var
     h = belief.h + np.einsum("idk,id->k", F, innovation * inv)
     P = belief.P + np.einsum("idk,idj->kj", F * inv[..., None], F)
@@ -134,6 +152,7 @@ def predictive(
     functions are taken at their GP-mean interpolation (their own uncertainty is
     ignored, as in the paper).
     """
+    F, f1, noise_var = _check_rows(belief, F, f1=f1, noise_var=noise_var)
     if belief.dim == 0:
         return f1.copy(), noise_var.copy()
     mu, cov = belief.mean, belief.cov

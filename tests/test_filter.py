@@ -9,7 +9,7 @@ import pytest
 from scipy import stats
 
 from hipmdp.data import Transitions
-from hipmdp.filter import Belief, prior_belief, update_belief
+from hipmdp.filter import Belief, predictive, prior_belief, update_belief
 from hipmdp.gp import HyperSet
 from hipmdp.kernels import se_kernel
 from hipmdp.model import HipMDP
@@ -301,9 +301,35 @@ def test_filter_functions_check_their_inputs():
         ((F, innovation[:, :3], noise), r"innovation: expected shape \(3, 4\)"),
         ((F, innovation, noise[:2]), r"noise_var: expected shape \(3, 4\)"),
         ((F, innovation, 0 * noise), "noise_var: expected finite values > 0"),
+        # NaN here was blamed on the Belief ("expected finite h and P")
+        ((F * np.nan, innovation, noise), "F: expected finite values"),
+        ((F, innovation + np.inf, noise), "innovation: expected finite values"),
     ]:
         with pytest.raises(ValueError, match=match):
             update_belief(prior, *args)
+
+
+def test_predictive_checks_its_inputs_as_the_update_does():
+    """predictive checked nothing: σ² = -1 gave a variance of 1, an f1 of shape
+    (D,) or (1, D) broadcast, and with no latent weights the inputs came back
+    as they were given."""
+    prior = prior_belief(np.zeros(2), 1.0)
+    F, f1, noise = np.ones((3, 4, 2)), np.zeros((3, 4)), np.ones((3, 4))
+    predictive(prior, F, f1, noise)
+    empty = prior_belief(np.zeros(0), 1.0)
+    for belief, args, match in [
+        (prior, (F, f1, -noise), "noise_var: expected finite values > 0"),
+        (prior, (F, f1[0], noise), r"f1: expected shape \(3, 4\)"),
+        (prior, (F, f1[:1], noise), r"f1: expected shape \(3, 4\)"),
+        (prior, (F, f1 * np.nan, noise), "f1: expected finite values"),
+        (prior, (F * np.nan, f1, noise), "F: expected finite values"),
+        (empty, (np.ones((1, 2, 0)), [[1, 2, 3]], [[1, 1]]), "f1: expected shape"),
+        ("belief", (F, f1, noise), "belief: expected a Belief"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            predictive(belief, *args)
+    mean, var = predictive(empty, np.ones((1, 2, 0)), [[1, 2]], [[1, 1]])
+    assert isinstance(mean, np.ndarray) and mean.tolist() == [[1.0, 2.0]]
 
 
 @pytest.mark.parametrize(
