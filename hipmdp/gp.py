@@ -21,7 +21,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy import linalg, optimize
 
-from hipmdp.data import read_only
+from hipmdp.data import check_integer, read_only
 from hipmdp.kernels import check_periodic, se_kernel, se_kernel_grad
 
 Array = np.ndarray
@@ -244,6 +244,17 @@ def condition(X: Array, y: Array, hyper: GPHyper) -> GPPosterior:
         raise ValueError(
             f"X and y: expected the same length, got {len(X)} and {len(y)}"
         )
+    for name, value in (("X", X), ("y", y)):
+        if not np.all(np.isfinite(value)):
+            raise ValueError(f"{name}: expected finite values")
+    try:
+        noise = float(hyper.noise_var)
+    except (TypeError, ValueError):
+        noise = np.nan
+    if not (np.isfinite(noise) and noise > 0):
+        raise ValueError(  # σ_n² = -5 failed in the Cholesky factorisation
+            f"hyper.noise_var: expected a finite number > 0, got {hyper.noise_var!r}"
+        )
     K = se_kernel(X, X, hyper.lengthscales, hyper.signal_var, hyper.periodic)
     L = linalg.cholesky(K + hyper.noise_var * np.eye(len(y)), lower=True)
     alpha = linalg.cho_solve((L, True), y)
@@ -277,7 +288,35 @@ def fit_hyper_set(
     periodic: the angle dimensions of the states (`hipmdp.kernels`). Returns a
     HyperSet.
     """
-    D = states.shape[1]
+    states, deltas = np.asarray(states, float), np.asarray(deltas, float)
+    actions, instances = np.asarray(actions), np.asarray(instances)
+    if states.ndim != 2 or not len(states):
+        raise ValueError(f"states: expected shape (N >= 1, D), got {states.shape}")
+    N, D = states.shape
+    for name, value, shape in (
+        ("deltas", deltas, (N, D)), ("actions", actions, (N,)),
+        ("instances", instances, (N,)),
+    ):  # fmt: skip
+        if value.shape != shape:
+            raise ValueError(f"{name}: expected shape {shape}, got {value.shape}")
+    for name, value in (("states", states), ("deltas", deltas)):
+        if not np.all(np.isfinite(value)):
+            raise ValueError(f"{name}: expected finite values")
+    check_integer("n_actions", n_actions, 1)  # 0 returned an empty HyperSet
+    check_integer("n_subsample", n_subsample, 1)  # <= 0 used 2 per instance
+    if not np.issubdtype(actions.dtype, np.integer) or np.any(
+        (actions < 0) | (actions >= n_actions)
+    ):
+        raise ValueError(f"actions: expected integers in [0, {n_actions})")
+    if not isinstance(rng, np.random.Generator):
+        raise ValueError(f"rng: expected a numpy Generator, got {rng!r}")
+    counts = np.bincount(actions, minlength=n_actions)
+    if np.any(counts < 2):
+        a = int(np.argmax(counts < 2))
+        raise ValueError(
+            f"actions: expected at least 2 transitions of each action, got "
+            f"{counts[a]} of action {a}"
+        )
     ids = np.unique(instances)
     per_instance = max(2, n_subsample // len(ids))
     ell = np.empty((n_actions, D, D))

@@ -102,6 +102,16 @@ def test_prediction_matches_dense_formula():
     # y as a column gave (4, 1) means, which broadcast silently against (4,)
     with pytest.raises(ValueError, match=r"y: expected shape \(n,\), got \(10, 1\)"):
         condition(X, y[:, None], h)
+    # NaN failed inside scipy ("array must not contain infs or NaNs"), σ_n² = -5
+    # as a LinAlgError
+    for args, match in [
+        ((X, y * np.nan, h), "y: expected finite values"),
+        ((X * np.inf, y, h), "X: expected finite values"),
+        ((X, y, h._replace(noise_var=-5.0)), "hyper.noise_var: expected a finite"),
+        ((X, y, h._replace(noise_var=np.nan)), "hyper.noise_var: expected a finite"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            condition(*args)
 
 
 def test_periodic_nlml_gradient_matches_finite_differences():
@@ -173,6 +183,40 @@ def test_hyper_set_fits_each_action_on_at_most_n_subsample_transitions(monkeypat
             rows = np.flatnonzero((actions == a) & (instances == b))
             i = [int(np.flatnonzero((states[rows] == s).all(axis=1))[0]) for s in x]
             np.testing.assert_array_equal(y, deltas[rows[i], d])
+
+
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [
+        ({"states": np.zeros((0, 2))}, r"states: expected shape \(N >= 1, D\)"),
+        ({"n_actions": 0}, "n_actions: expected >= 1"),  # an empty HyperSet
+        ({"n_subsample": 0}, "n_subsample: expected >= 1"),  # used 2 silently
+        ({"actions": np.zeros(12)}, r"actions: expected integers in \[0, 2\)"),
+        ({"actions": np.full(12, 2)}, r"actions: expected integers in \[0, 2\)"),
+        ({"actions": np.r_[np.zeros(11, int), 1]},
+         "at least 2 transitions of each action, got 1 of action 1"),
+        ({"deltas": np.zeros((12, 3))}, r"deltas: expected shape \(12, 2\)"),
+        ({"instances": np.zeros(11)}, r"instances: expected shape \(12,\)"),
+        ({"states": np.full((12, 2), np.nan)}, "states: expected finite"),
+        ({"rng": 0}, "rng: expected a numpy Generator"),
+    ],
+)  # fmt: skip
+def test_hyper_set_refuses_bad_input_before_fitting(change, match):
+    """Empty states failed with ZeroDivisionError; an absent action with a
+    message about `groups` that did not say which action."""
+    args = {
+        "states": np.arange(24.0).reshape(12, 2), "actions": np.arange(12) % 2,
+        "deltas": np.ones((12, 2)), "instances": np.arange(12) // 6,
+        "n_actions": 2, "n_subsample": 8, "rng": np.random.default_rng(0),
+    } | change  # fmt: skip
+    if len(args["states"]) == 0:
+        args |= {"deltas": np.zeros((0, 2)), "actions": np.zeros(0, int),
+                 "instances": np.zeros(0, int)}  # fmt: skip
+    with pytest.raises(ValueError, match=match):
+        gp.fit_hyper_set(
+            *(args.pop(k) for k in ("states", "actions", "deltas", "instances")),
+            args.pop("n_actions"), **args,
+        )  # fmt: skip
 
 
 def test_a_search_stuck_at_its_start_by_lost_precision_warns():
