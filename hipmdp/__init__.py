@@ -19,7 +19,7 @@ from hipmdp.planning import (
     StepwiseModel,
     plan,
 )
-from hipmdp.sarsa import SarsaConfig, SarsaState, init_state
+from hipmdp.sarsa import SarsaConfig, SarsaState
 
 __all__ = [
     "FILTER_WEIGHTS",
@@ -40,7 +40,6 @@ __all__ = [
     "StepwiseModel",
     "Transitions",
     "fit",
-    "init_state",
     "load",
     "plan",
     "run_chains",

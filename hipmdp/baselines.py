@@ -207,20 +207,37 @@ def fit_gp_baseline(
     return GPBaseline(posteriors=posteriors, hyper=hyper, name=name)
 
 
+def _own(kwargs: dict, *names: str) -> None:
+    """Refuse ``kwargs`` that a named baseline sets itself (were a duplicate
+    keyword TypeError)."""
+    taken = sorted(set(names) & set(kwargs))
+    if taken:
+        raise ValueError(
+            f"{', '.join(taken)}: set by this baseline; call fit_gp_baseline to "
+            "choose it"
+        )
+
+
 def batch_only(batch: Transitions, *, rng: np.random.Generator, **kwargs) -> GPBaseline:
-    """The average model: one GP on all batch data (kwargs: see fit_gp_baseline)."""
+    """The average model: one GP on all batch data (kwargs: see fit_gp_baseline,
+    but `name`)."""
+    _own(kwargs, "name")
     return fit_gp_baseline(batch, rng=rng, name="batch only", **kwargs)
 
 
 def train_only(train: Transitions, *, rng: np.random.Generator, **kwargs) -> GPBaseline:
-    """One GP on the new instance's transitions only (kwargs: see fit_gp_baseline)."""
+    """One GP on the new instance's transitions only (kwargs: see
+    fit_gp_baseline, but `name`)."""
+    _own(kwargs, "name")
     return fit_gp_baseline(train, rng=rng, name="train only", **kwargs)
 
 
 def batch_plus_train(
     batch: Transitions, train: Transitions, *, rng: np.random.Generator, **kwargs
 ) -> GPBaseline:
-    """One GP on batch and train data together; every train transition is kept."""
+    """One GP on batch and train data together; every train transition is kept
+    (kwargs: see fit_gp_baseline, but `name` and `keep`)."""
+    _own(kwargs, "name", "keep")
     both = Transitions.concatenate([batch, train])
     keep = np.concatenate([np.zeros(len(batch), bool), np.ones(len(train), bool)])
     return fit_gp_baseline(both, rng=rng, keep=keep, name="batch + train", **kwargs)

@@ -227,3 +227,16 @@ def test_periodic_baseline_fast_path_and_options():
         )
     with pytest.raises(ValueError, match="periodic: expected distinct"):
         batch_only(batch, rng=np.random.default_rng(1), periodic=(2,))
+
+
+def test_named_baselines_refuse_the_arguments_they_set():
+    """The docstrings said "kwargs: see fit_gp_baseline", but name= (and keep=
+    for batch + train) failed with a duplicate-keyword TypeError."""
+    data = _batch(np.random.default_rng(0))
+    rng = np.random.default_rng(1)
+    with pytest.raises(ValueError, match="name: set by this baseline"):
+        train_only(data, rng=rng, name="x")
+    with pytest.raises(ValueError, match="name: set by this baseline"):
+        batch_only(data, rng=rng, name="x")
+    with pytest.raises(ValueError, match="keep, name: set by this baseline"):
+        batch_plus_train(data, data, rng=rng, keep=None, name="x")
