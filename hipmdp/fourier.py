@@ -63,7 +63,9 @@ class FourierBasis:
             raise ValueError("low, high: expected finite bounds")
         if np.any(high <= low):
             raise ValueError(f"high: expected high > low everywhere, got {low}, {high}")
-        n_features = (self.order + 1) ** low.size
+        # a Python int: numpy integer orders would wrap ((2^32 - 1 + 1)^2 == 0 in
+        # int64) and slip past the guard
+        n_features = (int(self.order) + 1) ** low.size
         if n_features > 1_000_000:
             raise ValueError(
                 f"order: (order + 1)^D = {n_features} features is more than 1e6"

@@ -83,3 +83,13 @@ def test_non_finite_states_raise() -> None:
             ValueError, match=r"states: non-finite value at index \(1, 0\)"
         ):
             basis(np.array([[0.5, 0.5], [bad, 0.5]]))
+
+
+@pytest.mark.parametrize(
+    ("order", "dim"), [(np.int64(2**32 - 1), 2), (np.int32(255), 4), (np.uint8(255), 3)]
+)
+def test_feature_count_guard_holds_for_numpy_integer_orders(order, dim) -> None:
+    """(order + 1)^D in the order's own dtype wrapped to 0 (or a small number),
+    passed the 1e6 guard and then ran out of memory building the coefficients."""
+    with pytest.raises(ValueError, match=r"order: \(order \+ 1\)\^D = \d+ features"):
+        FourierBasis(order, np.zeros(dim), np.ones(dim))
