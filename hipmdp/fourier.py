@@ -22,6 +22,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from hipmdp.data import check_integer
+
 Array = NDArray[np.float64]
 
 
@@ -50,8 +52,7 @@ class FourierBasis:
     _inv_width: Array = field(init=False, repr=False)  # 1 / (high - low), shape (D,)
 
     def __post_init__(self) -> None:
-        if not isinstance(self.order, int | np.integer) or self.order < 0:
-            raise ValueError(f"order: expected an integer >= 0, got {self.order!r}")
+        check_integer("order", self.order, 0)
         low = np.array(self.low, dtype=np.float64)
         high = np.array(self.high, dtype=np.float64)
         if low.ndim != 1 or low.shape != high.shape or low.size == 0:

@@ -59,6 +59,8 @@ def test_step_scale_is_inverse_coefficient_norm() -> None:
     ("kwargs", "field"),
     [
         ({"order": -1, "low": [0.0], "high": [1.0]}, "order"),
+        ({"order": True, "low": [0.0], "high": [1.0]}, "order: expected an integer"),
+        ({"order": 2.0, "low": [0.0], "high": [1.0]}, "order: expected an integer"),
         ({"order": 2, "low": [0.0, 0.0], "high": [1.0]}, "low, high"),
         ({"order": 2, "low": [1.0], "high": [1.0]}, "high"),
         ({"order": 2, "low": [np.nan], "high": [1.0]}, "low, high"),
