@@ -35,6 +35,8 @@ from typing import Literal, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from hipmdp.data import check_integer
+
 Array = NDArray[np.float64]
 TraceKind = Literal["replacing", "accumulating"]
 
@@ -107,10 +109,8 @@ def init_state(
     for rewards ≤ 0 (the acrobot's −1 per step); for the cart-pole's +1 per step it
     is ``1 / (1 − γ)``.
     """
-    if n_actions < 1 or n_features < 1:
-        raise ValueError(
-            f"n_actions, n_features: expected >= 1, got {n_actions}, {n_features}"
-        )
+    check_integer("n_actions", n_actions, 1)
+    check_integer("n_features", n_features, 1)
     if not np.isfinite(initial_value):
         raise ValueError(f"initial_value: expected a finite value, got {initial_value}")
     weights = np.zeros((n_actions, n_features))
@@ -123,6 +123,7 @@ def reset_traces(state: SarsaState, n_episodes: int | None = None) -> SarsaState
     ``(n_episodes, A, F)`` for lockstep episodes."""
     shape = state.weights.shape
     if n_episodes is not None:
+        check_integer("n_episodes", n_episodes, 1)
         shape = (n_episodes, *shape)
     return SarsaState(state.weights, np.zeros(shape))
 

@@ -244,3 +244,29 @@ def test_updates_refuse_bad_actions_and_a_diverged_td_error() -> None:
         update([0, 1], [1, 3], [0.0, 0.0])
     with pytest.raises(ValueError, match="Sarsa.* diverged"):
         update([0, 1], [1, 0], [0.0, np.inf])
+
+
+def test_counts_must_be_integers_naming_the_argument() -> None:
+    """init_state(2.5, 3) failed inside numpy ("'float' object cannot be
+    interpreted as an integer"), (True, 3) with "an integer is required" and
+    ('3', 3) comparing str with int; reset_traces(state, -1) with "negative
+    dimensions", and n_episodes = 0 gave traces no batch update could use."""
+    for args, match in [
+        ((2.5, 3), r"n_actions: expected an integer >= 1, got 2.5 \(float\)"),
+        ((True, 3), r"n_actions: expected an integer >= 1, got True \(bool\)"),
+        (("3", 3), "n_actions: expected an integer"),
+        ((3, 0), "n_features: expected >= 1, got 0"),
+        ((3, np.float64(4.0)), "n_features: expected an integer"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            init_state(*args)
+    state = init_state(np.int64(3), np.int32(2))  # numpy integers are integers
+    assert reset_traces(state, np.int64(2)).traces.shape == (2, 3, 2)
+    for n, match in [
+        (-1, "n_episodes: expected >= 1, got -1"),
+        (0, "n_episodes: expected >= 1, got 0"),
+        (2.0, "n_episodes: expected an integer"),
+        (True, "n_episodes: expected an integer"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            reset_traces(state, n)
