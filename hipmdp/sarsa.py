@@ -29,6 +29,7 @@ Everything is explicit state: :class:`SarsaState` in, a new :class:`SarsaState` 
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 from typing import Literal, NamedTuple
 
@@ -45,6 +46,14 @@ _DIVERGED = (
     "Sarsa(λ) diverged: a non-finite TD error (a non-finite reward or weight; "
     "a smaller step size α may help)"
 )
+
+
+def _is_number(value: object) -> bool:
+    """A real number, not a bool (``True`` would pass as 1); floats (numpy's too)
+    take the fast path, as the updates call this once per step."""
+    return isinstance(value, float) or (
+        isinstance(value, numbers.Real) and not isinstance(value, bool)
+    )
 
 
 @dataclass(frozen=True)
@@ -69,12 +78,14 @@ class SarsaConfig:
     traces: TraceKind = "accumulating"
 
     def __post_init__(self) -> None:
-        if not (0.0 < self.alpha <= 1.0):
-            raise ValueError(f"alpha: expected 0 < alpha <= 1, got {self.alpha}")
+        if not (_is_number(self.alpha) and 0.0 < self.alpha <= 1.0):
+            raise ValueError(
+                f"alpha: expected a number with 0 < alpha <= 1, got {self.alpha!r}"
+            )
         for name in ("lam", "gamma", "epsilon"):
             value = getattr(self, name)
-            if not (0.0 <= value <= 1.0):
-                raise ValueError(f"{name}: expected a value in [0, 1], got {value}")
+            if not (_is_number(value) and 0.0 <= value <= 1.0):
+                raise ValueError(f"{name}: expected a number in [0, 1], got {value!r}")
         if self.traces not in ("replacing", "accumulating"):
             raise ValueError(
                 f"traces: expected 'replacing' or 'accumulating', got {self.traces!r}"
@@ -111,8 +122,10 @@ def init_state(
     """
     check_integer("n_actions", n_actions, 1)
     check_integer("n_features", n_features, 1)
-    if not np.isfinite(initial_value):
-        raise ValueError(f"initial_value: expected a finite value, got {initial_value}")
+    if not (_is_number(initial_value) and np.isfinite(initial_value)):
+        raise ValueError(
+            f"initial_value: expected a finite number, got {initial_value!r}"
+        )
     weights = np.zeros((n_actions, n_features))
     weights[:, 0] = initial_value
     return SarsaState(weights, np.zeros((n_actions, n_features)))

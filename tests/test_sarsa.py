@@ -200,11 +200,24 @@ def test_sarsa_learns_the_shortest_path_along_a_corridor() -> None:
         ({"gamma": -0.1}, "gamma"),
         ({"epsilon": 2.0}, "epsilon"),
         ({"traces": "dutch"}, "traces"),
+        # bools passed as 1 and 0 (alpha = True: the largest step size); a string
+        # failed comparing str with float
+        ({"alpha": True}, r"alpha: expected a number with 0 < alpha <= 1, got True"),
+        ({"lam": False}, r"lam: expected a number in \[0, 1\], got False"),
+        ({"gamma": np.True_}, "gamma: expected a number"),
+        ({"epsilon": "0.1"}, "epsilon: expected a number"),
     ],
 )
 def test_bad_config_raises_naming_the_field(kwargs: dict, field: str) -> None:
     with pytest.raises(ValueError, match=field):
         SarsaConfig(**kwargs)
+
+
+@pytest.mark.parametrize("value", [True, np.nan, "0"])
+def test_init_state_refuses_an_initial_value_that_is_not_a_finite_number(value):
+    """initial_value = True gave weights of 1."""
+    with pytest.raises(ValueError, match="initial_value: expected a finite number"):
+        init_state(2, 3, initial_value=value)
 
 
 def test_init_state_sets_constant_feature_weight() -> None:
