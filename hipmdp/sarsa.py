@@ -56,6 +56,12 @@ def _is_number(value: object) -> bool:
     )
 
 
+def _check_epsilon(epsilon: object) -> None:
+    """ε, a number (not a bool) in ``[0, 1]``; a ValueError naming it otherwise."""
+    if not (_is_number(epsilon) and 0.0 <= epsilon <= 1.0):
+        raise ValueError(f"epsilon: expected a number in [0, 1], got {epsilon!r}")
+
+
 @dataclass(frozen=True)
 class SarsaConfig:
     """Hyperparameters of Sarsa(λ).
@@ -154,6 +160,10 @@ def epsilon_greedy(q: Array, epsilon: float, *, rng: np.random.Generator) -> int
     broken uniformly at random (with zero initial weights every action ties, and a
     fixed tie-break would never explore).
     """
+    _check_epsilon(epsilon)
+    q = np.asarray(q)
+    if q.ndim != 1 or q.size == 0:
+        raise ValueError(f"q: expected shape (A,) with A >= 1, got {q.shape}")
     if epsilon > 0.0 and rng.random() < epsilon:
         return int(rng.integers(q.shape[0]))
     best = np.flatnonzero(q == q.max())
@@ -165,6 +175,10 @@ def epsilon_greedy_batch(
 ) -> NDArray[np.int64]:
     """Row-wise ε-greedy choices from ``q`` (shape ``(N, A)``), shape ``(N,)``;
     ties among maximal actions broken uniformly at random."""
+    _check_epsilon(epsilon)
+    q = np.asarray(q)
+    if q.ndim != 2 or q.shape[1] == 0:
+        raise ValueError(f"q: expected shape (N, A) with A >= 1, got {q.shape}")
     n, n_actions = q.shape
     # A random key below the smallest gap breaks ties at random without moving the
     # argmax between actions whose values differ.

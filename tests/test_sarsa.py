@@ -163,6 +163,30 @@ def test_epsilon_greedy_breaks_ties_uniformly_and_explores_at_rate_epsilon() -> 
         assert abs(counts[0] - 0.1 * n) < 170 and abs(counts[2] - 0.1 * n) < 170
 
 
+@pytest.mark.parametrize("epsilon", [2.0, -1.0, np.nan, True])
+def test_epsilon_greedy_refuses_epsilon_outside_the_unit_interval(epsilon) -> None:
+    """ε = 2 (or True) explored at every step and ε = −1 (or NaN) never, silently."""
+    rng = np.random.default_rng(0)
+    q = np.array([0.0, 1.0])
+    match = r"epsilon: expected a number in \[0, 1\]"
+    with pytest.raises(ValueError, match=match):
+        epsilon_greedy(q, epsilon, rng=rng)
+    with pytest.raises(ValueError, match=match):
+        epsilon_greedy_batch(q[None], epsilon, rng=rng)
+
+
+def test_epsilon_greedy_refuses_action_values_of_the_wrong_shape() -> None:
+    """A (1, A) row picked an index into the flattened array; a 1-D batch failed
+    unpacking its shape; no actions failed inside numpy's max."""
+    rng = np.random.default_rng(0)
+    for q in (np.zeros((1, 2)), np.zeros(0)):
+        with pytest.raises(ValueError, match=r"q: expected shape \(A,\)"):
+            epsilon_greedy(q, 0.0, rng=rng)
+    for q in (np.zeros(2), np.zeros((2, 0))):
+        with pytest.raises(ValueError, match=r"q: expected shape \(N, A\)"):
+            epsilon_greedy_batch(q, 0.0, rng=rng)
+
+
 def test_sarsa_learns_the_shortest_path_along_a_corridor() -> None:
     """x ∈ [0, 1], actions move ±0.1, reward −1 per step, goal at x ≥ 1 from x = 0:
     the optimal return is −10; zero initial values are optimistic, ε = 0."""
