@@ -56,6 +56,32 @@ def _is_number(value: object) -> bool:
     )
 
 
+def _is_index(value: object, n: int) -> bool:
+    """An integer (Python or numpy, not a bool, not a float) in ``[0, n)``."""
+    return (type(value) is int or isinstance(value, np.integer)) and 0 <= value < n
+
+
+def _shaped(name: str, value: object, shape: tuple[int, ...], symbols: str) -> Array:
+    """``value`` as an array of exactly ``shape`` (``symbols`` spells it, e.g.
+    ``"(N, F)"``), or a ValueError naming ``name``: broadcasting would silently
+    apply one episode's trace or reward to all of them."""
+    out = np.asarray(value)
+    if out.shape != shape:
+        raise ValueError(f"{name}: expected shape {symbols} = {shape}, got {out.shape}")
+    return out
+
+
+def _check_step_sizes(step_sizes: object, n_features: int) -> Array:
+    """``α_i`` of shape ``(F,)``, each ``>= 0`` (one ``O(F)`` scan, cheaper than the
+    ``O(A F)`` update; NaN fails it too)."""
+    alphas = _shaped("step_sizes", step_sizes, (n_features,), "(F,)")
+    if not alphas.min() >= 0.0:
+        raise ValueError(
+            f"step_sizes: expected entries >= 0, got a minimum of {alphas.min()}"
+        )
+    return alphas
+
+
 def _check_epsilon(epsilon: object) -> None:
     """ε, a number (not a bool) in ``[0, 1]``; a ValueError naming it otherwise."""
     if not (_is_number(epsilon) and 0.0 <= epsilon <= 1.0):
@@ -190,6 +216,26 @@ def epsilon_greedy_batch(
     return actions
 
 
+def _check_weights(weights: Array) -> tuple[int, int]:
+    """``(A, F)`` of ``θ``; a ValueError unless it is a 2-D array."""
+    if weights.ndim != 2:
+        raise ValueError(f"state.weights: expected shape (A, F), got {weights.shape}")
+    return weights.shape
+
+
+def _check_indices(name: str, a: object, n: int, n_actions: int) -> NDArray[np.int64]:
+    """Action indices ``a``, shape ``(N,)``, of an integer dtype, in ``[0, A)``."""
+    a = _shaped(name, a, (n,), "(N,)")
+    if a.dtype.kind not in "iu":
+        raise ValueError(f"{name}: expected integer indices, got dtype {a.dtype}")
+    if a.min() < 0 or a.max() >= n_actions:
+        raise ValueError(
+            f"{name}: expected indices in [0, {n_actions}), got values from "
+            f"{a.min()} to {a.max()}"
+        )
+    return a
+
+
 def sarsa_update(
     state: SarsaState,
     phi: Array,
@@ -213,15 +259,23 @@ def sarsa_update(
         config: ``γ``, ``λ`` and the trace kind.
     """
     weights, traces = state
-    n_actions = weights.shape[0]
-    if not 0 <= action < n_actions:
-        raise ValueError(f"action: expected an index in [0, {n_actions}), got {action}")
+    n_actions, n_features = _check_weights(weights)
+    traces = _shaped("state.traces", traces, (n_actions, n_features), "(A, F)")
+    phi = _shaped("phi", phi, (n_features,), "(F,)")
+    step_sizes = _check_step_sizes(step_sizes, n_features)
+    if not _is_index(action, n_actions):
+        raise ValueError(
+            f"action: expected an integer index in [0, {n_actions}), got {action!r}"
+        )
+    if not _is_number(reward):
+        raise ValueError(f"reward: expected a real number, got {reward!r}")
     target = reward
     if phi_next is not None:
-        if action_next is None or not 0 <= action_next < n_actions:
+        phi_next = _shaped("phi_next", phi_next, (n_features,), "(F,)")
+        if not _is_index(action_next, n_actions):
             raise ValueError(
-                f"action_next: expected an index in [0, {n_actions}) when phi_next "
-                f"is given (s' not terminal), got {action_next}"
+                f"action_next: expected an integer index in [0, {n_actions}) when "
+                f"phi_next is given (s' not terminal), got {action_next!r}"
             )
         target += config.gamma * float(weights[action_next] @ phi_next)
     delta = target - float(weights[action] @ phi)
@@ -280,7 +334,24 @@ def sarsa_update_batch(
         The new state and ``δ``, shape ``(N,)`` (zero for inactive episodes).
     """
     weights, traces = state
-    if phi.shape[0] == 1:  # one episode: the cheaper single update, same numbers
+    n_actions, n_features = _check_weights(weights)
+    traces = np.asarray(traces)
+    af = (n_actions, n_features)
+    if traces.ndim != 3 or traces.shape[0] == 0 or traces.shape[1:] != af:
+        raise ValueError(
+            f"state.traces: expected shape (N >= 1, A, F) with (A, F) = {af} (the "
+            f"weights'), got {traces.shape}"
+        )
+    n = traces.shape[0]
+    phi = _shaped("phi", phi, (n, n_features), "(N, F)")
+    phi_next = _shaped("phi_next", phi_next, (n, n_features), "(N, F)")
+    rewards = _shaped("rewards", rewards, (n,), "(N,)")
+    terminal = _shaped("terminal", terminal, (n,), "(N,)")
+    active = _shaped("active", active, (n,), "(N,)")
+    step_sizes = _check_step_sizes(step_sizes, n_features)
+    actions = _check_indices("actions", actions, n, n_actions)
+    actions_next = _check_indices("actions_next", actions_next, n, n_actions)
+    if n == 1:  # one episode: the cheaper single update, same numbers
         if not active[0]:
             return SarsaStep(state, np.zeros(1))
         one = sarsa_update(
@@ -292,11 +363,7 @@ def sarsa_update_batch(
             SarsaState(one.state.weights, one.state.traces[None]),
             np.array([one.td_error]),
         )
-    n_actions = weights.shape[0]
-    for name, a in (("actions", actions), ("actions_next", actions_next)):
-        if a.min() < 0 or a.max() >= n_actions:
-            raise ValueError(f"{name}: expected indices in [0, {n_actions})")
-    rows = np.arange(phi.shape[0])
+    rows = np.arange(n)
     q = np.einsum("nf,nf->n", weights[actions], phi)
     q_next = np.einsum("nf,nf->n", weights[actions_next], phi_next)
     delta = rewards + np.where(terminal, 0.0, config.gamma * q_next) - q

@@ -307,3 +307,68 @@ def test_counts_must_be_integers_naming_the_argument() -> None:
     ]:
         with pytest.raises(ValueError, match=match):
             reset_traces(state, n)
+
+
+def test_update_refuses_inputs_that_do_not_match_the_weights() -> None:
+    """Traces of shape (1, A, F) (from reset_traces(state, 1)) gave 3-D weights
+    and added φ to every action's trace; a float action failed with an IndexError;
+    negative (or NaN) step sizes were taken."""
+    state = init_state(3, 2)
+    phi = np.array([1.0, 0.5])
+    good = {"state": state, "phi": phi, "action": 0, "reward": -1.0,
+            "phi_next": phi, "action_next": np.int64(2),
+            "step_sizes": np.full(2, 0.1), "config": SarsaConfig()}  # fmt: skip
+    sarsa_update(**good)  # numpy integer actions are integers
+    for change, match in [
+        ({"state": reset_traces(state, 1)},
+         r"state.traces: expected shape \(A, F\) = \(3, 2\), got \(1, 3, 2\)"),
+        ({"state": SarsaState(np.zeros(2), np.zeros(2))},
+         r"state.weights: expected shape \(A, F\), got \(2,\)"),
+        ({"phi": np.ones(3)}, r"phi: expected shape \(F,\) = \(2,\), got \(3,\)"),
+        ({"phi_next": np.ones((1, 2))}, r"phi_next: expected shape \(F,\)"),
+        ({"step_sizes": np.ones(3)}, r"step_sizes: expected shape \(F,\)"),
+        ({"step_sizes": np.array([0.1, -0.1])}, "step_sizes: expected entries >= 0"),
+        ({"step_sizes": np.array([0.1, np.nan])}, "step_sizes: expected entries"),
+        ({"action": 1.0}, r"action: expected an integer index in \[0, 3\), got 1.0"),
+        ({"action": True}, "action: expected an integer index"),
+        ({"action_next": np.float64(2.0)}, "action_next: expected an integer index"),
+        ({"reward": np.array([1.0])}, "reward: expected a real number"),
+    ]:  # fmt: skip
+        with pytest.raises(ValueError, match=match):
+            sarsa_update(**(good | change))
+
+
+def test_batch_update_refuses_arrays_that_do_not_match_n_episodes() -> None:
+    """Rewards of shape (1,) and one episode's (A, F) trace were broadcast over
+    all N episodes; actions of the wrong length or a float dtype failed inside
+    numpy; a float action of a one-episode batch was truncated to an index."""
+    state = reset_traces(init_state(3, 2), 2)
+    two = np.array([[1.0, 0.5], [0.2, -0.3]])
+    good = {"state": state, "phi": two, "actions": np.array([0, 2]),
+            "rewards": np.zeros(2), "phi_next": two, "actions_next": np.array([1, 0]),
+            "terminal": np.zeros(2, bool), "active": np.ones(2, bool),
+            "step_sizes": np.full(2, 0.1), "config": SarsaConfig()}  # fmt: skip
+    one = good | {"state": reset_traces(state, 1), "phi": two[:1],
+                  "actions": np.array([0]), "rewards": np.zeros(1),
+                  "phi_next": two[:1], "actions_next": np.array([1]),
+                  "terminal": np.zeros(1, bool),
+                  "active": np.ones(1, bool)}  # fmt: skip
+    sarsa_update_batch(**good)
+    sarsa_update_batch(**one)
+    for base, change, match in [
+        (good, {"rewards": np.zeros(1)},
+         r"rewards: expected shape \(N,\) = \(2,\), got \(1,\)"),
+        (good, {"state": SarsaState(state.weights, state.traces[0])},
+         r"state.traces: expected shape \(N >= 1, A, F\) with \(A, F\) = \(3, 2\)"),
+        (good, {"phi": two[:1]}, r"phi: expected shape \(N, F\) = \(2, 2\)"),
+        (good, {"phi_next": two[:, :1]}, r"phi_next: expected shape \(N, F\)"),
+        (good, {"actions": np.array([0, 1, 2])}, r"actions: expected shape \(N,\)"),
+        (good, {"actions_next": np.array([1.0, 0.0])},
+         "actions_next: expected integer indices, got dtype float64"),
+        (good, {"terminal": np.zeros(3, bool)}, r"terminal: expected shape \(N,\)"),
+        (good, {"active": np.ones(1, bool)}, r"active: expected shape \(N,\)"),
+        (good, {"step_sizes": np.array([0.1, -0.1])}, "step_sizes: expected entries"),
+        (one, {"actions": np.array([0.7])}, "actions: expected integer indices"),
+    ]:  # fmt: skip
+        with pytest.raises(ValueError, match=match):
+            sarsa_update_batch(**(base | change))
