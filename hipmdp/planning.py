@@ -230,17 +230,24 @@ class SimulatedEpisodes:
         self.reached = np.zeros(s0.shape[0], dtype=bool)
 
     def step(self, actions: NDArray[np.int64]) -> StepResult:
-        """Advance the active episodes by ``actions`` (shape ``(N,)``; entries of
-        ended episodes are ignored). Rows of ended episodes are returned unchanged
-        with zero reward and ``terminal = truncated = False``."""
+        """Advance the active episodes by ``actions`` (integers, shape ``(N,)``;
+        entries of ended episodes are ignored). Rows of ended episodes are returned
+        unchanged with zero reward and ``terminal = truncated = False``."""
         n = self.states.shape[0]
+        actions = np.asarray(actions)
+        # one action per episode: with more the extra ones were dropped silently
+        if actions.shape != (n,) or actions.dtype.kind not in "iu":
+            raise ValueError(
+                f"actions: expected integers of shape (N,) = ({n},), got "
+                f"{actions.dtype} {actions.shape}"
+            )
         idx = np.flatnonzero(self.active)
         next_states = self.states.copy()
         rewards = np.zeros(n)
         terminal = np.zeros(n, dtype=bool)
         truncated = np.zeros(n, dtype=bool)
         if idx.size:
-            s, a = self.states[idx], np.asarray(actions)[idx]
+            s, a = self.states[idx], actions[idx]
             s2 = np.asarray(self.model.predict(s, a), dtype=np.float64)
             if s2.shape != s.shape:
                 raise ValueError(

@@ -253,6 +253,17 @@ def test_plan_rejects_bad_input() -> None:
             PlanningTask(CORRIDOR_TASK.reward, CORRIDOR_TASK.terminal, steps)
 
 
+def test_simulated_episodes_take_exactly_one_integer_action_per_episode() -> None:
+    """Three actions for two episodes used the first two silently; one failed
+    with an IndexError; float actions reached the model."""
+    episodes = SimulatedEpisodes(Corridor(), CORRIDOR_TASK, np.zeros((2, 1)))
+    for actions in ([1, 1, 0], [1], [[1, 1]], [1.0, 1.0], [True, False]):
+        with pytest.raises(ValueError, match=r"actions: expected integers of shape"):
+            episodes.step(np.array(actions))
+    np.testing.assert_array_equal(episodes.steps, [0, 0])  # no step was taken
+    episodes.step([1, 0])  # a list of integers is fine
+
+
 def test_non_finite_model_output_is_an_error() -> None:
     class Broken:
         def predict(self, states, actions):
