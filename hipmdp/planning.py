@@ -64,6 +64,21 @@ def _check_batch(states: Array, actions: Any) -> tuple[Array, NDArray[np.int64]]
     return s, a.astype(np.int64, copy=False)
 
 
+def _checked_next_states(next_states: Any, shape: tuple[int, ...]) -> Array:
+    """A model's ``s'`` as floats, exactly ``shape`` ``(N, D)`` and finite; a
+    ValueError naming ``model.predict`` otherwise (a ``(N,)`` prediction for
+    one-dimensional states would broadcast to ``(N, N)``)."""
+    s2 = np.asarray(next_states, dtype=np.float64)
+    if s2.shape != shape:
+        raise ValueError(
+            f"model.predict: expected next states of shape {shape}, got shape "
+            f"{s2.shape}"
+        )
+    if not np.all(np.isfinite(s2)):
+        raise ValueError("model.predict: expected finite next states")
+    return s2
+
+
 @dataclass(frozen=True)
 class LearnedModel:
     """Adapter from a model of ``Δ`` to a :class:`DynamicsModel`.
@@ -248,14 +263,7 @@ class SimulatedEpisodes:
         truncated = np.zeros(n, dtype=bool)
         if idx.size:
             s, a = self.states[idx], actions[idx]
-            s2 = np.asarray(self.model.predict(s, a), dtype=np.float64)
-            if s2.shape != s.shape:
-                raise ValueError(
-                    f"model.predict: expected next states of shape {s.shape}, got "
-                    f"shape {s2.shape}"
-                )
-            if not np.all(np.isfinite(s2)):
-                raise ValueError("model.predict: expected finite next states")
+            s2 = _checked_next_states(self.model.predict(s, a), s.shape)
             next_states[idx] = s2
             rewards[idx] = self.task.reward(s, a, s2)
             terminal[idx] = self.task.terminal(s2)
@@ -408,15 +416,23 @@ def open_loop_errors(
         data: transitions in time order, episodes ending where ``dones`` is true
             (all one episode if ``dones`` is None); within an episode each
             transition must start where the previous one ended.
-        horizons: the ``k`` values, each ``>= 1``.
+        horizons: the ``k`` values, each an integer ``>= 1``.
 
     Returns:
         ``{k: ŝ_{t+k} − s_{t+k}}``, shape ``(n_k, D)`` for the ``n_k`` starts, with
         ``data.angle_dims`` wrapped to ``(−π, π]``.
     """
-    ks = [int(k) for k in horizons]
-    if not ks or min(ks) < 1:
-        raise ValueError(f"horizons: expected integers >= 1, got {list(horizons)}")
+    try:
+        ks = list(horizons)
+    except TypeError:
+        raise ValueError(
+            f"horizons: expected a sequence of integers >= 1, got {horizons!r}"
+        ) from None
+    if not ks:
+        raise ValueError("horizons: expected at least one integer >= 1, got none")
+    for i, k in enumerate(ks):  # int(k) made 1.5 a 1 and "12" the horizons 1, 2
+        check_integer(f"horizons[{i}]", k, 1)
+    ks = [int(k) for k in ks]
     n = len(data)
     ends = np.zeros(n, dtype=bool) if data.dones is None else data.dones.astype(bool)
     # within an episode, transition j + 1 must start at transition j's next state
@@ -437,9 +453,10 @@ def open_loop_errors(
             & (episode == episode[np.minimum(np.arange(n) + k - 1, n - 1)])
         )
         s = data.states[starts]
+        shape = s.shape
         for j in range(k):
-            s = model.predict(s, data.actions[starts + j])
-        err = np.asarray(s, dtype=np.float64) - data.next_states[starts + k - 1]
+            s = _checked_next_states(model.predict(s, data.actions[starts + j]), shape)
+        err = s - data.next_states[starts + k - 1]
         if data.angle_dims:
             dims = list(data.angle_dims)
             err[:, dims] = wrap_angle(err[:, dims])

@@ -319,11 +319,55 @@ def test_open_loop_errors_compound_a_bias_and_respect_episodes() -> None:
         np.testing.assert_allclose(err, np.tile(k * bias, (len(err), 1)), atol=1e-12)
 
 
+@pytest.mark.parametrize(
+    ("predict", "shape"),
+    [
+        (lambda s, a: s[:, 0], r"\(4,\)"),  # broadcast to (4, 4)
+        (lambda s, a: s[:, :0], r"\(4, 0\)"),  # an empty error array
+        (lambda s, a: s[:1], r"\(1, 1\)"),  # broadcast over the four starts
+    ],
+    ids=["(n,)", "(n, 0)", "(1, D)"],
+)
+def test_open_loop_errors_reject_a_model_output_of_the_wrong_shape(predict, shape):
+    """A (n,) prediction for n one-dimensional states broadcast to errors of
+    shape (n, n); (n, 0) gave an empty array; neither was an error."""
+
+    class Model:
+        def predict(self, states, actions):
+            return predict(states, actions)
+
+    s = np.arange(5.0)[:, None]
+    data = Transitions(s[:-1], np.zeros(4, int), s[1:], np.zeros(4, int))
+    match = r"model.predict: expected next states of shape \(4, 1\), got shape "
+    with pytest.raises(ValueError, match=match + shape):
+        open_loop_errors(Model(), data, [1])
+
+
+def test_open_loop_errors_reject_a_non_finite_model_output() -> None:
+    s = np.arange(3.0)[:, None]
+    data = Transitions(s[:-1], np.zeros(2, int), s[1:], np.zeros(2, int))
+    model = StepwiseModel(lambda x, a: x * np.nan)
+    with pytest.raises(ValueError, match="model.predict: expected finite next states"):
+        open_loop_errors(model, data, [1])
+
+
 def test_open_loop_errors_reject_bad_input() -> None:
     data, u = _drift_episodes([5], np.random.default_rng(1))
     model = StepwiseModel(lambda s, a: s + u[a])
     with pytest.raises(ValueError, match="horizons"):
         open_loop_errors(model, data, [0])
+    # int(k) made 1.5 a 1, True a 1 and "12" the horizons 1 and 2
+    for horizons, match in [
+        ([1.5], r"horizons\[0\]: expected an integer >= 1, got 1.5 \(float\)"),
+        ([1, True], r"horizons\[1\]: expected an integer >= 1, got True \(bool\)"),
+        ("12", r"horizons\[0\]: expected an integer >= 1, got '1' \(str\)"),
+        ([2, 0], r"horizons\[1\]: expected >= 1, got 0"),
+        ([], "horizons: expected at least one"),
+        (3, "horizons: expected a sequence"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            open_loop_errors(model, data, horizons)
+    assert list(open_loop_errors(model, data, (np.int64(2),))) == [2]
     shuffled = data.take(np.array([0, 2, 1, 3, 4]))
     with pytest.raises(ValueError, match="time order"):
         open_loop_errors(model, shuffled, [1])
