@@ -173,11 +173,24 @@ class StepwiseModel:
     step: Callable[[Array, int], Array]
 
     def predict(self, states: Array, actions: NDArray[np.int64]) -> Array:
-        """Row-by-row ``step``, shape ``(N, D)``."""
+        """Row-by-row ``step``, shape ``(N, D)``; each ``step`` must return a finite
+        next state of shape ``(D,)`` (a scalar or a ``(1,)`` return was broadcast
+        over the row)."""
         s, a = _check_batch(states, actions)
         out = np.empty_like(s)
         for n in range(s.shape[0]):
-            out[n] = self.step(s[n], int(a[n]))
+            s2 = np.asarray(self.step(s[n], int(a[n])), dtype=np.float64)
+            if s2.shape != s.shape[1:]:
+                raise ValueError(
+                    f"step: expected a next state of shape (D,) = {s.shape[1:]}, got "
+                    f"shape {s2.shape} for row {n} (action {a[n]})"
+                )
+            if not np.all(np.isfinite(s2)):
+                raise ValueError(
+                    f"step: expected a finite next state, got {s2} for row {n} "
+                    f"(action {a[n]})"
+                )
+            out[n] = s2
         return out
 
 

@@ -45,6 +45,13 @@ class BeliefModel:
         return mean, np.ones_like(mean)
 
 
+class Broken:
+    """A model whose every prediction is NaN."""
+
+    def predict(self, states, actions):
+        return states * np.nan
+
+
 class PlainModel:
     def predict(self, states, actions):
         return np.full_like(states, 0.5), np.ones_like(states)
@@ -157,6 +164,28 @@ def test_stepwise_model_applies_step_row_by_row() -> None:
     np.testing.assert_array_equal(got, [[1, 1], [2, 2], [3, 3]])
 
 
+def test_stepwise_model_requires_one_finite_next_state_per_row() -> None:
+    """A scalar or a (1,) return filled every dimension of the row; a wrong
+    length failed with numpy's broadcast error, naming no row."""
+    states, actions = np.ones((3, 2)), np.array([0, 1, 2])
+    for step, got in [
+        (lambda s, a: 5.0, r"\(\)"),
+        (lambda s, a: s[:1], r"\(1,\)"),
+        (lambda s, a: np.append(s, a), r"\(3,\)"),
+        (lambda s, a: s if a < 2 else s[:1], r"\(1,\) for row 2 \(action 2\)"),
+    ]:
+        with pytest.raises(
+            ValueError,
+            match=r"step: expected a next state of shape \(D,\) = \(2,\), "
+            rf"got shape {got}",
+        ):
+            StepwiseModel(step).predict(states, actions)
+    model = StepwiseModel(lambda s, a: s / (a - 1))  # action 1 divides by zero
+    with np.errstate(divide="ignore"):
+        with pytest.raises(ValueError, match=r"finite next state.* row 1 \(action 1\)"):
+            model.predict(states, actions)
+
+
 def test_simulated_episodes_end_at_terminal_or_step_limit() -> None:
     task = PlanningTask(CORRIDOR_TASK.reward, CORRIDOR_TASK.terminal, max_steps=5)
     episodes = SimulatedEpisodes(Corridor(), task, np.array([[0.75], [0.0], [0.4]]))
@@ -265,10 +294,6 @@ def test_simulated_episodes_take_exactly_one_integer_action_per_episode() -> Non
 
 
 def test_non_finite_model_output_is_an_error() -> None:
-    class Broken:
-        def predict(self, states, actions):
-            return states * np.nan
-
     episodes = SimulatedEpisodes(Broken(), CORRIDOR_TASK, np.zeros((2, 1)))
     with pytest.raises(ValueError, match="model.predict"):
         episodes.step(np.zeros(2, dtype=int))
@@ -346,9 +371,8 @@ def test_open_loop_errors_reject_a_model_output_of_the_wrong_shape(predict, shap
 def test_open_loop_errors_reject_a_non_finite_model_output() -> None:
     s = np.arange(3.0)[:, None]
     data = Transitions(s[:-1], np.zeros(2, int), s[1:], np.zeros(2, int))
-    model = StepwiseModel(lambda x, a: x * np.nan)
     with pytest.raises(ValueError, match="model.predict: expected finite next states"):
-        open_loop_errors(model, data, [1])
+        open_loop_errors(Broken(), data, [1])
 
 
 def test_open_loop_errors_reject_bad_input() -> None:
