@@ -64,6 +64,14 @@ def _check_batch(states: Array, actions: Any) -> tuple[Array, NDArray[np.int64]]
     return s, a.astype(np.int64, copy=False)
 
 
+def _state_dim(obj: Any) -> int | None:
+    """``obj.state_dim`` if it is an integer (Python or numpy), else None."""
+    d = getattr(obj, "state_dim", None)
+    if isinstance(d, bool) or not isinstance(d, int | np.integer):
+        return None
+    return int(d)
+
+
 def _checked_next_states(next_states: Any, shape: tuple[int, ...]) -> Array:
     """A model's ``s'`` as floats, exactly ``shape`` ``(N, D)`` and finite; a
     ValueError naming ``model.predict`` otherwise (a ``(N,)`` prediction for
@@ -105,7 +113,10 @@ class LearnedModel:
             HiP-MDP's ``predict`` with the current belief (its mean prediction).
         angle_dims: state dimensions that are angles; for a model that records
             the angles it was fitted with (``info["angle_dims"]``, as a fitted
-            HiP-MDP does), the same ones, or a ValueError says they differ.
+            HiP-MDP does), the same ones, or a ValueError says they differ. They
+            are checked against ``D`` here when the model (or the mean predictor
+            built from it) has a ``state_dim``, otherwise against the states
+            given to ``predict``, before the model is called.
     """
 
     model: Any
@@ -116,7 +127,8 @@ class LearnedModel:
     )
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "angle_dims", self._checked_angle_dims())
+        d = _state_dim(self.model)
+        object.__setattr__(self, "angle_dims", self._checked_angle_dims(d))
         if hasattr(self.model, "mean_predictor"):
             extra = () if self.belief is None else (self.belief,)
             try:
@@ -125,10 +137,11 @@ class LearnedModel:
                 need = "takes no belief" if extra else "needs a belief, got None"
                 raise ValueError(f"belief: the model's mean_predictor {need}") from None
             object.__setattr__(self, "_mean", self.model.mean_predictor(*extra))
+            if d is None:  # the predictor may know D (a KernelMeans does)
+                check_angle_dims(self.angle_dims, _state_dim(self._mean))
 
-    def _checked_angle_dims(self) -> tuple[int, ...]:
-        d = getattr(self.model, "state_dim", None)
-        dims = check_angle_dims(self.angle_dims, d if isinstance(d, int) else None)
+    def _checked_angle_dims(self, d: int | None) -> tuple[int, ...]:
+        dims = check_angle_dims(self.angle_dims, d)
         # a fitted HiP-MDP records the angles of its batch (hipmdp.fit): planning
         # must wrap the same ones
         info = getattr(self.model, "info", None)
@@ -144,6 +157,12 @@ class LearnedModel:
         copies of the states and actions: one that writes into its arguments
         cannot move the planner's own."""
         s, a = _check_batch(states, actions)
+        if self.angle_dims and max(self.angle_dims) >= s.shape[1]:
+            # D was unknown when built: an IndexError when wrapping, after the model
+            raise ValueError(
+                f"angle_dims: expected indices in [0, {s.shape[1]}) (the states' "
+                f"dimension D), got {self.angle_dims}"
+            )
         args = (s.copy(), a.copy())
         if self.belief is not None:
             args = (*args, self.belief)

@@ -150,6 +150,39 @@ def test_learned_model_checks_angles_and_belief_when_built() -> None:
     assert LearnedModel(Average(), None, (5,)).angle_dims == (5,)  # no state_dim
 
 
+def test_learned_model_checks_angles_against_what_knows_the_state_dimension():
+    """With no state_dim on the model, angle_dims = (5,) was taken and failed
+    with an IndexError when predict wrapped the angles; a numpy-integer
+    state_dim was not used for the check."""
+    states, actions = np.zeros((2, 3)), np.array([0, 1])
+    unknown = LearnedModel(PlainModel(), None, (1, 5))  # D is not known yet
+    with pytest.raises(
+        ValueError, match=r"angle_dims: expected indices in \[0, 3\) \(the states'"
+    ):
+        unknown.predict(states, actions)
+
+    class NumpyDim(PlainModel):
+        state_dim = np.int64(3)
+
+    class Means:
+        """A mean predictor that knows D, as a KernelMeans does."""
+
+        state_dim = 3
+
+        def __call__(self, states, actions):
+            return np.zeros_like(states)
+
+    class WithMeans(PlainModel):
+        def mean_predictor(self):
+            return Means()
+
+    for model in (NumpyDim(), WithMeans()):
+        with pytest.raises(ValueError, match=r"angle_dims: .* in \[0, 3\), got \(5,\)"):
+            LearnedModel(model, None, (5,))
+        got = LearnedModel(model, None, (2,)).predict(states + 4.0, actions)
+        assert np.all(got[:, :2] > np.pi) and np.all(np.abs(got[:, 2]) <= np.pi)
+
+
 def test_learned_model_rejects_bad_shapes() -> None:
     model = LearnedModel(PlainModel())
     with pytest.raises(ValueError, match="actions"):
