@@ -242,6 +242,25 @@ class StepResult(NamedTuple):
     truncated: NDArray[np.bool_]
 
 
+def _checked_rows(name: str, value: Any, n: int, kind: str) -> Array:
+    """A task's answer for ``n`` rows: shape ``(n,)``, finite numbers (``kind``
+    ``"f"``) or booleans (``"b"``); a scalar reward was spread over every
+    episode, and a float terminal of 0.5 counted as reached."""
+    out = np.asarray(value)
+    ok = out.shape == (n,) and (
+        out.dtype.kind == "b"
+        if kind == "b"
+        else out.dtype.kind in "iuf" and bool(np.all(np.isfinite(out)))
+    )
+    if not ok:
+        what = "booleans" if kind == "b" else "finite numbers"
+        raise ValueError(
+            f"{name}: expected {what} of shape ({n},), one per active episode, got "
+            f"{out.dtype} {out.shape}"
+        )
+    return out
+
+
 @dataclass
 class SimulatedEpisodes:
     """``N`` episodes on a model, stepped at once with one batched ``predict``.
@@ -297,8 +316,12 @@ class SimulatedEpisodes:
             s, a = self.states[idx], actions[idx]
             s2 = _checked_next_states(self.model.predict(s, a), s.shape)
             next_states[idx] = s2
-            rewards[idx] = self.task.reward(s, a, s2)
-            terminal[idx] = self.task.terminal(s2)
+            rewards[idx] = _checked_rows(
+                "task.reward", self.task.reward(s, a, s2), len(idx), "f"
+            )
+            terminal[idx] = _checked_rows(
+                "task.terminal", self.task.terminal(s2), len(idx), "b"
+            )
             self.steps[idx] += 1
             truncated[idx] = ~terminal[idx] & (self.steps[idx] >= self.task.max_steps)
             self.returns[idx] += rewards[idx]

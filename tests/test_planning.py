@@ -326,6 +326,27 @@ def test_simulated_episodes_take_exactly_one_integer_action_per_episode() -> Non
     episodes.step([1, 0])  # a list of integers is fine
 
 
+@pytest.mark.parametrize(
+    ("task", "match"),
+    [
+        (dataclasses.replace(CORRIDOR_TASK, reward=lambda s, a, s2: -1.0),
+         r"task.reward: expected finite numbers of shape \(2,\)"),
+        (dataclasses.replace(CORRIDOR_TASK, reward=lambda s, a, s2: s[:, 0] * np.nan),
+         r"task.reward: expected finite numbers"),
+        (dataclasses.replace(CORRIDOR_TASK, terminal=lambda s2: s2[:, 0] * 0 + 0.5),
+         r"task.terminal: expected booleans of shape \(2,\)"),
+        (dataclasses.replace(CORRIDOR_TASK, terminal=lambda s2: False),
+         r"task.terminal: expected booleans of shape \(2,\)"),
+    ],
+)  # fmt: skip
+def test_a_tasks_answer_must_be_one_per_active_episode(task, match) -> None:
+    """A scalar reward was spread over every episode; a terminal of 0.5 counted
+    as reached; a NaN reward entered the returns."""
+    episodes = SimulatedEpisodes(Corridor(), task, np.zeros((2, 1)))
+    with pytest.raises(ValueError, match=match):
+        episodes.step(np.array([1, 0]))
+
+
 def test_non_finite_model_output_is_an_error() -> None:
     episodes = SimulatedEpisodes(Broken(), CORRIDOR_TASK, np.zeros((2, 1)))
     with pytest.raises(ValueError, match="model.predict"):
