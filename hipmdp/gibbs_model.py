@@ -18,6 +18,7 @@ neither the likelihood nor `log_joint`).
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -107,9 +108,10 @@ def check_priors(priors: GibbsPriors) -> GibbsPriors:
     """Validate prior parameters. Raises ValueError."""
     for name in ("alpha", "sigma_w", "sigma_w0"):
         v = getattr(priors, name)
-        if not (np.isfinite(v) and v > 0):
+        number = isinstance(v, numbers.Real) and not isinstance(v, bool)
+        if not (number and np.isfinite(v) and v > 0):  # True passed as 1
             raise ValueError(
-                f"GibbsPriors.{name}: expected a finite value > 0, got {v}"
+                f"GibbsPriors.{name}: expected a finite number > 0, got {v!r}"
             )
     check_integer("GibbsPriors.n_w", priors.n_w, 1)  # 5.0 passed, then crashed
     return priors

@@ -195,10 +195,15 @@ class HipMDP:
             )
         if not np.all(np.isfinite(self.f)):
             raise ValueError("f: expected finite values")
-        if not (np.isfinite(self.sigma_w) and self.sigma_w > 0):
+        if (
+            isinstance(self.sigma_w, bool)
+            or np.ndim(self.sigma_w) != 0
+            or not (np.isfinite(self.sigma_w) and self.sigma_w > 0)
+        ):
             raise ValueError(
-                f"sigma_w: expected a finite value > 0, got {self.sigma_w}"
+                f"sigma_w: expected a finite number > 0, got {self.sigma_w!r}"
             )
+        object.__setattr__(self, "sigma_w", float(self.sigma_w))
         B = len(self.instance_ids)
         if np.shape(self.weights) != (K, B):
             raise ValueError(

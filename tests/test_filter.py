@@ -289,8 +289,9 @@ def test_filter_functions_check_their_inputs():
     """The functions HipMDP calls, for direct users: a negative σ_w was squared
     away, a wrong-shaped or zero noise variance failed inside numpy or as a
     non-finite Belief that did not name it."""
-    with pytest.raises(ValueError, match="sigma_w: expected a finite number > 0"):
-        prior_belief(np.zeros(2), -1.0)
+    for bad in (-1.0, True, "1"):  # True gave σ_w = 1; "1" a TypeError
+        with pytest.raises(ValueError, match="sigma_w: expected a finite number > 0"):
+            prior_belief(np.zeros(2), bad)
     with pytest.raises(ValueError, match="mu_w"):
         prior_belief(np.zeros((2, 1)), 1.0)
     prior = prior_belief(np.zeros(2), 1.0)

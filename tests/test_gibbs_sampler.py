@@ -404,8 +404,9 @@ def test_bad_data_raises(field, bad):
 
 @pytest.mark.parametrize(
     ("field", "bad"),
-    [("alpha", 0.0), ("alpha", -1.0), ("sigma_w", -1.0), ("n_w", 0), ("n_w", 5.0)],
-)
+    [("alpha", 0.0), ("alpha", -1.0), ("sigma_w", -1.0), ("n_w", 0), ("n_w", 5.0),
+     ("alpha", True), ("sigma_w0", "1")],  # True ran as α = 1; "1" a TypeError
+)  # fmt: skip
 def test_bad_priors_raise(field, bad):
     """In every entry point: log_joint and log_marginal returned NaN or -inf for
     α <= 0, and n_w = 5.0 passed the check, then failed as a TypeError."""

@@ -254,6 +254,9 @@ def test_save_bytes_depend_only_on_the_model(fitted, tmp_path):
             lambda m: {"instance_ids": m.instance_ids.astype(float)},
             "instance_ids: expected integers",
         ),
+        # passed, then the prior refused it (True) or failed on a (2,) σ_w
+        (lambda m: {"sigma_w": True}, "sigma_w: expected a finite number > 0"),
+        (lambda m: {"sigma_w": np.ones(2)}, "sigma_w: expected a finite number > 0"),
     ],
 )
 def test_a_model_built_in_python_names_the_field_of_bad_arrays(fitted, change, match):
@@ -269,6 +272,8 @@ def test_a_model_takes_lists_and_0_1_flags(fitted, tmp_path):
         mu_w=fitted.mu_w.tolist(),
     )  # fmt: skip
     assert rebuilt.z.dtype == bool
+    scalar = dataclasses.replace(fitted, sigma_w=np.array(fitted.sigma_w))
+    assert type(scalar.sigma_w) is float and scalar.sigma_w == fitted.sigma_w
     states, actions = fitted.support[:5], np.zeros(5, dtype=int)
     belief = fitted.prior()
     np.testing.assert_array_equal(
