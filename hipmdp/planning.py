@@ -29,11 +29,13 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm.auto import tqdm
 
+from hipmdp import sarsa
 from hipmdp.data import Transitions, check_angle_dims, check_integer, wrap_angle
 from hipmdp.fourier import FourierBasis
 from hipmdp.sarsa import (
     SarsaConfig,
     SarsaState,
+    SarsaStep,
     epsilon_greedy_batch,
     reset_traces,
     sarsa_update_batch,
@@ -342,6 +344,12 @@ class PlanResult(NamedTuple):
     reached: NDArray[np.bool_]
 
 
+def _update_checked_once(state: SarsaState, *args) -> SarsaStep:
+    """:func:`hipmdp.sarsa.sarsa_update_batch` without its checks, for the steps
+    of :func:`run_sarsa_episodes` after the first."""
+    return sarsa._update_batch(state.weights, state.traces, *args)
+
+
 def run_sarsa_episodes(
     state: SarsaState,
     basis: FourierBasis,
@@ -364,6 +372,10 @@ def run_sarsa_episodes(
     state = reset_traces(state, n)
     phi = basis(episodes.states)
     actions = epsilon_greedy_batch(phi @ state.weights.T, config.epsilon, rng=rng)
+    # the first update checks its inputs (sarsa_update_batch); later steps have
+    # the same shapes and kinds by construction, and the checks would cost as
+    # much as the update itself (F = 1296, N = 1)
+    update = sarsa_update_batch
     while episodes.active.any():
         active = episodes.active.copy()
         result = episodes.step(actions)
@@ -372,10 +384,11 @@ def run_sarsa_episodes(
             phi_next @ state.weights.T, config.epsilon, rng=rng
         )
         if learn:
-            state = sarsa_update_batch(
+            state = update(
                 state, phi, actions, result.rewards, phi_next, actions_next,
                 result.terminal, active, step_sizes, config,
             ).state  # fmt: skip
+            update = _update_checked_once
         phi, actions = phi_next, actions_next
     return SarsaState(state.weights, np.zeros_like(state.weights))
 

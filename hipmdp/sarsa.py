@@ -269,7 +269,6 @@ def sarsa_update(
         )
     if not _is_number(reward):
         raise ValueError(f"reward: expected a real number, got {reward!r}")
-    target = reward
     if phi_next is not None:
         phi_next = _shaped("phi_next", phi_next, (n_features,), "(F,)")
         if not _is_index(action_next, n_actions):
@@ -277,6 +276,26 @@ def sarsa_update(
                 f"action_next: expected an integer index in [0, {n_actions}) when "
                 f"phi_next is given (s' not terminal), got {action_next!r}"
             )
+    return _update(
+        weights, traces, phi, action, reward, phi_next, action_next, step_sizes, config
+    )
+
+
+def _update(
+    weights: Array,
+    traces: Array,
+    phi: Array,
+    action: int,
+    reward: float,
+    phi_next: Array | None,
+    action_next: int | None,
+    step_sizes: Array,
+    config: SarsaConfig,
+) -> SarsaStep:
+    """:func:`sarsa_update` on checked inputs (its loops check once, not per
+    step: the checks cost as much as the update at F = 1296)."""
+    target = reward
+    if phi_next is not None:
         target += config.gamma * float(weights[action_next] @ phi_next)
     delta = target - float(weights[action] @ phi)
     if not math.isfinite(delta):
@@ -351,13 +370,35 @@ def sarsa_update_batch(
     step_sizes = _check_step_sizes(step_sizes, n_features)
     actions = _check_indices("actions", actions, n, n_actions)
     actions_next = _check_indices("actions_next", actions_next, n, n_actions)
+    return _update_batch(
+        weights, traces, phi, actions, rewards, phi_next, actions_next, terminal,
+        active, step_sizes, config,
+    )  # fmt: skip
+
+
+def _update_batch(
+    weights: Array,
+    traces: Array,
+    phi: Array,
+    actions: NDArray[np.int64],
+    rewards: Array,
+    phi_next: Array,
+    actions_next: NDArray[np.int64],
+    terminal: NDArray[np.bool_],
+    active: NDArray[np.bool_],
+    step_sizes: Array,
+    config: SarsaConfig,
+) -> SarsaStep:
+    """:func:`sarsa_update_batch` on checked inputs (``hipmdp.planning``'s loop
+    checks its first step's, whose shapes and kinds the later steps keep)."""
+    n = traces.shape[0]
     if n == 1:  # one episode: the cheaper single update, same numbers
         if not active[0]:
-            return SarsaStep(state, np.zeros(1))
-        one = sarsa_update(
-            SarsaState(weights, traces[0]), phi[0], int(actions[0]),
-            float(rewards[0]), None if terminal[0] else phi_next[0],
-            int(actions_next[0]), step_sizes, config,
+            return SarsaStep(SarsaState(weights, traces), np.zeros(1))
+        one = _update(
+            weights, traces[0], phi[0], int(actions[0]), float(rewards[0]),
+            None if terminal[0] else phi_next[0], int(actions_next[0]), step_sizes,
+            config,
         )  # fmt: skip
         return SarsaStep(
             SarsaState(one.state.weights, one.state.traces[None]),
