@@ -78,6 +78,7 @@ from tasks.experiment import (
     check_integer,
     check_out_file,
     environment,
+    fmt_bounds,
     inputs_checked,
     mean_ci,
     one_blas_thread,
@@ -473,8 +474,9 @@ def cli(argv: list[str] | None = None) -> int:
         for v, d in results.summary.get(key, {}).items():
             a = d["all_episodes"]
             print(
-                f"{v:>23} - {other}: {a['mean']:+.1f} [{a['low']:.1f}, "
-                f"{a['high']:.1f}]   (paired, over all episodes)"
+                f"{v:>23} - {other}: {a['mean']:+.1f} "
+                f"{fmt_bounds(a['low'], a['high'], lambda x: f'{x:.1f}')}"
+                "   (paired, over all episodes)"
             )
     print(f"wrote {results.out}")
     return 0

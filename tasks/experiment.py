@@ -475,10 +475,15 @@ def fmt_ci(ci: dict, digits: int = 3, signed: bool = False) -> str:
     sample]`` where the bounds are NaN or None (:func:`mean_ci` of one sample);
     ``signed`` puts ``+`` before a positive mean (for differences)."""
     mean = fmt_value(ci["mean"], digits, "+" if signed else "")
-    low, high = ci["low"], ci["high"]
+    return f"{mean} {fmt_bounds(ci['low'], ci['high'], lambda v: fmt_value(v, digits))}"
+
+
+def fmt_bounds(low: Any, high: Any, fmt: Callable[[float], str]) -> str:
+    """``[low, high]``, each written by ``fmt``, or ``[no interval: one
+    sample]`` where a bound is NaN or None (:func:`mean_ci` of one sample)."""
     if low is None or high is None or np.isnan(low) or np.isnan(high):
-        return f"{mean} [no interval: one sample]"
-    return f"{mean} [{fmt_value(low, digits)}, {fmt_value(high, digits)}]"
+        return "[no interval: one sample]"
+    return f"[{fmt(low)}, {fmt(high)}]"
 
 
 def seed_value(ss: np.random.SeedSequence) -> tuple[int, tuple[int, ...]]:

@@ -34,7 +34,7 @@ import numpy as np
 from hipmdp import baselines
 from hipmdp.data import Transitions, gaussian_loglik
 from tasks.agents import Domain, learn
-from tasks.experiment import fmt_ci, markdown_table, mean_ci
+from tasks.experiment import fmt_bounds, fmt_ci, markdown_table, mean_ci
 
 Array = np.ndarray
 
@@ -533,7 +533,8 @@ def ratio_text(table: dict[str, Any]) -> str:
         if r is None:
             continue
         lines.append(
-            f"- {d}: {r['geometric_mean']:.3g} [{r['low']:.3g}, {r['high']:.3g}] "
+            f"- {d}: {r['geometric_mean']:.3g} "
+            f"{fmt_bounds(r['low'], r['high'], lambda v: f'{v:.3g}')} "
             f"against {best}; lower on {r['hipmdp_lower']} of {r['n']} settings"
         )
     return (

@@ -84,6 +84,10 @@ def test_artefacts_exist(run):
     m = json.loads((run.out / "metrics.json").read_text())
     median = m["true_model_final_median_return"]
     assert f"true model's final median\n({median:.1f})" in report
+    # one test setting: its per-setting intervals are of one sample, and say so
+    # (the MSE ratio line printed "[nan, nan]")
+    assert "no interval: one sample" in report
+    assert "[nan" not in report and "nan]" not in report
 
 
 def test_metrics_schema(run):
