@@ -250,6 +250,20 @@ def check_integer(name: str, value: Any, minimum: int) -> None:
         raise ValueError(f"{name}: expected >= {minimum}, got {value}")
 
 
+def is_real_number(value: Any) -> bool:
+    """A real number: a Python or numpy int or float, or a 0-d numpy array of
+    one; not a bool (True would pass as 1), a string or a complex."""
+    if isinstance(value, float):  # the common case first: updates call this per step
+        return True
+    if isinstance(value, bool | np.bool_):
+        return False
+    if isinstance(value, int | np.integer | np.floating):
+        return True
+    return (
+        isinstance(value, np.ndarray) and value.ndim == 0 and value.dtype.kind in "iuf"
+    )
+
+
 def check_angle_dims(angle_dims: Any, d: int | None) -> tuple[int, ...]:
     """``angle_dims`` as a tuple of distinct int indices in ``[0, d)`` (``d``
     None: any index >= 0); a ValueError naming ``angle_dims`` otherwise."""

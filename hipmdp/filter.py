@@ -20,13 +20,12 @@ every step adds a sum over rows, one update with n transitions equals n single u
 
 from __future__ import annotations
 
-import numbers
 from dataclasses import dataclass
 
 import numpy as np
 from scipy import linalg
 
-from hipmdp.data import read_only
+from hipmdp.data import is_real_number, read_only
 
 Array = np.ndarray
 
@@ -91,8 +90,7 @@ def prior_belief(mu_w: Array, sigma_w: float) -> Belief:
     mu_w = np.asarray(mu_w, dtype=float)
     if mu_w.ndim != 1 or not np.all(np.isfinite(mu_w)):
         raise ValueError(f"mu_w: expected finite shape (K - 1,), got {mu_w.shape}")
-    number = isinstance(sigma_w, numbers.Real) and not isinstance(sigma_w, bool)
-    if not (number and np.isfinite(sigma_w) and sigma_w > 0):  # True passed as 1
+    if not (is_real_number(sigma_w) and np.isfinite(sigma_w) and sigma_w > 0):
         raise ValueError(f"sigma_w: expected a finite number > 0, got {sigma_w!r}")
     P0 = np.eye(len(mu_w)) / sigma_w**2
     return Belief(h=P0 @ mu_w, P=P0)

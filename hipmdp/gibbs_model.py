@@ -18,14 +18,13 @@ neither the likelihood nor `log_joint`).
 
 from __future__ import annotations
 
-import numbers
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 from scipy.special import gammaln
 
-from hipmdp.data import check_integer
+from hipmdp.data import check_integer, is_real_number
 
 Array = np.ndarray
 
@@ -108,8 +107,7 @@ def check_priors(priors: GibbsPriors) -> GibbsPriors:
     """Validate prior parameters. Raises ValueError."""
     for name in ("alpha", "sigma_w", "sigma_w0"):
         v = getattr(priors, name)
-        number = isinstance(v, numbers.Real) and not isinstance(v, bool)
-        if not (number and np.isfinite(v) and v > 0):  # True passed as 1
+        if not (is_real_number(v) and np.isfinite(v) and v > 0):  # True passed as 1
             raise ValueError(
                 f"GibbsPriors.{name}: expected a finite number > 0, got {v!r}"
             )

@@ -29,14 +29,13 @@ Everything is explicit state: :class:`SarsaState` in, a new :class:`SarsaState` 
 from __future__ import annotations
 
 import math
-import numbers
 from dataclasses import dataclass
 from typing import Literal, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
-from hipmdp.data import check_integer
+from hipmdp.data import check_integer, is_real_number
 
 Array = NDArray[np.float64]
 TraceKind = Literal["replacing", "accumulating"]
@@ -46,14 +45,6 @@ _DIVERGED = (
     "Sarsa(λ) diverged: a non-finite TD error (a non-finite reward or weight; "
     "a smaller step size α may help)"
 )
-
-
-def _is_number(value: object) -> bool:
-    """A real number, not a bool (``True`` would pass as 1); floats (numpy's too)
-    take the fast path, as the updates call this once per step."""
-    return isinstance(value, float) or (
-        isinstance(value, numbers.Real) and not isinstance(value, bool)
-    )
 
 
 def _is_index(value: object, n: int) -> bool:
@@ -84,7 +75,7 @@ def _check_step_sizes(step_sizes: object, n_features: int) -> Array:
 
 def _check_epsilon(epsilon: object) -> None:
     """ε, a number (not a bool) in ``[0, 1]``; a ValueError naming it otherwise."""
-    if not (_is_number(epsilon) and 0.0 <= epsilon <= 1.0):
+    if not (is_real_number(epsilon) and 0.0 <= epsilon <= 1.0):
         raise ValueError(f"epsilon: expected a number in [0, 1], got {epsilon!r}")
 
 
@@ -110,13 +101,13 @@ class SarsaConfig:
     traces: TraceKind = "accumulating"
 
     def __post_init__(self) -> None:
-        if not (_is_number(self.alpha) and 0.0 < self.alpha <= 1.0):
+        if not (is_real_number(self.alpha) and 0.0 < self.alpha <= 1.0):
             raise ValueError(
                 f"alpha: expected a number with 0 < alpha <= 1, got {self.alpha!r}"
             )
         for name in ("lam", "gamma", "epsilon"):
             value = getattr(self, name)
-            if not (_is_number(value) and 0.0 <= value <= 1.0):
+            if not (is_real_number(value) and 0.0 <= value <= 1.0):
                 raise ValueError(f"{name}: expected a number in [0, 1], got {value!r}")
         if self.traces not in ("replacing", "accumulating"):
             raise ValueError(
@@ -154,7 +145,7 @@ def init_state(
     """
     check_integer("n_actions", n_actions, 1)
     check_integer("n_features", n_features, 1)
-    if not (_is_number(initial_value) and np.isfinite(initial_value)):
+    if not (is_real_number(initial_value) and np.isfinite(initial_value)):
         raise ValueError(
             f"initial_value: expected a finite number, got {initial_value!r}"
         )
@@ -267,7 +258,7 @@ def sarsa_update(
         raise ValueError(
             f"action: expected an integer index in [0, {n_actions}), got {action!r}"
         )
-    if not _is_number(reward):
+    if not is_real_number(reward):
         raise ValueError(f"reward: expected a real number, got {reward!r}")
     if phi_next is not None:
         phi_next = _shaped("phi_next", phi_next, (n_features,), "(F,)")

@@ -11,7 +11,10 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from hipmdp import Transitions
-from hipmdp.data import ParameterTable, wrap_angle
+from hipmdp.data import ParameterTable, is_real_number, wrap_angle
+from hipmdp.filter import prior_belief
+from hipmdp.gibbs_model import GibbsPriors, check_priors
+from hipmdp.sarsa import SarsaConfig, init_state, sarsa_update
 
 
 def make(n=12, d=4, seed=0, **kw) -> Transitions:
@@ -462,3 +465,19 @@ def test_load_checks_the_stored_metadata_as_the_constructor_does(
         Transitions.load(tmp_path / "changed.npz")
     with pytest.raises(FileNotFoundError, match="nope.json: no such file"):
         Transitions.load(tmp_path / "nope.json")
+
+
+def test_real_numbers_are_ints_floats_and_0d_arrays_not_bools():
+    """The checks of priors, σ_w and Sarsa rewards refused a 0-d array (np.array(1.0),
+    as a loaded file gives it) that they had taken before, while taking True."""
+    for ok in (1.0, 2, np.float32(0.5), np.int64(3), np.array(1.0), np.array(4)):
+        assert is_real_number(ok), ok
+    for bad in (True, np.bool_(True), "1", 1j, None, np.ones(1), np.array(True),
+                np.array("1"), [1.0]):  # fmt: skip
+        assert not is_real_number(bad), bad
+    assert prior_belief(np.zeros(2), np.array(2.0)).P[0, 0] == 0.25
+    check_priors(GibbsPriors(np.array(1.0), 1.0, np.float32(1.0), 3))
+    state = init_state(2, 3)
+    step = sarsa_update(state, np.ones(3), 0, np.array(-1.0), None, None,
+                        np.full(3, 0.1), SarsaConfig())  # fmt: skip
+    assert step.td_error == -1.0
