@@ -534,18 +534,19 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
     recorded = old.get("software")  # None: a run from before 2026-12-04, made
     # by code that seeded shards, not instances; a finished run (nothing to do)
     # is left as it is, whatever made it
-    if todo and recorded != fresh["software"]:
+    kept = [e["index"] for e in old["shards"] if e["index"] not in todo]
+    # no shard kept (killed before the first finished): nothing to mix
+    if todo and kept and recorded != fresh["software"]:
         if not config.mixed_software:
             raise ValueError(
                 f"{config.out} holds this run, made by other software "
                 f"({_software_change(recorded, fresh['software'])}): its shards "
                 "would mix with data this version makes; choose another --out, or "
-                "pass --mixed-software to continue it all the same (the manifest "
-                "then records which shards each software made)"
+                "pass --resume --mixed-software to continue it all the same (the "
+                "manifest then records which shards each software made)"
             )
         earlier = old.setdefault("earlier_software", [])
         listed = {i for entry in earlier for i in entry["shards"]}
-        kept = [e["index"] for e in old["shards"] if e["index"] not in todo]
         earlier.append(
             {"software": recorded, "shards": [i for i in kept if i not in listed]}
         )

@@ -493,6 +493,20 @@ def test_an_instances_data_do_not_depend_on_the_shard_size(tmp_path, policy):
             )
 
 
+def test_a_run_by_other_software_killed_before_any_shard_resumes_as_it_is(
+    reference, tmp_path
+):
+    """No shard finished, so nothing would mix: it was refused all the same."""
+    run = tmp_path / "run"
+    run.mkdir()
+    manifest = json.loads((reference / "manifest.json").read_text())
+    manifest["software"]["source_sha256"] = "0" * 64
+    manifest["complete"] = False
+    (run / "manifest.json").write_text(json.dumps(manifest))
+    assert generate.main([*RUN, "--out", str(run), "--resume"]).redone == (0, 1, 2)
+    assert files(run) == files(reference)  # the manifest records this software
+
+
 def test_a_finished_run_made_by_other_software_is_left_as_it_is(reference, tmp_path):
     """Nothing to do, so nothing mixes: the same command after an upgrade still
     finds the run finished."""
