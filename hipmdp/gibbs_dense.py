@@ -91,11 +91,13 @@ def marginal_llr(E: Array, W: Array, K: Array, noise: float) -> float:
     """log N(y; 0, (W Wᵀ) ⊗ K + σ²I) − log N(y; 0, σ²I), y = vec(E).
 
     The likelihood of the residual E (B, m) with k features of weights W (B, k) on and
-    their f marginalised, against all of them off.
+    their f marginalised, against all of them off. The numerator factors the dense
+    (B·m)² covariance; the denominator's σ²I is diagonal, so it is a sum of B·m
+    independent normal log densities (no factor needed).
     """
     y = E.ravel()
     cov = np.kron(W @ W.T, K) + noise * np.eye(y.size)
-    return mvn_logpdf(y, cov) - mvn_logpdf(y, noise * np.eye(y.size))
+    return mvn_logpdf(y, cov) - normal_logpdf(y, 0.0, noise)
 
 
 def z_log_odds(

@@ -58,6 +58,19 @@ def test_w_posterior_matches_dense(seed):
     np.testing.assert_allclose(cov, ref.cov, atol=TOL)
 
 
+def test_marginal_llr_is_the_ratio_of_two_normal_densities():
+    """The dense reference itself, against scipy: log N(y; 0, (WWᵀ) ⊗ K + σ²I) −
+    log N(y; 0, σ²I), both covariances written out in full."""
+    from scipy.stats import multivariate_normal
+
+    data, _, rng = random_problem(4)
+    E, W, K, s2 = data.Y[0], rng.normal(size=(3, 2)), data.K[0], data.noise[0]
+    y, eye = E.ravel(), np.eye(E.size)
+    want = multivariate_normal(cov=np.kron(W @ W.T, K) + s2 * eye).logpdf(y)
+    want -= multivariate_normal(cov=s2 * eye).logpdf(y)
+    assert abs(dense.marginal_llr(E, W, K, s2) - want) < TOL * max(1.0, abs(want))
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_z_log_odds_matches_dense(seed):
     data, st, rng = random_problem(seed)
