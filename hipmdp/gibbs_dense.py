@@ -135,6 +135,42 @@ class DenseAlgebra:
         return post.mean + L @ rng.standard_normal(post.mean.shape)
 
 
+class MeanDraws:
+    """Either `Algebra` with its f and w draws replaced by their posterior means,
+    after taking the standard normals a draw takes (a checking device).
+
+    The structured and the dense algebra draw f and w through different square
+    roots of the same covariance, so sweeps from one state and seed differ. With
+    means for draws every other random choice (z decisions, new-feature proposals
+    and their acceptance, μ_w) sees the same uniforms, and whole sweeps must agree:
+    z exactly, w, f and μ_w to round-off. A mean costs what a draw costs (the
+    dense draw still factors its covariance). Other attributes are the algebra's.
+    """
+
+    def __init__(self, algebra) -> None:
+        self.algebra = algebra
+
+    def __getattr__(self, name):
+        return getattr(self.algebra, name)
+
+    def f_draw(self, r, Yr, W, *, rng):
+        return self.algebra.f_draw(r, Yr, W, rng=_ZeroNormals(rng))
+
+    def w_draw(self, z, f, mu_w, sigma_w, *, rng):
+        return self.algebra.w_draw(z, f, mu_w, sigma_w, rng=_ZeroNormals(rng))
+
+
+class _ZeroNormals:
+    """In place of the Generator of a draw `mean + L ε`: ε is taken from `rng` (the
+    stream advances as for the draw) and zeros of its shape are returned."""
+
+    def __init__(self, rng: np.random.Generator) -> None:
+        self.rng = rng
+
+    def standard_normal(self, size=None) -> Array:
+        return np.zeros_like(self.rng.standard_normal(size))
+
+
 def dense_gibbs_sweep(
     state: GibbsState, data: GibbsData, priors: GibbsPriors, *, rng: np.random.Generator
 ) -> GibbsState:

@@ -136,35 +136,6 @@ def test_w_draws_reproduce_dense_posterior():
     assert_w_draws(draws, dense.w_posterior(z, f, data.Y, data.noise, mu_w, 0.8))
 
 
-class _MeanEigen(fast.EigenAlgebra):
-    """The structured algebra with every f and w draw replaced by its posterior
-    mean, after consuming the same standard normals as a draw."""
-
-    def f_draw(self, r, Yr, W, *, rng):
-        post = fast.f_posterior(Yr, W, self.cache.lam[r], self.noise[r])
-        rng.standard_normal(post.mean.shape)
-        return post.mean
-
-    def w_draw(self, z, f, mu_w, sigma_w, *, rng):
-        mean, _ = fast.w_posterior(z, f, self.Yc, self.noise, mu_w, sigma_w)
-        rng.standard_normal(mean.shape)
-        return mean
-
-
-class _MeanDense(dense.DenseAlgebra):
-    """The dense reference algebra, with means for draws as `_MeanEigen`."""
-
-    def f_draw(self, r, Yr, W, *, rng):
-        post = dense.f_posterior(Yr, W, self.K[r], self.noise[r])
-        rng.standard_normal(post.mean.size)
-        return post.mean.reshape(W.shape[1], -1)
-
-    def w_draw(self, z, f, mu_w, sigma_w, *, rng):
-        post = dense.w_posterior(z, f, self.Yc, self.noise, mu_w, sigma_w)
-        rng.standard_normal(post.mean.shape)
-        return post.mean
-
-
 def test_structured_sweeps_follow_the_dense_reference_sweeps():
     """Whole sweeps, structured against dense, from the same state and seed. The
     two algebras draw f and w through different square roots of the same
@@ -183,10 +154,16 @@ def test_structured_sweeps_follow_the_dense_reference_sweeps():
     n_features = set()
     for i in range(12):
         z, w, f, mu = sweep(
-            _MeanDense(data), z, w, f, mu, priors, rng=np.random.default_rng(100 + i)
+            dense.MeanDraws(dense.DenseAlgebra(data)),
+            z,
+            w,
+            f,
+            mu,
+            priors,
+            rng=np.random.default_rng(100 + i),
         )
         zt, wt, ft, mut = sweep(
-            _MeanEigen(cache),
+            dense.MeanDraws(fast.EigenAlgebra(cache)),
             zt,
             wt,
             ft,

@@ -9,10 +9,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from hipmdp import gibbs_dense as dense
 from hipmdp import gibbs_eigen as fast
 from hipmdp.gibbs import GibbsData, GibbsPriors, prepare
 from hipmdp.gibbs_sweep import new_feature_step, z_step_row
-from tests.test_gibbs_sampler import _MeanEigen, small_problem
+from tests.test_gibbs_sampler import small_problem
 
 
 def test_z_step_leaves_singletons_to_the_new_feature_step():  # G11
@@ -28,7 +29,7 @@ def test_z_step_leaves_singletons_to_the_new_feature_step():  # G11
 
 def test_born_features_take_f_from_the_residual_without_the_old_singletons():  # G06
     data, rng = small_problem(5)
-    alg = _MeanEigen(prepare(data))
+    alg = dense.MeanDraws(fast.EigenAlgebra(prepare(data)))
     priors = GibbsPriors(alpha=6.0, sigma_w=1.0, sigma_w0=1.0, n_w=20)
     z = np.array([[1, 1, 1], [1, 0, 0]], dtype=bool)
     w = np.vstack([np.ones(4), 3 * rng.normal(size=4)])
