@@ -31,6 +31,7 @@ import time
 import mujoco
 import numpy as np
 
+from benchmarks.timing import paired
 from tasks import acrobot, cartpole
 
 DOMAINS = {"acrobot": acrobot.swingup, "cartpole": cartpole.balance}
@@ -66,13 +67,15 @@ def paired_rates(env, module, n_steps: int, repeats: int, rng):
         "raw": lambda n: raw_steps_per_second(model, module.ACTIONS, n, n_sub, rng),
         "env": lambda n: env_steps_per_second(env, len(module.ACTIONS), n, rng),
     }
-    for rate in sides.values():  # warm-up
-        rate(n_steps // 10 + 1)
-    rates = {"raw": [], "env": []}
-    for r in range(repeats):
-        for side in ("raw", "env") if r % 2 == 0 else ("env", "raw"):
-            rates[side].append(sides[side](n_steps))
-    return np.array(rates["raw"]), np.array(rates["env"])
+    rates = paired(
+        {side: (lambda rate=rate: rate(n_steps)) for side, rate in sides.items()},
+        repeats,
+        warm_up={
+            side: (lambda rate=rate: rate(n_steps // 10 + 1))
+            for side, rate in sides.items()
+        },
+    )
+    return rates["raw"], rates["env"]
 
 
 def main(argv=None) -> None:
