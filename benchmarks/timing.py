@@ -17,11 +17,13 @@ import numpy as np
 
 
 def seconds(fn: Callable[[], object], n: int = 1) -> float:
-    """Wall-clock seconds per call of fn(), over n calls in a row."""
-    start = time.perf_counter()
+    """Wall-clock seconds of one call of fn(): the median of n calls in a row."""
+    times = []
     for _ in range(n):
+        start = time.perf_counter()
         fn()
-    return (time.perf_counter() - start) / n
+        times.append(time.perf_counter() - start)
+    return float(np.median(times))
 
 
 def paired(
@@ -51,11 +53,15 @@ def paired(
     return {name: np.array(values) for name, values in out.items()}
 
 
-def ratio_text(num: np.ndarray, den: np.ndarray, digits: int = 2) -> str:
+def ratio_text(num: np.ndarray, den: np.ndarray, digits: int | None = None) -> str:
     """The median of the paired ratios num[i] / den[i], with their range if more
-    than one: '4.21x (4.02-4.37)'; thousands separated by commas."""
+    than one: '4.21x (4.02-4.37)'; thousands separated by commas. digits: after
+    the point; None: 2 below 10, 1 below 100, else 0."""
     r = np.asarray(num) / np.asarray(den)
-    text = f"{np.median(r):,.{digits}f}x"
+    med = float(np.median(r))
+    if digits is None:
+        digits = 2 if med < 10 else 1 if med < 100 else 0
+    text = f"{med:,.{digits}f}x"
     if r.size > 1:
         text += f" ({r.min():,.{digits}f}-{r.max():,.{digits}f})"
     return text
