@@ -1,6 +1,6 @@
 """Benchmark of `hipmdp.fit` at paper scale and of the online filter.
 
-Run:  python -m benchmarks.model [--sweeps 250] [--chains 2]
+Run:  python -m benchmarks.model [--sweeps 250] [--chains 2] [--repeats 3]
 
 Data: B = 7 training instances of a synthetic HiP-MDP with 2 actions and 4-dimensional
 states (two latent parameters acting on different (action, dimension) rows), 6000
@@ -8,15 +8,21 @@ transitions per instance. Prints:
 
 - seconds of each pre-sampler stage on its own (hyperparameters, support points with
   m = 750, per-instance smoothing) and of the whole `hipmdp.fit` (m = 750, 250 sweeps,
-  FitConfig's default chains);
+  FitConfig's default chains), each timed once;
 - filter latency: one single-transition `update`, with the paper's filter and with
   the model-error filter side by side, and followed by a single-state `predict` or
-  `predict_mean`;
+  `predict_mean` (200 transitions in a row per measurement);
 - single-state means at a fixed belief, as planning calls them: `predict_mean`
   against `mean_predictor(belief)` (the features folded into one
-  `hipmdp.kernels.KernelMeans`), side by side;
+  `hipmdp.kernels.KernelMeans`), side by side, and the predictor's one-off build;
 - batched `predict`, `predict_mean` and `mean_predictor` throughput in states per
   second.
+
+The means are first compared (also the warm-up): `mean_predictor` and
+`predict_mean` against `predict`'s mean to a relative 1e-9, single-state and
+batched. The comparisons are `--repeats` measurements of each side taken in turn
+(`benchmarks.timing.paired`); figures are medians, ratios the median of the
+repeats' ratios with their range.
 """
 
 from __future__ import annotations
@@ -32,6 +38,7 @@ import time
 import numpy as np
 
 import hipmdp
+from benchmarks.timing import paired, ratio_text, seconds
 from hipmdp.fitting import FitConfig, smooth_onto_support
 from hipmdp.gp import fit_hyper_set
 from hipmdp.support import select_support
@@ -61,6 +68,7 @@ def make_batch(rng: np.random.Generator) -> tuple[hipmdp.Transitions, np.ndarray
 
 
 def timed(fn):
+    """fn()'s result and its wall-clock seconds (one call: for the stages)."""
     t0 = time.perf_counter()
     out = fn()
     return out, time.perf_counter() - t0
@@ -72,7 +80,12 @@ def main() -> None:
     )
     parser.add_argument("--sweeps", type=int, default=250)
     parser.add_argument("--chains", type=int, default=FitConfig.n_chains)
+    parser.add_argument(
+        "--repeats", type=int, default=3, help="paired repeats per comparison"
+    )
     args = parser.parse_args()
+    if args.repeats < 1:
+        parser.error(f"--repeats must be >= 1, got {args.repeats}")
     rng = np.random.default_rng(0)
     batch, _ = make_batch(rng)
     config = FitConfig(
@@ -146,28 +159,43 @@ def main() -> None:
                 getattr(model, then)(one.states, one.actions, belief)
         return (time.perf_counter() - t0) / len(singles)
 
-    paper = latency(False, None)
-    err = latency(True, None)
+    filters = {
+        "paper": lambda: latency(False, None),
+        "error": lambda: latency(True, None),
+        "predict": lambda: latency(True, "predict"),
+        "predict_mean": lambda: latency(True, "predict_mean"),
+    }
+    lat = paired(filters, args.repeats, warm_up=filters)
+    paper, err = np.median(lat["paper"]), np.median(lat["error"])
     print(f"filter update, one transition, paper filter: {paper * 1e3:8.3f} ms")
     print(
         f"filter update, one transition, model-error filter: {err * 1e3:8.3f} ms"
-        f"   ({err / paper:.1f}x the paper filter)"
+        f"   ({ratio_text(lat['error'], lat['paper'])} the paper filter)"
     )
     for name in ("predict", "predict_mean"):
-        lat = latency(True, name)
-        print(f"filter update + {name}, one transition: {lat * 1e3:8.3f} ms")
+        t = np.median(lat[name])
+        print(f"filter update + {name}, one transition: {t * 1e3:8.3f} ms")
     belief = model.update(model.prior(), new)
 
     # Planning: one state at a time at a fixed belief. Building the fused
     # predictor is timed too: planning pays it once per belief (per planning
     # stage), predict_mean pays its share on every call.
-    fused, build = timed(lambda: model.mean_predictor(belief))
+    fused = model.mean_predictor(belief)
     one = [(s[None], a[None]) for s, a in zip(new.states, new.actions, strict=True)]
-    _, slow = timed(lambda: [model.predict_mean(s, a, belief) for s, a in one])
-    _, fast = timed(lambda: [fused(s, a) for s, a in one])
+    single = {
+        "predict_mean": lambda: [model.predict_mean(s, a, belief) for s, a in one],
+        "mean_predictor": lambda: [fused(s, a) for s, a in one],
+    }
+    close(single["mean_predictor"](), single["predict_mean"](), "single-state means")
+    t = paired(
+        {k: (lambda fn=fn: seconds(fn)) for k, fn in single.items()}, args.repeats
+    )
+    slow, fast = np.median(t["predict_mean"]), np.median(t["mean_predictor"])
+    build = seconds(lambda: model.mean_predictor(belief), 21)
     print(
         f"single-state predict_mean vs mean_predictor: {slow / len(one) * 1e6:8.1f} "
-        f"vs {fast / len(one) * 1e6:8.1f} us  ({slow / fast:.1f}x); building "
+        f"vs {fast / len(one) * 1e6:8.1f} us  "
+        f"({ratio_text(t['predict_mean'], t['mean_predictor'])}); building "
         f"the mean_predictor once: {build * 1e6:.0f} us ({build / fast * len(one):.1f}"
         " of its calls)"
     )
@@ -175,15 +203,34 @@ def main() -> None:
     S = np.random.default_rng(6).normal(size=(100_000, D))
     acts = np.random.default_rng(7).integers(0, A, size=len(S))
     calls = {
-        "predict": lambda: model.predict(S, acts, belief),
+        "predict": lambda: model.predict(S, acts, belief)[0],
         "predict_mean": lambda: model.predict_mean(S, acts, belief),
         "mean_predictor": lambda: fused(S, acts),
     }
-    for name, fn in calls.items():
-        _, t = timed(fn)
+    means = {name: fn() for name, fn in calls.items()}  # also the warm-up
+    close(means["predict_mean"], means["predict"], "batched predict_mean")
+    close(means["mean_predictor"], means["predict"], "batched mean_predictor")
+    t = paired(
+        {k: (lambda fn=fn: seconds(fn)) for k, fn in calls.items()}, args.repeats
+    )
+    for name in calls:
+        sec = np.median(t[name])
         print(
-            f"batched {name}: {len(S) / t:12.0f} states/s  ({len(S)} states, {t:.2f} s)"
+            f"batched {name}: {len(S) / sec:12.0f} states/s  "
+            f"({len(S)} states, {sec:.2f} s)"
         )
+    print(
+        "batched mean_predictor / predict_mean: "
+        f"{ratio_text(t['predict_mean'], t['mean_predictor'])}"
+    )
+
+
+def close(got, want, what: str) -> None:
+    """got equals want to a relative 1e-9 (the same means, computed differently),
+    near zeros relative to want's largest entry."""
+    got, want = np.asarray(got), np.asarray(want)
+    atol = 1e-9 * float(np.max(np.abs(want), initial=0.0))
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=atol, err_msg=what)
 
 
 if __name__ == "__main__":
