@@ -22,7 +22,16 @@ Measured side by side in one run, on one instance (nominal unless ``--param``):
 Every rate is also printed as a ratio to the raw simulator's steps/s. The planning
 episodes start from the real episodes' initial states.
 
-    python -m benchmarks.control --domain acrobot
+Every row is called once untimed (a warm-up), then measured ``--repeats`` times,
+all rows in turn, the order reversed on every other repeat
+(``benchmarks.timing.paired``); rates are medians, ratios the median of the
+repeats' ratios with their range. Each call of a learning or planning row starts
+from the same agent, instance and seed, so every repeat does the same work. The
+raw rate is ``benchmarks.simulation``'s ``env.step`` loop (actions drawn before
+the clock starts). Before timing, the GP rows' predictions at the real task's
+states are checked to agree (see ``check_same_predictions``).
+
+    python -m benchmarks.control --domain acrobot [--repeats 5]
 """
 
 from __future__ import annotations
@@ -37,12 +46,13 @@ import time
 from collections.abc import Callable
 
 import numpy as np
-from tqdm.auto import tqdm
 
+from benchmarks.simulation import env_steps_per_second
+from benchmarks.timing import paired, ratio_text
 from hipmdp.baselines import GPBaseline, batch_only
 from hipmdp.planning import LearnedModel, plan
 from hipmdp.sarsa import epsilon_greedy
-from tasks.agents import DOMAINS, SimulatorModel, learn
+from tasks.agents import DOMAINS, LearnResult, SimulatorModel, learn
 
 
 class FullPredict:
@@ -64,11 +74,40 @@ class MeanOnly(FullPredict):
         return self.model.predict_mean(states, actions)
 
 
-def timed(fn: Callable[[], int]) -> tuple[int, float]:
-    """Run ``fn`` (returning a step count); return (steps, seconds)."""
+def per_second(fn: Callable[[], int]) -> float:
+    """Run ``fn`` (returning a step count); steps per wall-clock second."""
     start = time.perf_counter()
     steps = fn()
-    return steps, time.perf_counter() - start
+    return steps / (time.perf_counter() - start)
+
+
+def check_same_predictions(gp: GPBaseline, models: dict, data) -> None:
+    """The GP rows differ only in how E[Δ] = Σ_j k(s, x_j) α_j is computed: their
+    predictions at the data's states must agree to round-off. The sum's terms
+    cancel (here up to ~1e6 for means ~1: the GPs are conditioned with little
+    noise), so round-off is relative to its terms' size, at most σ_f²‖α‖₁ per
+    (action, dimension): measured ≤ 4e-16 of it, allowed 1e-13 (1e-9 of the
+    mean where that is larger)."""
+    scale = np.array(
+        [
+            [
+                0.0 if p is None else p.hyper.signal_var * np.abs(p.alpha).sum()
+                for p in row
+            ]
+            for row in gp.posteriors
+        ]
+    )  # (A, D)
+    S, acts = data.states, data.actions
+    want = models["predict (mean+var)"].predict(S, acts)
+    tol = np.maximum(1e-13 * scale[acts], 1e-9 * np.abs(want))
+    for name in ("predict_mean", "mean_predictor"):
+        err = np.abs(models[name].predict(S, acts) - want)
+        if not np.all(err <= tol):
+            worst = np.unravel_index(np.argmax(err / tol), err.shape)
+            raise AssertionError(
+                f"{name}: predictions differ from predict's by {err[worst]:.3e} at "
+                f"{worst}, allowed {tol[worst]:.3e}"
+            )
 
 
 def main(argv: list[str] | None = None) -> dict[str, float]:
@@ -97,26 +136,24 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     parser.add_argument(
         "--gp-size", type=int, default=500, help="GP transitions per action (n_max)"
     )
+    parser.add_argument(
+        "--repeats", type=int, default=5, help="paired measurements of every row"
+    )
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    parser.add_argument(
+        "--no-progress", action="store_true", help="no progress bars (warm-up only)"
+    )
     args = parser.parse_args(argv)
+    if args.repeats < 1:
+        parser.error(f"--repeats must be >= 1, got {args.repeats}")
     domain = DOMAINS[args.domain]
     progress = not args.no_progress
     rng = np.random.default_rng(args.seed)
     basis = domain.basis()
-    rates: dict[str, float] = {}
-
     env = domain.make_env(None, seed=args.seed)
 
-    def raw() -> int:
-        env.reset()
-        for _ in tqdm(range(args.raw_steps), desc="raw env", disable=not progress):
-            if env.step(int(rng.integers(domain.n_actions))).last():
-                env.reset()
-        return args.raw_steps
-
-    n, dt = timed(raw)
-    rates["raw simulator (env.step)"] = n / dt
+    def raw() -> float:
+        return env_steps_per_second(env, domain.n_actions, args.raw_steps, rng)
 
     states = rng.uniform(basis.low, basis.high, size=(2000, basis.state_dim))
     weights = rng.normal(size=(domain.n_actions, basis.n_features))
@@ -126,62 +163,80 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
             epsilon_greedy(weights @ basis(s), 0.0, rng=rng)
         return len(states)
 
-    n, dt = timed(select)
-    rates["action selection (phi + argmax)"] = n / dt
-
-    result = None
-
-    def real() -> int:
-        nonlocal result
+    def real(progress: bool = False) -> LearnResult:
+        # a fresh instance and stream: every call does the same work
         env = domain.make_env(None, seed=args.seed)
-        result = learn(env, domain, args.episodes, rng=rng, progress=progress)
-        return int(result.steps.sum())
+        rng = np.random.default_rng(args.seed)
+        return learn(env, domain, args.episodes, rng=rng, progress=progress)
 
-    n, dt = timed(real)
-    rates["Sarsa on the real task"] = n / dt
+    # the first call of every row is untimed (a warm-up); this one's result is
+    # the agent and the data the planning rows start from
+    result = real(progress)
+    env_steps_per_second(env, domain.n_actions, args.raw_steps // 10 + 1, rng)
+    select()
     starts = result.transitions.states[
         np.concatenate([[0], np.flatnonzero(result.transitions.dones[:-1]) + 1])
     ]
     task = domain.planning_task(None, domain.max_steps)
-    agent = result.state
-
     gp_task = domain.planning_task(None, args.model_steps)
+    gp = batch_only(
+        result.transitions, rng=np.random.default_rng(args.seed + 1), n_max=args.gp_size
+    )
+    models = {
+        "predict (mean+var)": LearnedModel(
+            FullPredict(gp), angle_dims=domain.angle_dims
+        ),
+        "predict_mean": LearnedModel(MeanOnly(gp), angle_dims=domain.angle_dims),
+        "mean_predictor": LearnedModel(gp, angle_dims=domain.angle_dims),
+    }
+    check_same_predictions(gp, models, result.transitions)
 
-    def on(model, n_parallel: int = 1, task=task) -> Callable[[], int]:
+    def on(model, n_parallel: int = 1, task=task, progress=False) -> Callable[[], int]:
         def run() -> int:
-            out = plan(agent, basis, domain.sarsa, model, task, starts,
-                       args.plan_episodes, rng=rng, n_parallel=n_parallel,
-                       progress=progress)  # fmt: skip
+            # a fresh stream: every call does the same work
+            out = plan(result.state, basis, domain.sarsa, model, task, starts,
+                       args.plan_episodes, rng=np.random.default_rng(args.seed + 2),
+                       n_parallel=n_parallel, progress=progress)  # fmt: skip
             return int(out.steps.sum())
 
         return run
 
-    n, dt = timed(on(SimulatorModel(domain)))
-    rates["Sarsa planning, true model"] = n / dt
-    gp = batch_only(result.transitions, rng=rng, n_max=args.gp_size)
-    full = LearnedModel(FullPredict(gp), angle_dims=domain.angle_dims)
-    n, dt = timed(on(full, task=gp_task))
-    rates["Sarsa planning, GP predict (mean+var)"] = n / dt
-    mean_only = LearnedModel(MeanOnly(gp), angle_dims=domain.angle_dims)
-    n, dt = timed(on(mean_only, task=gp_task))
-    rates["Sarsa planning, GP predict_mean"] = n / dt
-    fused = LearnedModel(gp, angle_dims=domain.angle_dims)
-    n, dt = timed(on(fused, task=gp_task))
-    rates["Sarsa planning, GP mean_predictor"] = n / dt
-    n, dt = timed(on(fused, args.parallel, task=gp_task))
-    rates[f"Sarsa planning, GP mean_predictor, {args.parallel} in lockstep"] = n / dt
+    rows: dict[str, Callable[[], float]] = {
+        "raw simulator (env.step)": raw,
+        "action selection (phi + argmax)": lambda: per_second(select),
+        "Sarsa on the real task": lambda: per_second(lambda: int(real().steps.sum())),
+    }
+    plans = {"Sarsa planning, true model": on(SimulatorModel(domain))}
+    for name, model in models.items():
+        plans[f"Sarsa planning, GP {name}"] = on(model, task=gp_task)
+    fused = models["mean_predictor"]
+    plans[f"Sarsa planning, GP mean_predictor, {args.parallel} in lockstep"] = on(
+        fused, args.parallel, task=gp_task
+    )
+    for name, run in plans.items():
+        rows[name] = lambda run=run: per_second(run)
+    for run in plans.values():  # warm-up
+        run()
+    rates = paired(rows, args.repeats)
+    raw_rates = rates["raw simulator (env.step)"]
 
-    raw_rate = rates["raw simulator (env.step)"]
     print(
         f"\n{domain.name}: order-{domain.order} Fourier basis, "
         f"{basis.n_features} features x {domain.n_actions} actions; GP model on "
         f"{len(result.transitions)} transitions (<= {args.gp_size} per action "
         f"conditioned on); simulated episodes on GP models cut at {args.model_steps}"
     )
-    print(f"{'':50s} {'steps/s':>10s} {'/ raw sim':>10s}")
-    for name, rate in rates.items():
-        print(f"{name:50s} {rate:10.0f} {rate / raw_rate:10.2f}")
-    return rates
+    print(
+        f"medians of {args.repeats} paired repeats; '/ raw sim' is the median of "
+        "the repeats' ratios (range)"
+    )
+    print(f"{'':54s} {'steps/s':>8s}  / raw sim")
+    for name, r in rates.items():
+        print(f"{name:54s} {np.median(r):8.0f}  {ratio_text(r, raw_rates)}")
+    m_pm = rates["Sarsa planning, GP mean_predictor"]
+    pm = rates["Sarsa planning, GP predict_mean"]
+    print(f"mean_predictor / predict_mean planning rate: {ratio_text(m_pm, pm)}")
+    return {name: float(np.median(r)) for name, r in rates.items()}
 
 
 if __name__ == "__main__":
