@@ -1,6 +1,6 @@
 """Speed of the blocked Gibbs sampler: structured (eigenbasis) vs dense reference.
 
-Run:  python -m benchmarks.sampler [--repeats 3]   (~10 min: the dense sweeps)
+Run:  python -m benchmarks.sampler [--repeats 3]   (~11 min on two cores)
       python -m benchmarks.sampler --quick       (m = 250, no m sweep; ~1 min)
 
 (On a shared machine a multi-threaded BLAS spins against the other processes and
