@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from hipmdp.data import Transitions
+from hipmdp.data import ParameterTable, Transitions
 from hipmdp.planning import plan
 from hipmdp.sarsa import SarsaState, epsilon_greedy, init_state, sarsa_update
 from tasks import acrobot, cartpole
@@ -221,3 +221,114 @@ def test_gather_batch_returns_consistent_transitions() -> None:
     # the same seed gives the same data, whatever the number of processes
     again = gather(workers=2)
     np.testing.assert_array_equal(again.states, data.states)
+
+
+def test_each_instance_and_repetition_is_one_job_with_its_own_seed(
+    monkeypatch, tmp_path
+):
+    """gather_and_save runs config.batch_repetitions agents per instance, each
+    learning config.batch_episodes episodes, job (b, r) seeded with child
+    b * repetitions + r of the seed; an instance that diverges stops the
+    batch, naming it, rather than being left out of it."""
+    from types import SimpleNamespace
+
+    from tasks import batch
+    from tasks.collect import Divergence
+
+    real, calls = batch.collect_sarsa, []
+
+    def spying(domain, instances, *, episodes_per_instance, rng, **kwargs):
+        calls.append((episodes_per_instance, rng.bit_generator.seed_seq.spawn_key))
+        return real(
+            domain, instances, episodes_per_instance=episodes_per_instance,
+            rng=rng, **kwargs,
+        )  # fmt: skip
+
+    monkeypatch.setattr(batch, "collect_sarsa", spying)
+    config = SimpleNamespace(
+        batch_repetitions=2, batch_episodes=3, batch_max_steps=20, workers=1
+    )
+    params = [cartpole.CartpoleParams(pole_mass=0.3)] * 2
+    data = batch.gather_and_save(
+        "cartpole", params, tmp_path / "batch.npz", config=config,
+        seed=np.random.SeedSequence(5, spawn_key=(7,)), progress=False,
+    )  # fmt: skip
+    assert calls == [(3, (7, k)) for k in range(4)]
+    assert data.dones.sum() == 2 * 2 * 3
+    assert np.diff(np.flatnonzero(data.dones), prepend=-1).max() <= 20
+    saved = Transitions.load(tmp_path / "batch.npz")
+    np.testing.assert_array_equal(saved.states, data.states)
+    table = ParameterTable.load(tmp_path / "batch.npz")
+    np.testing.assert_array_equal(table.instances, [0, 1])
+
+    def diverging(domain, instances, **kwargs):
+        out = real(domain, instances, **kwargs)
+        if kwargs["instance_ids"] == [1]:
+            out = out._replace(diverged=(Divergence(1, -1, -1, "MuJoCo warning"),))
+        return out
+
+    monkeypatch.setattr(batch, "collect_sarsa", diverging)
+    with pytest.raises(RuntimeError, match="cartpole instance 1 diverged"):
+        batch.gather_batch(
+            "cartpole", params, repetitions=1, episodes=1, max_steps=5,
+            seed=np.random.SeedSequence(5),
+        )  # fmt: skip
+
+
+def test_the_domains_defaults_are_the_module_docstrings_table():
+    """Order, α, λ, γ, ε and q₀ of each domain as tasks/agents.py's table gives
+    them; the normalisation boxes as it names them, symmetric about 0."""
+    from tasks import agents
+
+    rows = {
+        line.split()[0]: line.split()
+        for line in agents.__doc__.splitlines()
+        if line.split()[:1] in (["cartpole"], ["acrobot"])
+    }
+    for name, domain in agents.DOMAINS.items():
+        row = rows[name]
+        sarsa = domain.sarsa
+        assert domain.order == int(row[1]), name
+        assert (sarsa.alpha, sarsa.lam, sarsa.gamma, sarsa.epsilon) == tuple(
+            map(float, row[-5:-1])
+        ), name
+        assert domain.initial_value == float(row[-1]), name
+        np.testing.assert_array_equal(domain.low, -np.array(domain.high))
+    np.testing.assert_allclose(CARTPOLE.high, (2.4, np.deg2rad(12), 2.5, 3.5))
+    np.testing.assert_allclose(ACROBOT.high, (np.pi, np.pi, 4 * np.pi, 9 * np.pi))
+
+
+def test_an_episode_that_does_not_learn_leaves_the_weights_and_learn_needs_one():
+    basis = CARTPOLE.basis()
+    config = dataclasses.replace(CARTPOLE.sarsa, epsilon=0.5)
+    weights = np.random.default_rng(0).normal(size=(2, basis.n_features))
+    out = run_episode(
+        CARTPOLE.make_env(None, seed=4, max_steps=5), basis, config,
+        SarsaState(weights, np.zeros_like(weights)), rng=np.random.default_rng(5),
+        learn=False,
+    )  # fmt: skip
+    assert len(out.actions) == 5
+    np.testing.assert_array_equal(out.state.weights, weights)
+    with pytest.raises(ValueError, match="n_episodes: expected >= 1, got 0"):
+        learn(CARTPOLE.make_env(None, seed=4), CARTPOLE, 0, rng=np.random.default_rng())
+
+
+def test_learn_takes_its_config_and_starting_agent():
+    """``config`` overrides the domain's hyperparameters and ``state`` is where
+    the agent starts: learn is then run_episode after run_episode with them."""
+    exploring = dataclasses.replace(CARTPOLE.sarsa, epsilon=0.5, alpha=0.01)
+    start = init_state(2, CARTPOLE.basis().n_features, 7.0)
+    result = learn(
+        CARTPOLE.make_env(None, seed=4, max_steps=10), CARTPOLE, 2,
+        rng=np.random.default_rng(0), config=exploring, state=start,
+    )  # fmt: skip
+    env = CARTPOLE.make_env(None, seed=4, max_steps=10)
+    rng, state = np.random.default_rng(0), start
+    for _ in range(2):
+        state = run_episode(env, CARTPOLE.basis(), exploring, state, rng=rng).state
+    np.testing.assert_array_equal(result.state.weights, state.weights)
+
+
+def test_the_simulator_model_refuses_states_of_another_dimension():
+    with pytest.raises(ValueError, match=r"states: expected shape \(N, 4\), got"):
+        SimulatorModel(ACROBOT).predict(np.zeros((2, 3)), np.zeros(2, int))

@@ -152,6 +152,7 @@ def test_non_finite_state_is_dropped_and_reported(monkeypatch):
         (dict(policy="random"), "policy must be callable"),
         (dict(policy=lambda s: 3), r"policy returned action 3, expected \[0, 3\)"),
         (dict(policy=lambda s: 0.5), "policy must return an int"),
+        (dict(policy=lambda s: True), "policy must return an int"),
     ],
 )
 def test_bad_arguments_raise_clear_errors(kwargs, message):
@@ -167,3 +168,71 @@ def test_bad_arguments_raise_clear_errors(kwargs, message):
         collect.collect(
             arguments.pop("domain"), arguments.pop("instances"), **arguments
         )
+
+
+def test_the_random_policy_is_uniform_and_draws_from_its_own_stream():
+    """random_policy draws every action 0..A-1. With one Generator, collect's
+    random policy draws from one more stream spawned after the instances'; with
+    one Generator per instance, each spawns two: the environment's, then its
+    random policy's."""
+    draw = collect.random_policy(3, rng=np.random.default_rng(0))
+    assert {draw(None) for _ in range(300)} == {0, 1, 2}
+    shared = gather(seed=6, episodes_per_instance=1, max_steps=5).transitions
+    stream = np.random.default_rng(6).spawn(3)[2]  # after the two instances'
+    np.testing.assert_array_equal(
+        shared.actions, [stream.integers(3) for _ in range(10)]
+    )
+    own = collect.collect(
+        "acrobot", ACROBOTS, episodes_per_instance=1, max_steps=5,
+        rng=[np.random.default_rng(s) for s in (7, 8)],
+    ).transitions  # fmt: skip
+    for i, seed in enumerate((7, 8)):
+        env_stream, policy_stream = np.random.default_rng(seed).spawn(2)
+        env = acrobot.swingup(ACROBOTS[i], seed=env_stream, max_steps=5)
+        mine = own.instances == i
+        first = env.reset().observation["state"]
+        np.testing.assert_array_equal(own.states[mine][0], first)
+        np.testing.assert_array_equal(
+            own.actions[mine], [policy_stream.integers(3) for _ in range(5)]
+        )
+
+
+def test_sarsa_gathering_keeps_the_step_limit_and_the_environments_stream():
+    """collect_sarsa's max_steps is every episode's limit, and instance i's
+    episodes start where an environment seeded with the first of the two
+    streams its own spawns starts (the second is the agent's)."""
+    result = collect.collect_sarsa(
+        "acrobot", ACROBOTS, episodes_per_instance=2, max_steps=6,
+        rng=[np.random.default_rng(s) for s in (7, 8)],
+    )  # fmt: skip
+    t = result.transitions
+    assert len(t) == 2 * 2 * 6 and result.n_episodes == 4
+    np.testing.assert_array_equal(np.flatnonzero(t.dones), [5, 11, 17, 23])
+    for i, seed in enumerate((7, 8)):
+        env_stream, _ = np.random.default_rng(seed).spawn(2)
+        env = acrobot.swingup(ACROBOTS[i], seed=env_stream, max_steps=6)
+        first = env.reset().observation["state"]
+        np.testing.assert_array_equal(t.states[t.instances == i][0], first)
+
+
+def test_a_diverging_sarsa_instance_is_dropped_whole_and_reported(monkeypatch):
+    """Learning cannot go on past a diverged step: all the instance's episodes
+    are dropped, reported as one Divergence with episode and step -1."""
+    original = acrobot.SwingUp.before_step
+    calls = []
+
+    def before_step(self, action, physics):
+        original(self, action, physics)
+        calls.append(action)
+        if len(calls) == 8:  # step 2 of instance 0's second episode
+            physics.data.qvel[0] = 1e12
+
+    monkeypatch.setattr(acrobot.SwingUp, "before_step", before_step)
+    result = collect.collect_sarsa(
+        "acrobot", ACROBOTS, episodes_per_instance=2, max_steps=6,
+        rng=np.random.default_rng(0), instance_ids=[4, 9],
+    )  # fmt: skip
+    (divergence,) = result.diverged
+    assert divergence[:3] == (4, -1, -1) and "BADQVEL" in divergence.reason
+    assert result.n_episodes == 4 and len(result.transitions) == 2 * 6
+    np.testing.assert_array_equal(np.unique(result.transitions.instances), [9])

@@ -441,3 +441,108 @@ def test_run_or_exit_reports_bad_input_as_usage_and_lets_later_errors_through(
     with pytest.raises(SystemExit):
         run_or_exit(parser, bad_input)
     assert run_or_exit(parser, lambda: 7) == 7
+
+
+def test_paired_difference_takes_its_level_in_every_interval():
+    rng = np.random.default_rng(4)
+    a, b = rng.normal(size=(8, 3)), rng.normal(size=(8, 3))
+    groups = np.repeat(np.arange(4), 2)
+    d = paired_difference(a, b, level=0.5, groups=groups)
+    diff = a - b
+    means = [diff[groups == g].mean() for g in range(4)]
+    expected = {
+        "all_episodes": mean_ci(diff.mean(axis=1), level=0.5),
+        "per_episode": mean_ci(diff, axis=0, level=0.5),
+        "by_setting": mean_ci(means, level=0.5),
+    }
+    for key, ci in expected.items():
+        for bound in ("mean", "low", "high"):
+            np.testing.assert_allclose(d[key][bound], ci[bound], err_msg=key)
+        wide = paired_difference(a, b, groups=groups)[key]
+        assert np.all(wide["high"] - wide["low"] > d[key]["high"] - d[key]["low"])
+
+
+def _interrupt_after_the_first(iterable, **kwargs):
+    """A progress bar through which Ctrl-C arrives after the first result."""
+    for item in iterable:
+        yield item
+        raise KeyboardInterrupt
+
+
+def test_an_interrupt_drops_the_queued_jobs(tmp_path, monkeypatch):
+    """Ctrl-C while results arrive: pool_map cancels the queue before it waits
+    for the running jobs (a plain ``with`` pool would run all 40, 10 s)."""
+    import tqdm.auto
+
+    monkeypatch.setattr(tqdm.auto, "tqdm", _interrupt_after_the_first)
+    marks = [("mark", str(tmp_path / f"{i}.ran")) for i in range(40)]
+    with pytest.raises(KeyboardInterrupt):
+        pool_map(_fail_or_mark, marks, workers=2, desc="", progress=False)
+    assert len(list(tmp_path.glob("*.ran"))) <= len(marks) // 2
+
+
+def test_a_write_is_flushed_to_disk_before_its_rename_and_the_rename_after(
+    tmp_path, monkeypatch
+):
+    """atomic_write fsyncs the temporary file before renaming it over the
+    target, then the folder, so that a power cut leaves the old or the new
+    file, never an empty one."""
+    import os
+    import stat
+
+    real, synced = os.fsync, []
+    target = tmp_path / "metrics.json"
+
+    def spying(fd):
+        st = os.fstat(fd)
+        synced.append((stat.S_ISDIR(st.st_mode), st.st_ino, target.exists()))
+        return real(fd)
+
+    monkeypatch.setattr(os, "fsync", spying)
+    write_json(target, {"a": 1})
+    assert synced == [
+        (False, target.stat().st_ino, False),  # the data, before the rename
+        (True, tmp_path.stat().st_ino, True),  # the folder's entry, after it
+    ]
+
+
+def test_git_commit_marks_uncommitted_changes_and_ignores_an_enclosing_checkout(
+    monkeypatch,
+):
+    """HEAD, with +dirty when tracked files changed; None when the code's
+    folder is not the top of a checkout (an install in another project's
+    .venv)."""
+    import subprocess
+
+    from tasks import experiment
+
+    root = Path(experiment.__file__).resolve().parent.parent
+    answers = {"rev-parse": {"--show-toplevel": str(root), "HEAD": "a" * 40}}
+    run = subprocess.run
+
+    def git(args, **kwargs):
+        if args[0] != "git":  # platform's own calls
+            return run(args, **kwargs)
+        command, rest = args[4], args[5:]
+        out = answers[command] if command == "status" else answers[command][rest[0]]
+        return subprocess.CompletedProcess(args, 0, stdout=out + "\n", stderr="")
+
+    monkeypatch.setattr(experiment.subprocess, "run", git)
+    answers["status"] = ""
+    assert experiment._git_commit() == "a" * 40
+    answers["status"] = " M tasks/experiment.py"
+    assert experiment._git_commit() == "a" * 40 + "+dirty"
+    env = environment()
+    assert env["git_commit"] == "a" * 40 + "+dirty"
+    assert "code aaaaaaaaaaaa+dirty." in describe_environment(env)
+    answers["rev-parse"]["--show-toplevel"] = str(root.parent)
+    assert experiment._git_commit() is None
+
+
+def test_seed_zero_is_a_seed():
+    """--seed takes every integer >= 0, 0 (the default) included."""
+    from tasks.experiment import seed_argument
+
+    assert seed_argument("0") == 0
+    with pytest.raises(argparse.ArgumentTypeError, match=">= 0, got -1"):
+        seed_argument("-1")

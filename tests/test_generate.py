@@ -64,11 +64,12 @@ def test_main_writes_loadable_shards_and_a_manifest(tmp_path, capsys):
     assert json.loads((out / "manifest.json").read_text())["complete"]
 
 
-def random_policy_shard(entry: dict, *, seed: int) -> Transitions:
-    """What `collect` gathers on a TINY acrobot run's shard `entry` (split `all`),
-    instance `g` with the stream `SeedSequence(seed, spawn_key=(2, split, g))`."""
+def random_policy_shard(entry: dict, *, seed: int, split: int = 0) -> Transitions:
+    """What `collect` gathers on a TINY acrobot run's shard `entry` (split
+    `SPLITS[split]`, default `all`), instance `g` with the stream
+    `SeedSequence(seed, spawn_key=(2, split, g))`."""
     streams = [
-        np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(2, 0, g)))
+        np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(2, split, g)))
         for g in entry["instances"]
     ]
     return collect.collect(
@@ -355,3 +356,52 @@ def test_help_describes_the_options(capsys):
         "--distribution", "--split",
     ):  # fmt: skip
         assert option in text
+
+
+@pytest.mark.parametrize("split", ["all", "train", "extrapolation"])
+def test_instances_and_episodes_come_from_the_splits_own_streams(tmp_path, split):
+    """The instances from `SeedSequence(seed, spawn_key=(0, split))`, instance
+    `g`'s episodes from `(2, split, g)`, `split` its index in SPLITS: two
+    splits' runs with one seed share no stream."""
+    from tasks.distributions import SPLITS, draw
+
+    out = tmp_path / split
+    argv = ["--domain", "acrobot", "--seed", "5", "--split", split, "--out", str(out)]
+    generate.main([*argv, *TINY, *QUIET])
+    k = SPLITS.index(split)
+    stream = np.random.default_rng(np.random.SeedSequence(5, spawn_key=(0, k)))
+    config = generate.parse_config([*argv, *TINY, *QUIET])
+    drawn = draw(config.distribution, 3, rng=stream)
+    manifest = json.loads((out / "manifest.json").read_text())
+    rows = [row for entry in manifest["shards"] for row in entry["parameters"]]
+    assert rows == drawn.values.tolist()
+    expected = random_policy_shard(manifest["shards"][1], seed=5, split=k)
+    got = Transitions.load(out / "shard-00001.npz")
+    for name in ("states", "actions", "next_states", "instances", "rewards", "dones"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(expected, name))
+
+
+def test_a_range_of_one_value_holds_a_parameter_fixed():
+    """`--vary NAME=LOW:HIGH` takes LOW == HIGH (LOW must be <= HIGH)."""
+    config = generate.parse_config(
+        ["--domain", "acrobot", "--vary", "link_mass_1=1.2:1.2", "--out", "x"]
+    )
+    assert config.distribution.vary == {"link_mass_1": (1.2, 1.2)}
+
+
+def test_the_software_digest_covers_hipmdp_tasks_and_the_models(monkeypatch):
+    """An edit to a source file of hipmdp or tasks, or to an MJCF model, changes
+    `source_sha256`: a resumed run cannot mix shards made by other code."""
+    from pathlib import Path
+
+    before = generate.software()["source_sha256"]
+    real = Path.read_bytes
+    for folder, name in [("hipmdp", "data.py"), ("tasks", "collect.py"),
+                         ("mjcf", "acrobot.xml")]:  # fmt: skip
+
+        def edited(self, folder=folder, name=name):
+            ours = (self.parent.name, self.name) == (folder, name)
+            return real(self) + b"#" if ours else real(self)
+
+        monkeypatch.setattr(Path, "read_bytes", edited)
+        assert generate.software()["source_sha256"] != before, folder

@@ -518,3 +518,75 @@ def test_a_finished_run_made_by_other_software_is_left_as_it_is(reference, tmp_p
     before = files(run)
     assert generate.main([*RUN, "--out", str(run)]).redone == ()
     assert files(run) == before
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (dict(actions=np.ones(6, int)), r"actions must have shape \(E, T\)"),
+        (dict(initial_states=np.zeros((2, 3))), r"initial_states must have shape"),
+        (dict(episode_instance=np.array([0, 2])), "2 indices into 2 instances"),
+        (dict(episode_instance=np.array([-1, 0])), "2 indices into 2 instances"),
+        (dict(actions=np.full((2, 6), 3)), r"actions must be indices in \[0, 3\)"),
+        (dict(actions=np.full((2, 6), -1)), r"actions must be indices in \[0, 3\)"),
+        (dict(chunk=0), "chunk must be a positive int"),
+    ],
+)
+def test_bad_open_loop_arguments_are_refused_naming_them(change, message):
+    arguments = dict(
+        episode_instance=np.array([0, 1]),
+        initial_states=np.zeros((2, 4)),
+        actions=np.ones((2, 6), int),
+    )
+    arguments.update(change)
+    with pytest.raises(ValueError, match=message):
+        rollout.rollout_episodes("acrobot", ACROBOTS, **arguments)
+
+
+def test_a_non_finite_state_is_a_divergence_even_at_a_terminal_step(monkeypatch):
+    """A state that is not finite, with no MuJoCo reset, ends its episode as
+    diverged at that step; so does one that the task would also call terminal
+    (the cart far out): the divergence comes first."""
+    real = rollout.mj_rollout.rollout
+    n_sub = cartpole.N_SUB_STEPS
+    at = rollout.mujoco.mj_stateSize(
+        cartpole.make_model(CARTPOLES[0]), rollout.mujoco.mjtState.mjSTATE_TIME
+    )
+
+    def poisoned(models, data, physics, control):
+        state, sensors = real(models, data, physics, control)
+        end_of_step_3 = 4 * n_sub - 1
+        state[:, end_of_step_3, at + 3] = np.nan  # the pole's speed
+        state[0, end_of_step_3, at] = 100.0  # episode 0: the cart has failed too
+        return state, sensors
+
+    monkeypatch.setattr(rollout.mj_rollout, "rollout", poisoned)
+    result = rollout.rollout_episodes(
+        "cartpole", CARTPOLES, np.array([0, 1]), np.zeros((2, 4)),
+        np.ones((2, 6), int),
+    )  # fmt: skip
+    np.testing.assert_array_equal(result.diverged, [3, 3])
+
+
+def test_open_loop_gathering_drops_a_diverged_episode_and_names_it(monkeypatch):
+    """An episode that diverges (here instance 0's second, from a velocity of
+    1e150) is reported with its instance id and its episode within the
+    instance, and none of its steps is kept."""
+    real = rollout.rollout_episodes
+
+    def blown_up(domain, instances, episode_instance, initial_states, actions, **kw):
+        initial_states = initial_states.copy()
+        initial_states[1, 2] = 1e150
+        return real(domain, instances, episode_instance, initial_states, actions, **kw)
+
+    monkeypatch.setattr(rollout, "rollout_episodes", blown_up)
+    result = rollout.collect_open_loop(
+        "acrobot", ACROBOTS, episodes_per_instance=2, max_steps=10,
+        rng=np.random.default_rng(0), instance_ids=[4, 9],
+    )  # fmt: skip
+    (divergence,) = result.diverged
+    assert divergence[:3] == (4, 1, 0)
+    t = result.transitions
+    assert result.n_episodes == 4 and len(t) == 3 * 10
+    assert np.isfinite(t.next_states).all() and np.abs(t.next_states).max() < 100
+    np.testing.assert_array_equal(np.bincount(t.instances)[[4, 9]], [10, 20])

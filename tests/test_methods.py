@@ -142,6 +142,8 @@ def test_bayesian_linear_moves_from_the_batch_fit_to_the_instance():
     [
         ("linear", "expected NAME=module:attribute"),
         ("linear=tasks.methods", "expected NAME=module:attribute"),
+        ("linear=tasks.methods:", "expected NAME=module:attribute"),
+        ("linear=:BayesianLinear", "expected NAME=module:attribute"),
         ("=tasks.methods:BayesianLinear", "the name ''"),
         ("my method=tasks.methods:BayesianLinear", "the name 'my method'"),
         ("hipmdp=tasks.methods:BayesianLinear", "'hipmdp' is .* a built-in method"),
@@ -635,3 +637,64 @@ def test_seed_spread_tabulates_an_added_method_beside_the_others(runs, tmp_path)
     assert {"log-likelihood, HiP-MDP - linear", "log-likelihood, HiP-MDP - zero"} <= (
         labels
     )
+
+
+def test_bayesian_linear_keeps_a_variance_on_a_batch_it_fits_exactly():
+    """A batch whose Δs the features fit exactly (here nothing moves) still
+    gives every prediction a variance > 0 (σ² plus 1e-12): fit_all's tries,
+    which refuse a variance of 0, pass."""
+    rng = np.random.default_rng(2)
+    states = rng.uniform(-1.0, 1.0, size=(40, 2))
+    still = hipmdp.Transitions(
+        states, np.arange(40) % 2, states.copy(), np.zeros(40, int), angle_dims=(0,)
+    )
+    spec = MethodSpec("linear", "tasks.methods", "BayesianLinear")
+    (fitted,) = methods.fit_all([(spec, BayesianLinear())], still, 0)
+    _, var = fitted.method.adapt(still, rng=rng).predict(states, still.actions)
+    assert np.all(var >= 1e-12)
+
+
+class Spy:
+    """Keeps the states every adapt and predict call sees, on the class (the
+    tries run on copies of the object)."""
+
+    seen: list = []
+
+    def fit(self, batch, *, rng):
+        pass
+
+    def adapt(self, train, *, rng):
+        Spy.seen.append(("adapt", train.states.copy()))
+        return self
+
+    def predict(self, states, actions):
+        Spy.seen.append(("predict", states.copy()))
+        return np.zeros(states.shape), np.ones(states.shape)
+
+
+def test_fit_all_tries_a_prediction_on_transitions_it_did_not_adapt_to():
+    """The first try adapts to the first TRIAL_SIZE batch transitions and
+    predicts the next TRIAL_SIZE; the second adapts to none and predicts the
+    first state."""
+    rng = np.random.default_rng(3)
+    batch = transitions(weights(rng), 25, rng)
+    Spy.seen = []
+    methods.fit_all([(MethodSpec("spy", "m", "A"), Spy())], batch, 0)
+    size = methods.TRIAL_SIZE
+    assert [kind for kind, _ in Spy.seen] == ["adapt", "predict"] * 2
+    (_, train), (_, test), (_, none), (_, one) = Spy.seen
+    np.testing.assert_array_equal(train, batch.states[:size])
+    np.testing.assert_array_equal(test, batch.states[size : 2 * size])
+    assert none.shape == (0, 2)
+    np.testing.assert_array_equal(one, batch.states[:1])
+
+
+@pytest.mark.parametrize(
+    "start, expected",
+    [("fork", [False, False]), ("spawn", [False, True]), ("forkserver", [False, True])],
+)
+def test_methods_are_pickled_for_several_workers_that_are_not_forked(
+    monkeypatch, start, expected
+):
+    monkeypatch.setattr(methods.multiprocessing, "get_start_method", lambda: start)
+    assert [methods.must_pickle(w) for w in (1, 2)] == expected

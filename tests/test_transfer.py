@@ -1,0 +1,178 @@
+"""The transfer trial's protocol (tasks/transfer.py) on tiny trials: where
+planning starts, which streams a trial draws, what an added method and a
+policy are given, and what the recording shows at each step."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import numpy as np
+
+from hipmdp.data import Transitions
+from tasks import acrobot, methods, transfer
+from tasks.acrobot import AcrobotParams
+from tasks.agents import ACROBOT
+from tasks.methods import Added, MethodSpec
+from tasks.transfer import TransferConfig, TrialJob, run_trial, set_models
+
+PARAMS = AcrobotParams(link_mass_1=0.9, link_mass_2=1.1)
+#: real episodes of 5 steps (no random start swings up that fast), little planning
+TINY = TransferConfig(
+    n_episodes=3, max_steps=5, planning_max_steps=3, n_start_states=4,
+    initial_planning_episodes=1, planning_episodes=1,
+)  # fmt: skip
+
+
+def batch():
+    """A small batch shaped as the acrobot's: 4-D states, actions 0, 1, 2."""
+    rng = np.random.default_rng(0)
+    s = rng.normal(size=(20, 4))
+    return Transitions(
+        s, rng.integers(3, size=20), s + 0.01, np.zeros(20, int), rewards=-np.ones(20)
+    )
+
+
+def spy_on_plan(monkeypatch) -> list:
+    """Record each planning's start states and its rng's state as it begins."""
+    real, calls = transfer.plan, []
+
+    def spying(state, basis, sarsa, model, task, starts, n_episodes, *, rng):
+        calls.append((np.array(starts), rng.bit_generator.state["state"]))
+        return real(state, basis, sarsa, model, task, starts, n_episodes, rng=rng)
+
+    monkeypatch.setattr(transfer, "plan", spying)
+    return calls
+
+
+def test_planning_starts_from_reset_states_and_each_real_episodes_first(monkeypatch):
+    """The start states: n_start_states reset states, then the first state of
+    every real episode so far, in order."""
+    calls = spy_on_plan(monkeypatch)
+    set_models(ACROBOT, TINY, None, None)
+    result = run_trial(TrialJob("true", 0, 0, PARAMS, (5, (0, 0)), True))
+    assert [len(starts) for starts, _ in calls] == [4, 5, 6]  # none after the last
+    firsts = np.array([trace.states[0] for trace in result.traces])
+    for e, (starts, _) in enumerate(calls):
+        np.testing.assert_array_equal(starts[4:], firsts[:e])
+    assert len({tuple(s) for s in calls[0][0]} | {tuple(s) for s in firsts}) == 7
+
+
+def test_the_environment_starts_and_agent_draw_from_three_streams(monkeypatch):
+    """The real environment's seed, the planning starts' environment's seed and
+    the agent's stream are three different children of the trial's seed."""
+    calls = spy_on_plan(monkeypatch)
+    seeds = []
+
+    def make_env(params, *, seed, **kwargs):
+        if isinstance(seed, np.random.Generator):  # not the simulator model's
+            seeds.append(seed.bit_generator.state["state"])
+        return acrobot.swingup(params, seed=seed, **kwargs)
+
+    domain = dataclasses.replace(ACROBOT, make_env=make_env)
+    set_models(domain, dataclasses.replace(TINY, n_episodes=1), None, None)
+    run_trial(TrialJob("true", 0, 0, PARAMS, (5, (0, 0)), False))
+    agent = calls[0][1]  # before its first draw
+    assert len(seeds) == 2
+    assert len({str(s) for s in (*seeds, agent)}) == 3
+
+
+class Remembers:
+    """A model that counts its adapt calls on itself and records, on the class,
+    what each call saw: that count, the number of transitions and their ids."""
+
+    seen: list = []
+
+    def fit(self, batch, *, rng):
+        self.calls = 0
+
+    def adapt(self, train, *, rng):
+        Remembers.seen.append((self.calls, len(train), np.unique(train.instances)))
+        self.calls += 1
+        return self
+
+    def predict(self, states, actions):
+        return np.zeros(states.shape), np.ones(states.shape)
+
+
+def test_an_added_model_adapts_per_trial_on_a_fresh_copy_to_one_instance():
+    """Each trial adapts a fresh copy of the fitted method (what adapt keeps on
+    the object does not reach the next trial), to all the trial's real
+    transitions so far as one instance, id 0."""
+    loaded = [(MethodSpec("r", "m", "A"), Remembers())]
+    set_models(ACROBOT, TINY, None, None, added=methods.fit_all(loaded, batch(), 0))
+    for trial in (0, 1):
+        Remembers.seen = []
+        result = run_trial(TrialJob("r", 0, trial, PARAMS, (5, (0, trial)), False))
+        sizes = np.cumsum([0, *result.steps[:-1]])
+        assert [(c, n) for c, n, _ in Remembers.seen] == list(enumerate(sizes))
+        assert all(set(ids) <= {0} for *_, ids in Remembers.seen)
+
+
+class Belief(NamedTuple):
+    mean: np.ndarray
+    cov: np.ndarray
+
+
+class CountingHipMDP:
+    """A stand-in HiP-MDP whose belief counts the transitions it has filtered
+    (mean (n,)) and whose prediction is Δs = 0.001 n in every dimension."""
+
+    def prior(self):
+        return Belief(np.zeros(1), np.eye(1))
+
+    def update(self, belief, data):
+        n = belief.mean[0] + len(data)
+        return Belief(np.array([n]), np.eye(1) / (1.0 + n))
+
+    def predict(self, states, actions, belief):
+        mean = np.full(np.shape(states), 1e-3 * belief.mean[0])
+        return mean, np.ones_like(mean)
+
+
+def test_a_recorded_episode_shows_the_belief_and_prediction_of_each_step():
+    """Step t's recorded prediction is the model's with the belief filtered on
+    the t transitions before it (the episode's and all earlier ones), and the
+    recorded belief after t transitions is that belief."""
+    set_models(ACROBOT, TINY, CountingHipMDP(), None)
+    result = run_trial(TrialJob("hipmdp", 0, 0, PARAMS, (5, (0, 0)), True))
+    before = 0
+    for trace in result.traces:
+        steps = len(trace.predicted)
+        counts = before + np.arange(steps + 1)
+        np.testing.assert_array_equal(trace.belief_mean[:, 0], counts)
+        velocities = trace.predicted[:, 2:] - trace.states[:-1, 2:]
+        expected = np.repeat(1e-3 * counts[:-1, None], 2, axis=1)
+        np.testing.assert_allclose(velocities, expected, atol=1e-12)
+        before += steps
+    np.testing.assert_array_equal(result.weight_means[:, 0], [0, 5, 10, 15])
+
+
+class Watching:
+    """A policy's agent that records every act and observe call."""
+
+    def __init__(self):
+        self.calls = []
+
+    def act(self, state):
+        self.calls.append(("act", state))
+        return 1
+
+    def observe(self, state, action, reward, next_state, terminal):
+        self.calls.append(("observe", state, next_state, terminal))
+
+
+def test_a_policy_sees_each_state_as_it_acts_and_each_transition_it_made():
+    """In a policy's episode, act gets s_t and observe (s_t, a_t, r, s_t+1,
+    terminal), terminal False at the step limit."""
+    env = acrobot.swingup(PARAMS, seed=np.random.default_rng(0), max_steps=4)
+    agent = Watching()
+    added = Added(MethodSpec("w", "m", "A"), None, 0)
+    states, rewards = transfer._policy_episode(env, agent, added, 3)
+    assert len(states) == 5 and len(rewards) == 4
+    for t in range(4):
+        (act, s), (observe, s_obs, s_next, terminal) = agent.calls[2 * t : 2 * t + 2]
+        assert (act, observe, terminal) == ("act", "observe", False)
+        np.testing.assert_array_equal(s, states[t])
+        np.testing.assert_array_equal(s_obs, states[t])
+        np.testing.assert_array_equal(s_next, states[t + 1])
