@@ -358,6 +358,9 @@ def sarsa_update_batch(
     rewards = _shaped("rewards", rewards, (n,), "(N,)")
     terminal = _shaped("terminal", terminal, (n,), "(N,)")
     active = _shaped("active", active, (n,), "(N,)")
+    for name, flags in (("terminal", terminal), ("active", active)):
+        if flags.dtype != bool:  # a float 0.5 counted as True
+            raise ValueError(f"{name}: expected booleans, got dtype {flags.dtype}")
     step_sizes = _check_step_sizes(step_sizes, n_features)
     actions = _check_indices("actions", actions, n, n_actions)
     actions_next = _check_indices("actions_next", actions_next, n, n_actions)

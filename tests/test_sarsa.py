@@ -369,6 +369,9 @@ def test_batch_update_refuses_arrays_that_do_not_match_n_episodes() -> None:
         (good, {"active": np.ones(1, bool)}, r"active: expected shape \(N,\)"),
         (good, {"step_sizes": np.array([0.1, -0.1])}, "step_sizes: expected entries"),
         (one, {"actions": np.array([0.7])}, "actions: expected integer indices"),
+        # a float flag of 0.5 counted as True
+        (good, {"terminal": np.full(2, 0.5)}, "terminal: expected booleans"),
+        (good, {"active": np.ones(2)}, "active: expected booleans, got dtype float64"),
     ]:  # fmt: skip
         with pytest.raises(ValueError, match=match):
             sarsa_update_batch(**(base | change))
