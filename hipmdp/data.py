@@ -238,10 +238,21 @@ def read_only(value: Any, dtype) -> Array:
     return out
 
 
+def is_integer(value: Any) -> bool:
+    """A Python or numpy integer; not a bool, a float or a string."""
+    return isinstance(value, int | np.integer) and not isinstance(value, bool)
+
+
+def check_rng(rng: Any) -> None:
+    """Raise ``ValueError`` naming ``rng`` unless it is a numpy Generator."""
+    if not isinstance(rng, np.random.Generator):
+        raise ValueError(f"rng: expected a numpy Generator, got {rng!r}")
+
+
 def check_integer(name: str, value: Any, minimum: int) -> None:
-    """Raise ``ValueError`` naming ``name`` unless ``value`` is an integer (a
-    Python or numpy integer, not a bool, a float or a string) >= ``minimum``."""
-    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+    """Raise ``ValueError`` naming ``name`` unless ``value`` is an integer
+    (:func:`is_integer`) >= ``minimum``."""
+    if not is_integer(value):
         raise ValueError(
             f"{name}: expected an integer >= {minimum}, got {value!r} "
             f"({type(value).__name__})"
@@ -273,9 +284,7 @@ def check_angle_dims(angle_dims: Any, d: int | None) -> tuple[int, ...]:
         raise ValueError(
             f"angle_dims: expected a sequence of indices, got {angle_dims!r}"
         ) from None
-    if not all(
-        isinstance(i, int | np.integer) and not isinstance(i, bool) for i in raw
-    ):
+    if not all(is_integer(i) for i in raw):
         raise ValueError(f"angle_dims: expected integer indices, got {raw}")
     angles = tuple(int(i) for i in raw)
     high = np.inf if d is None else d

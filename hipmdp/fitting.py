@@ -27,7 +27,7 @@ import numpy as np
 from scipy import optimize
 from tqdm.auto import tqdm
 
-from hipmdp.data import Transitions, check_integer
+from hipmdp.data import Transitions, check_integer, check_rng
 from hipmdp.filter import prior_belief, update_belief
 from hipmdp.gibbs import GibbsData, GibbsPriors, run_chains
 from hipmdp.gp import HyperSet, condition, fit_hyper_set, subsample
@@ -249,8 +249,7 @@ def smooth_onto_support(
             f"{support.shape}"
         )
     check_integer("n_smooth", n_smooth, 1)  # 0 gave Y = 0 everywhere
-    if not isinstance(rng, np.random.Generator):
-        raise ValueError(f"rng: expected a numpy Generator, got {rng!r}")
+    check_rng(rng)
     ids = data.instance_ids
     for a in range(A):
         missing = np.setdiff1d(ids, data.instances[data.actions == a])

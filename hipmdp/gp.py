@@ -21,7 +21,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy import linalg, optimize
 
-from hipmdp.data import check_integer, read_only
+from hipmdp.data import check_integer, check_rng, read_only
 from hipmdp.kernels import check_periodic, se_kernel, se_kernel_grad
 
 Array = np.ndarray
@@ -308,8 +308,7 @@ def fit_hyper_set(
         (actions < 0) | (actions >= n_actions)
     ):
         raise ValueError(f"actions: expected integers in [0, {n_actions})")
-    if not isinstance(rng, np.random.Generator):
-        raise ValueError(f"rng: expected a numpy Generator, got {rng!r}")
+    check_rng(rng)
     counts = np.bincount(actions, minlength=n_actions)
     if np.any(counts < 2):
         a = int(np.argmax(counts < 2))

@@ -23,7 +23,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from hipmdp.data import check_queries
+from hipmdp.data import check_queries, is_integer
 
 Array = np.ndarray
 
@@ -62,9 +62,7 @@ def check_periodic(periodic, dim: int) -> tuple[int, ...]:
         raise ValueError(
             f"periodic: expected a sequence of dimension indices, got {periodic!r}"
         ) from None
-    if isinstance(periodic, str) or not all(
-        isinstance(j, int | np.integer) and not isinstance(j, bool) for j in raw
-    ):  # int() made 1.5 dimension 1 and "01" dimensions 0 and 1
+    if not all(is_integer(j) for j in raw):  # int() made 1.5 dimension 1, "01" 0 and 1
         raise ValueError(
             f"periodic: expected integer dimension indices, got {periodic!r}"
         )

@@ -78,6 +78,7 @@ from hipmdp.data import (
     atomic_write,
     check_queries,
     gaussian_loglik,
+    is_real_number,
     load_npz,
     npz_bytes,
     read_only,
@@ -195,10 +196,10 @@ class HipMDP:
             )
         if not np.all(np.isfinite(self.f)):
             raise ValueError("f: expected finite values")
-        if (
-            isinstance(self.sigma_w, bool)
-            or np.ndim(self.sigma_w) != 0
-            or not (np.isfinite(self.sigma_w) and self.sigma_w > 0)
+        if not (
+            is_real_number(self.sigma_w)
+            and np.isfinite(self.sigma_w)
+            and self.sigma_w > 0
         ):
             raise ValueError(
                 f"sigma_w: expected a finite number > 0, got {self.sigma_w!r}"

@@ -30,7 +30,13 @@ from numpy.typing import NDArray
 from tqdm.auto import tqdm
 
 from hipmdp import sarsa
-from hipmdp.data import Transitions, check_angle_dims, check_integer, wrap_angle
+from hipmdp.data import (
+    Transitions,
+    check_angle_dims,
+    check_integer,
+    is_integer,
+    wrap_angle,
+)
 from hipmdp.fourier import FourierBasis
 from hipmdp.sarsa import (
     SarsaConfig,
@@ -69,9 +75,7 @@ def _check_batch(states: Array, actions: Any) -> tuple[Array, NDArray[np.int64]]
 def _state_dim(obj: Any) -> int | None:
     """``obj.state_dim`` if it is an integer (Python or numpy), else None."""
     d = getattr(obj, "state_dim", None)
-    if isinstance(d, bool) or not isinstance(d, int | np.integer):
-        return None
-    return int(d)
+    return int(d) if is_integer(d) else None
 
 
 def _checked_next_states(next_states: Any, shape: tuple[int, ...]) -> Array:

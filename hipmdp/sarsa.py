@@ -35,7 +35,7 @@ from typing import Literal, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from hipmdp.data import check_integer, is_real_number
+from hipmdp.data import check_integer, is_integer, is_real_number
 
 Array = NDArray[np.float64]
 TraceKind = Literal["replacing", "accumulating"]
@@ -49,7 +49,7 @@ _DIVERGED = (
 
 def _is_index(value: object, n: int) -> bool:
     """An integer (Python or numpy, not a bool, not a float) in ``[0, n)``."""
-    return (type(value) is int or isinstance(value, np.integer)) and 0 <= value < n
+    return is_integer(value) and 0 <= value < n
 
 
 def _shaped(name: str, value: object, shape: tuple[int, ...], symbols: str) -> Array:

@@ -32,7 +32,7 @@ from typing import NamedTuple
 import numpy as np
 from tqdm.auto import tqdm
 
-from hipmdp.data import check_integer
+from hipmdp.data import check_integer, check_rng
 from hipmdp.gp import HyperSet, subsample
 from hipmdp.kernels import check_periodic, embed, se_kernel
 
@@ -164,8 +164,7 @@ def select_support(
         raise ValueError("states: expected finite values")  # NaN rows were chosen
     check_integer("n_support (m)", m, 1)
     check_integer("n_candidates", n_candidates, 1)
-    if not isinstance(rng, np.random.Generator):
-        raise ValueError(f"rng: expected a numpy Generator, got {rng!r}")
+    check_rng(rng)
     _, first = np.unique(states, axis=0, return_index=True)
     first = np.sort(first)
     cand = first[subsample(len(first), n_candidates, rng=rng)]
