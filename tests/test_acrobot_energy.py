@@ -155,7 +155,10 @@ def test_energy_conserving_model_adds_exactly_the_torques_work():
         ),
         PARAMS,
     ) - acrobot.energy(states, PARAMS)
-    assert np.mean(noisy_change - work) > 0.05  # the noise alone adds energy
+    # without the rescaling every step misses the work by far more than the check's
+    # tolerance (a miss below 1e-6 has probability ~1e-6 per row under the noise),
+    # so the check above can fail
+    assert np.all(np.abs(noisy_change - work)[reachable] > 1e-6)
 
 
 def test_columns_take_the_exact_models_columns_on_fast_rows_only():
