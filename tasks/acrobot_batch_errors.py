@@ -67,7 +67,7 @@ def main(run: str | Path, *, fast: float = 10.0, out: str | Path | None = None):
     check_run(run)
     if not (np.isfinite(fast) and fast > 0):
         raise ValueError(f"fast: expected a finite number > 0 (rad/s), got {fast}")
-    out_path = run / "batch_errors.json" if out is None else check_out_file(out)
+    out_path = check_out_file(run / "batch_errors.json" if out is None else out, [run])
     config, hip, batch = read_run(run)
     inputs_checked()  # the run read; from here on, the work
     average = average_model(config, batch)

@@ -489,7 +489,7 @@ def main(
         workers=workers,
     )
     check_integer("seed", seed, 0)
-    path = run / "energy.json" if out is None else check_out_file(out)
+    path = check_out_file(run / "energy.json" if out is None else out, [run])
     if noise is not None and not (np.isfinite(noise) and noise > 0):
         raise ValueError(f"noise: expected a positive finite σ in rad/s, got {noise}")
     if not (np.isfinite(fast) and fast > 0):

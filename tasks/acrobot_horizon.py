@@ -89,9 +89,16 @@ def main(
     for i, k in enumerate(horizons):
         check_integer(f"horizons[{i}]", k, 1)
     horizons = tuple(int(k) for k in horizons)
+    if len(set(horizons)) != len(horizons):
+        raise ValueError(f"horizons: expected distinct integers, got {horizons}")
     check_counts(identify=identify, evaluate=evaluate)
+    if max(horizons) > ACROBOT.max_steps:  # no window fits in an episode
+        raise ValueError(
+            f"horizons: expected at most {ACROBOT.max_steps} (the episodes' step "
+            f"limit), got {max(horizons)}"
+        )
     check_integer("seed", seed, 0)
-    path = run / "horizon.json" if out is None else check_out_file(out)
+    path = check_out_file(run / "horizon.json" if out is None else out, [run])
     config, hip, batch = read_run(run, seed)
     masses = [tuple(m) for m in config["test_masses"]]
     instances = run_test_instances(config)
@@ -121,8 +128,12 @@ def main(
         for name, model in models.items():
             errors = open_loop_errors(model, held_out, horizons)
             for k, err in errors.items():
-                rmse[name][k].append(np.sqrt(np.mean(err**2, axis=0)))
-                p99[name][k].append(np.percentile(np.abs(err), 99, axis=0))
+                if len(err):
+                    rmse[name][k].append(np.sqrt(np.mean(err**2, axis=0)))
+                    p99[name][k].append(np.percentile(np.abs(err), 99, axis=0))
+                else:  # every held-out episode ended within k steps (the goal)
+                    rmse[name][k].append(np.full(err.shape[1], np.nan))
+                    p99[name][k].append(np.full(err.shape[1], np.nan))
                 if name == MODELS[0]:  # the same windows for every model
                     windows[k].append(len(err))
     summary = {

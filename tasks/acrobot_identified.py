@@ -318,11 +318,14 @@ def main(
     after the first real one and before it (None: the run's)."""
     machine = environment()  # the code and machine as the check starts
     run = Path(run)
-    out_path = run / "identified.json" if out is None else check_out_file(out)
+    out_path = check_out_file(run / "identified.json" if out is None else out, [run])
     check_run(run)
     unknown = set(variants) - set(VARIANTS)
-    if unknown or not variants:
-        raise ValueError(f"variants: expected some of {VARIANTS}, got {variants}")
+    if unknown or not variants or len(set(variants)) != len(variants):
+        # a repeated variant ran its trials twice and counted them as more trials
+        raise ValueError(
+            f"variants: expected some of {VARIANTS}, each once, got {variants}"
+        )
     check_counts(trials=trials, episodes=episodes, identify=identify, workers=workers)
     check_integer("seed", seed, 0)
     for name, value in (

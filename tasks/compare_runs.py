@@ -327,7 +327,7 @@ def _on_shared(a: np.ndarray, b: np.ndarray, key: str, rows) -> tuple:
 def main(run_a: str | Path, run_b: str | Path, out: str | Path | None = None):
     """Compare two run folders; see the module docstring."""
     if out is not None:
-        check_out_file(out)
+        check_out_file(out, [run_a, run_b])
     a, b = Path(run_a), Path(run_b)
     config_a, metrics_a, env_a = read_run(a)
     config_b, metrics_b, env_b = read_run(b)

@@ -23,6 +23,7 @@ import platform
 import re
 import subprocess
 import sys
+import tempfile
 import time
 import traceback
 from collections.abc import Callable, Sequence
@@ -324,12 +325,25 @@ def _out_path(out: str | os.PathLike, kind: str) -> Path:
 def check_makeable(path: Path, name: str = "out") -> None:
     """Raise ``ValueError`` naming ``name`` unless ``path`` can be made: its
     nearest existing ancestor is a folder (the missing ones are made on
-    writing), not a file."""
-    ancestor = next(p for p in Path(path).absolute().parents if p.exists())
+    writing), not a file, and a file can be written in it (or in ``path``, if
+    that is a folder already): a read-only place would otherwise fail only at
+    the end of the work. The probe is an unnamed temporary file, which a kill
+    cannot leave behind (``O_TMPFILE``, where the file system has it)."""
+    path = Path(path)
+    ancestor = next(p for p in path.absolute().parents if p.exists())
     if not ancestor.is_dir():
         raise ValueError(
             f"{name}: {ancestor} is not a folder, so {path} cannot be made"
         )
+    where = path if path.is_dir() else ancestor
+    try:
+        with tempfile.TemporaryFile(dir=where):
+            pass
+    except OSError as err:
+        raise ValueError(
+            f"{name}: cannot write in {where} ({err.strerror or err}), so {path} "
+            "cannot be written"
+        ) from None
 
 
 def check_folder_out(path: Path, name: str = "out") -> None:
@@ -340,13 +354,29 @@ def check_folder_out(path: Path, name: str = "out") -> None:
     check_makeable(path, name)
 
 
-def check_out_file(out: str | os.PathLike) -> Path:
+#: Glob patterns of the files an experiment's run writes (each experiment's
+#: ``ARTEFACTS`` match them): a check's ``out`` may not replace them.
+RUN_FILES = ("config.json", "metrics.json", "report.md", "*.npz", "*.png", "*.rrd")
+
+
+def check_out_file(
+    out: str | os.PathLike, runs: Sequence[str | os.PathLike] = ()
+) -> Path:
     """The file ``out`` a command will write, checked before any work: a
-    non-empty path that is not a folder and can be made (:func:`check_makeable`).
+    non-empty path that is not a folder and can be made (:func:`check_makeable`),
+    and not one of the files of the run folders ``runs`` that the command reads
+    (:data:`RUN_FILES`: writing there would replace the run's own config, say).
     Raises ``ValueError`` naming ``out``."""
     path = _out_path(out, "file")
     if path.is_dir():
         raise ValueError(f"out: {path} is a folder; expected a file path")
+    for run in runs:
+        if path.resolve().parent == Path(run).resolve() and any(
+            path.match(pattern) for pattern in RUN_FILES
+        ):
+            raise ValueError(
+                f"out: {path} is one of the run {run}'s own files; choose another name"
+            )
     check_makeable(path)
     return path
 
@@ -518,7 +548,8 @@ def pool_map(
     """``[fn(job) for job in jobs]`` in order, with a progress bar.
 
     ``workers == 1`` runs in this process (``initializer`` called here); otherwise a
-    process pool of ``workers`` runs the jobs. Either way at one BLAS thread (see
+    process pool of ``workers`` runs the jobs, never more processes than jobs (a
+    pool starts all its workers at once). Either way at one BLAS thread (see
     :func:`one_blas_thread`). Results never depend on ``workers``: every job
     carries its own seed.
     """
@@ -526,6 +557,7 @@ def pool_map(
 
     from tqdm.auto import tqdm
 
+    workers = max(1, min(workers, len(jobs)))
     if workers == 1:
         with threadpool_limits(limits=1):  # as the workers below
             if initializer is not None:

@@ -34,14 +34,22 @@ from hipmdp.data import fsync_folder
 Array = np.ndarray
 
 
+#: The values of the environment variable ``RERUN`` read as on and as off.
+RERUN_ON, RERUN_OFF = ("on", "1", "true", "yes", ""), ("off", "0", "false", "no")
+
+
 def recording_enabled() -> bool:
-    """False when the environment variable ``RERUN`` is ``off`` (or 0/false/no)."""
-    return os.environ.get("RERUN", "on").strip().lower() not in {
-        "off",
-        "0",
-        "false",
-        "no",
-    }
+    """False when the environment variable ``RERUN`` is ``off`` (or 0/false/no);
+    True when it is unset or ``on`` (1/true/yes). Any other value is refused with
+    a ``ValueError``: the rerun SDK would only warn of it once recording began,
+    after the work."""
+    value = os.environ.get("RERUN", "on").strip().lower()
+    if value not in RERUN_ON + RERUN_OFF:
+        raise ValueError(
+            f"RERUN: expected on or off (or 1/0, true/false, yes/no), got "
+            f"{os.environ['RERUN']!r}"
+        )
+    return value in RERUN_ON
 
 
 def resolve_record(config):

@@ -302,7 +302,7 @@ def main(runs: Sequence[str | Path], out: str | Path | None = None) -> dict[str,
     ``{"experiment", "seeds", "runs", "git_commits", "numbers": [{"label",
     "scale", "per_seed", "across_seeds"}]}``. Also written as JSON to ``out``."""
     if out is not None:
-        check_out_file(out)
+        check_out_file(out, runs)
     runs = [str(r) for r in runs]
     name, configs, metrics, commits = read_runs(runs)
     try:

@@ -95,6 +95,39 @@ def test_rejects_bad_options(tmp_path, run):
             acrobot_horizon.main(run[0], horizons=bad)
     with pytest.raises(ValueError, match="evaluate: expected >= 1"):
         acrobot_horizon.main(run[0], evaluate=0)
+    # a horizon longer than any episode crashed after all the work; a repeated one
+    # was printed twice
+    with pytest.raises(ValueError, match="horizons: expected at most 500 .*got 501"):
+        acrobot_horizon.main(run[0], horizons=(1, 501))
+    with pytest.raises(ValueError, match="horizons: expected distinct"):
+        acrobot_horizon.main(run[0], horizons=(5, 5))
+
+
+def test_a_horizon_no_held_out_episode_reaches_is_recorded_as_no_windows(
+    run, tmp_path, monkeypatch
+):
+    """When every held-out episode ends (at the goal) within k steps there are no
+    k-step windows: no error (the 99th percentile of nothing raised after all
+    the work), NaN (null) errors and 0 windows."""
+    k_long = 300
+    real = acrobot_horizon.open_loop_errors
+
+    def fewer_windows(model, episodes, horizons):
+        errors = real(model, episodes, horizons)
+        return errors | {k_long: np.empty((0, 4))}
+
+    monkeypatch.setattr(acrobot_horizon, "open_loop_errors", fewer_windows)
+    out = tmp_path / "h.json"
+    acrobot_horizon.main(
+        run[0], horizons=(1, k_long), identify=30, evaluate=40, progress=False,
+        out=out,
+    )  # fmt: skip
+    data = json.loads(out.read_text())
+    assert data["windows"][str(k_long)] == [0] * len(TINY.test_masses)
+    assert data["windows"]["1"][0] >= 40
+    for stat in ("rmse", "p99"):
+        assert np.isnan(np.array(data[stat]["identified"][str(k_long)], float)).all()
+        assert np.isfinite(data[stat]["identified"]["1"]).all()
 
 
 def test_out_writes_the_named_file_and_leaves_the_default_alone(run, tmp_path):

@@ -105,6 +105,20 @@ def test_checks_refuse_bad_options_before_any_work(run, monkeypatch, check, bad,
         module.main(run[0], **bad)
 
 
+@pytest.mark.parametrize("check", ["identified", "energy", "horizon", "batch_errors"])
+def test_checks_refuse_to_write_over_the_runs_own_files(run, monkeypatch, check):
+    """``--out RUN/config.json`` replaced the run's config with the check's JSON."""
+    module = importlib.import_module(f"tasks.acrobot_{check}")
+
+    def read_run(*args, **kwargs):
+        raise AssertionError("the run was read before the options were checked")
+
+    monkeypatch.setattr(module, "read_run", read_run)
+    for name in ("config.json", "hipmdp_model.npz"):
+        with pytest.raises(ValueError, match=f"out: .*{name} is one of the run"):
+            module.main(run[0], out=run[0] / name)
+
+
 @pytest.mark.parametrize("check", ["identified", "energy", "horizon"])
 def test_checks_refuse_the_runs_own_seed(run, monkeypatch, check):
     """SeedSequence(seed).spawn gave a check the run's own streams when --seed
@@ -177,6 +191,9 @@ def test_rejects_a_folder_that_is_not_a_run_and_unknown_variants(tmp_path, run):
         acrobot_identified.main(tmp_path)
     with pytest.raises(ValueError, match="variants: expected some of"):
         acrobot_identified.main(run[0], variants=("oracle",))
+    # a repeated variant ran its trials twice and counted them as twice the trials
+    with pytest.raises(ValueError, match="variants: expected .* each once"):
+        acrobot_identified.main(run[0], variants=("hipmdp", "hipmdp", "average"))
 
 
 @pytest.fixture

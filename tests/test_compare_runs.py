@@ -40,6 +40,8 @@ def test_a_copy_is_identical_whatever_its_timings(tmp_path):
         "trials.npz:returns",
     }  # fmt: skip
     assert "verdict: identical results" in report(result)
+    with pytest.raises(ValueError, match="is one of the run"):  # before any reading
+        main(a, b, out=b / "config.json")
 
 
 def test_an_experiment_older_than_a_field_counts_as_its_old_behaviour(tmp_path):

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import fnmatch
 import importlib
 import json
+import os
 import pickle
 import re
 import time
@@ -16,8 +18,11 @@ from scipy import stats
 from threadpoolctl import threadpool_info, threadpool_limits
 
 import tasks
+from tasks import acrobot_swingup, cartpole_prediction
 from tasks.experiment import (
+    RUN_FILES,
     check_counts,
+    check_folder_out,
     check_out_file,
     describe_environment,
     environment,
@@ -405,6 +410,55 @@ def test_outputs_that_cannot_be_written_are_refused_before_any_work(tmp_path, ma
         make(file / "sub" / "deeper", "exp")
     assert file.read_text() == "mine" and sorted(tmp_path.iterdir()) == [file]
     make(tmp_path / "new" / "out.json", "exp")
+
+
+@pytest.mark.skipif(not Path("/sys").is_dir(), reason="needs Linux's sysfs")
+@pytest.mark.parametrize("make", [run_dir, lambda out, *a: check_out_file(out)])
+def test_an_output_in_a_folder_that_takes_no_files_is_refused_before_any_work(make):
+    """sysfs takes no new files, even from root (for whom a read-only mode bit
+    would not do): a check's output there failed only after all its work, as a
+    traceback from the temporary file's creation."""
+    with pytest.raises(ValueError, match="^out: cannot write in /sys"):
+        make("/sys/hipmdp_out", "exp")
+    with pytest.raises(ValueError, match="^--out: cannot write in /sys"):
+        check_folder_out(Path("/sys/hipmdp_out"), "--out")
+
+
+def test_a_check_may_not_write_over_its_runs_files(tmp_path):
+    """``--out RUN/config.json`` replaced the run's config with the check's JSON,
+    and the run was no longer a run."""
+    run, other = tmp_path / "run", tmp_path / "other"
+    run.mkdir()
+    for name in ("config.json", "metrics.json", "report.md", "batch.npz", "w.png"):
+        with pytest.raises(ValueError, match=f"^out: .*{name} is one of the run"):
+            check_out_file(run / name, [other, run])
+        with pytest.raises(ValueError, match="is one of the run"):  # by another path
+            check_out_file(tmp_path / "other" / ".." / "run" / name, [run])
+    # a check's own file beside the run's, and the same names elsewhere, are fine
+    assert check_out_file(run / "identified.json", [run]) == run / "identified.json"
+    assert check_out_file(other / "config.json", [run]) == other / "config.json"
+    # every experiment's artefacts are run files
+    for module in (acrobot_swingup, cartpole_prediction):
+        for artefact in module.ARTEFACTS:
+            assert any(fnmatch.fnmatch(artefact, p) for p in RUN_FILES), artefact
+
+
+def _mark_pid(folder: str) -> None:
+    (Path(folder) / str(os.getpid())).touch()
+
+
+def test_the_pool_starts_no_more_workers_than_jobs(tmp_path):
+    """``--workers 300`` started 300 processes for 16 jobs (a pool starts all of
+    its workers at once): each worker's initializer marks its process."""
+    out = pool_map(
+        abs, [-1, -2], workers=8, desc="", progress=False, initializer=_mark_pid,
+        initargs=(str(tmp_path),),
+    )  # fmt: skip
+    assert out == [1, 2] and len(list(tmp_path.iterdir())) == 2
+    for f in tmp_path.iterdir():
+        f.unlink()
+    assert pool_map(abs, [-3], workers=8, desc="", progress=False) == [3]
+    assert pool_map(abs, [], workers=8, desc="", progress=False) == []
 
 
 def test_a_file_output_is_not_a_folder():

@@ -58,6 +58,21 @@ def test_recording_reads_back_with_entities_and_rows(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["r.rrd"]  # no temp file left
 
 
+@pytest.mark.parametrize("value", ["garbage", "of", "2"])
+def test_an_unknown_rerun_value_is_refused(monkeypatch, value):
+    """The SDK took it as on and only warned once recording began, after the
+    work; the experiments read it in ``resolve_record``, before."""
+    monkeypatch.setenv("RERUN", value)
+    with pytest.raises(ValueError, match=f"^RERUN: expected on or off.*'{value}'"):
+        recording_enabled()
+    for on in ("on", "1", "TRUE", "yes", ""):
+        monkeypatch.setenv("RERUN", on)
+        assert recording_enabled()
+    for off in ("off", "0", "False", "no"):
+        monkeypatch.setenv("RERUN", off)
+        assert not recording_enabled()
+
+
 def test_rerun_off_writes_nothing(tmp_path, monkeypatch):
     monkeypatch.setenv("RERUN", "off")
     assert not recording_enabled()

@@ -259,6 +259,12 @@ def test_cli_prints_the_table_and_writes_json(tmp_path, capsys):
         cli(["no_run", "no_run_either", "--out", str(tmp_path)])
     assert err.value.code == 2
     assert f"out: {tmp_path} is a folder" in capsys.readouterr().err
+    # nor over a run's own files (a run's metrics.json replaced, it was no run)
+    before = (runs[1] / "metrics.json").read_text()
+    with pytest.raises(SystemExit) as err:
+        cli([*map(str, runs), "--out", str(runs[1] / "metrics.json")])
+    assert err.value.code == 2 and "is one of the run" in capsys.readouterr().err
+    assert (runs[1] / "metrics.json").read_text() == before
 
 
 def test_runs_made_at_different_code_are_named_in_the_report(tmp_path):
