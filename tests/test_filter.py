@@ -289,11 +289,13 @@ def test_filter_functions_check_their_inputs():
     """The functions HipMDP calls, for direct users: a negative σ_w was squared
     away, a wrong-shaped or zero noise variance failed inside numpy or as a
     non-finite Belief that did not name it."""
-    for bad in (-1.0, True, "1"):  # True gave σ_w = 1; "1" a TypeError
+    # True gave σ_w = 1; "1" a TypeError; inf a zero precision blamed on the Belief
+    for bad in (-1.0, True, "1", np.inf):
         with pytest.raises(ValueError, match="sigma_w: expected a finite number > 0"):
             prior_belief(np.zeros(2), bad)
-    with pytest.raises(ValueError, match="mu_w"):
-        prior_belief(np.zeros((2, 1)), 1.0)
+    for bad in (np.zeros((2, 1)), np.array([0.0, np.nan])):
+        with pytest.raises(ValueError, match="mu_w: expected finite shape"):
+            prior_belief(bad, 1.0)
     prior = prior_belief(np.zeros(2), 1.0)
     F, innovation, noise = np.ones((3, 4, 2)), np.zeros((3, 4)), np.ones((3, 4))
     update_belief(prior, F, innovation, noise)
@@ -344,3 +346,42 @@ def test_predictive_checks_its_inputs_as_the_update_does():
 def test_belief_precision_must_be_symmetric_positive_definite(P, match):
     with pytest.raises(ValueError, match=f"Belief: expected a {match} precision"):
         Belief(np.zeros(2), P)
+
+
+def test_belief_rejects_non_finite_information():
+    """A NaN information vector with a finite precision passed every other check
+    (its Cholesky factor is fine) and gave a NaN mean."""
+    for h, P in [([np.nan, 0.0], np.eye(2)), ([0.0, 0.0], np.diag([1.0, np.inf]))]:
+        with pytest.raises(ValueError, match="Belief: expected finite h and P"):
+            Belief(np.array(h), P)
+
+
+def test_belief_keeps_read_only_copies():
+    """A belief is a value: writing into the arrays it was built from must not
+    move it, and its own arrays cannot be written."""
+    h, P = np.array([1.0, 2.0]), 2.0 * np.eye(2)
+    belief = Belief(h, P)
+    h[:] = 0.0
+    P[:] = 5.0 * np.eye(2)
+    np.testing.assert_array_equal(belief.h, [1.0, 2.0])
+    np.testing.assert_array_equal(belief.P, 2.0 * np.eye(2))
+    np.testing.assert_allclose(belief.mean, [0.5, 1.0], rtol=1e-12)  # round-off
+    for x in (belief.h, belief.P):
+        assert isinstance(x, np.ndarray) and x.dtype == float
+        with pytest.raises(ValueError, match="read-only"):
+            x[0] = 1.0
+    from_lists = Belief([1, 2], [[2, 0], [0, 2]])
+    assert from_lists.P.dtype == float and not from_lists.P.flags.writeable
+
+
+def test_predictive_without_latent_weights_returns_new_arrays():
+    """With no latent weights the prediction is (f1, σ²) itself: returned as
+    copies, so that writing into the prediction leaves the caller's inputs."""
+    f1, noise = np.array([[1.0, 2.0]]), np.array([[0.5, 0.5]])
+    mean, var = predictive(
+        prior_belief(np.zeros(0), 1.0), np.ones((1, 2, 0)), f1, noise
+    )
+    mean += 1.0
+    var += 1.0
+    np.testing.assert_array_equal(f1, [[1.0, 2.0]])
+    np.testing.assert_array_equal(noise, [[0.5, 0.5]])
