@@ -14,11 +14,13 @@ import pytest
 from hipmdp.data import Transitions, wrap_angle
 from hipmdp.fourier import FourierBasis
 from hipmdp.planning import (
+    LearnedModel,
     PlanningTask,
     SimulatedEpisodes,
     StepwiseModel,
     open_loop_errors,
     plan,
+    run_sarsa_episodes,
 )
 from hipmdp.sarsa import (
     SarsaConfig,
@@ -29,6 +31,7 @@ from hipmdp.sarsa import (
 )
 from tests.test_planning import CORRIDOR_TASK as TASK
 from tests.test_planning import Corridor as CorridorModel
+from tests.test_planning import PlainModel
 
 
 class Corridor(CorridorModel):
@@ -133,3 +136,101 @@ def test_open_loop_errors_wrap_across_pi():  # P11
     model = StepwiseModel(lambda x, a: wrap_angle(x + 0.25))
     err = open_loop_errors(model, data, [1])[1]
     np.testing.assert_allclose(err, [[0.23]], atol=1e-12)  # model crosses pi
+
+
+def test_models_refuse_float_actions():  # P-int
+    """A float action was cast to an integer: 0.5 became action 0."""
+    states, actions = np.zeros((2, 2)), np.array([0.5, 1.0])
+    for model in (LearnedModel(PlainModel()), StepwiseModel(lambda s, a: s)):
+        with pytest.raises(ValueError, match=r"actions: expected integer shape \(2,\)"):
+            model.predict(states, actions)
+
+
+def test_learned_model_checks_the_last_angle_index_against_d():  # P-angle bound
+    """angle_dims = (D,) on a model that does not know D: the first index out of
+    range, a ValueError naming angle_dims (not numpy's IndexError)."""
+    with pytest.raises(ValueError, match=r"angle_dims: expected indices in \[0, 2\)"):
+        LearnedModel(PlainModel(), None, (2,)).predict(np.zeros((1, 2)), [0])
+    got = LearnedModel(PlainModel(), None, (1,)).predict(np.zeros((1, 2)), [0])
+    np.testing.assert_array_equal(got, [[0.5, 0.5]])
+
+
+def test_learned_model_refuses_a_mean_that_would_broadcast():  # P-mean shape
+    class OneColumn(PlainModel):
+        def predict(self, states, actions):
+            return np.ones((len(states), 1)), np.ones((len(states), 1))
+
+    with pytest.raises(ValueError, match=r"expected a mean of shape \(3, 2\), got"):
+        LearnedModel(OneColumn()).predict(np.zeros((3, 2)), np.zeros(3, dtype=int))
+
+
+def test_stepwise_model_refuses_a_row_shaped_next_state():  # P-step shape
+    """A (1, D) next state has D values but is not a state of shape (D,)."""
+    with pytest.raises(ValueError, match=r"got shape \(1, 2\) for row 0"):
+        StepwiseModel(lambda s, a: s[None]).predict(np.ones((1, 2)), np.array([0]))
+
+
+def test_simulated_episodes_refuse_non_finite_start_states():
+    for bad in ([[np.nan]], [[np.inf], [0.0]]):
+        with pytest.raises(ValueError, match="start_states: expected finite"):
+            SimulatedEpisodes(Corridor(), TASK, np.array(bad))
+
+
+def test_reached_says_whether_a_terminal_state_was_reached_so_far():
+    ep = SimulatedEpisodes(Corridor(), TASK, np.array([[0.75], [0.0]]))
+    for _ in range(2):
+        ep.step(np.array([1, 1]))
+        np.testing.assert_array_equal(ep.reached, [False, False])  # still running
+    ep.step(np.array([1, 1]))
+    np.testing.assert_array_equal(ep.reached, [True, False])
+
+
+def test_episodes_that_do_not_learn_leave_the_weights():  # learn=False
+    basis = FourierBasis(2, np.array([0.0]), np.array([1.0]))
+    weights = np.random.default_rng(0).normal(size=(2, basis.n_features))
+    episodes = SimulatedEpisodes(Corridor(), TASK, np.zeros((3, 1)))
+    out = run_sarsa_episodes(
+        SarsaState(weights, np.ones_like(weights)),
+        basis,
+        SarsaConfig(alpha=0.1, epsilon=0.5),
+        episodes,
+        rng=np.random.default_rng(1),
+        learn=False,
+    )
+    assert not episodes.active.any() and episodes.steps.min() > 1
+    np.testing.assert_array_equal(out.weights, weights)
+    np.testing.assert_array_equal(out.traces, 0.0)
+
+
+def test_plan_checks_n_parallel_and_the_agents_features():
+    """n_parallel = 0 ran groups of no episodes forever; weights for another
+    basis failed in a matrix product that named neither."""
+    basis = FourierBasis(1, np.zeros(1), np.ones(1))
+    args = (SarsaConfig(), Corridor(), TASK, np.zeros((1, 1)), 1)
+    with pytest.raises(ValueError, match="n_parallel: expected >= 1, got 0"):
+        plan(init_state(2, basis.n_features), basis, *args,
+             rng=np.random.default_rng(0), n_parallel=0)  # fmt: skip
+    with pytest.raises(ValueError, match=r"state.weights: expected 2 features"):
+        plan(init_state(2, 3), basis, *args, rng=np.random.default_rng(0))
+
+
+def test_plan_returns_each_episodes_return():
+    """Reward -1 per step in the corridor: each return is minus its length."""
+    basis = FourierBasis(2, np.array([0.0]), np.array([1.0]))
+    out = plan(init_state(2, basis.n_features), basis, SarsaConfig(alpha=0.1),
+               Corridor(), TASK, np.array([[0.0], [0.5]]), 7,
+               rng=np.random.default_rng(0), n_parallel=3)  # fmt: skip
+    assert out.returns.dtype == float and out.steps.min() >= 5
+    np.testing.assert_array_equal(out.returns, -out.steps)
+
+
+def test_open_loop_errors_take_episodes_whose_angles_were_wrapped_between_rows():
+    """A next state recorded unwrapped (3.3) followed by the same state wrapped
+    (3.3 - 2π) is one episode in time order, not a gap."""
+    s = np.array([[3.0, 0.0], [3.3 - 2 * np.pi, 0.1], [3.6 - 2 * np.pi, 0.2]])
+    nxt = np.array([[3.3, 0.1], [3.6 - 2 * np.pi, 0.2], [3.9 - 2 * np.pi, 0.3]])
+    data = Transitions(s, np.zeros(3, int), nxt, np.zeros(3, int), angle_dims=(0,))
+    model = StepwiseModel(lambda x, a: np.array([wrap_angle(x[0] + 0.3), x[1] + 0.1]))
+    errs = open_loop_errors(model, data, [1, 3])
+    np.testing.assert_allclose(errs[1], 0.0, atol=1e-12)
+    np.testing.assert_allclose(errs[3], 0.0, atol=1e-12)
