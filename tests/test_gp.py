@@ -10,6 +10,7 @@ import pytest
 from hipmdp import gp
 from hipmdp.gp import (
     GPHyper,
+    HyperSet,
     condition,
     fit_hyperparameters,
     neg_log_marginal_likelihood,
@@ -109,6 +110,7 @@ def test_prediction_matches_dense_formula():
         ((X * np.inf, y, h), "X: expected finite values"),
         ((X, y, h._replace(noise_var=-5.0)), "hyper.noise_var: expected a finite"),
         ((X, y, h._replace(noise_var=np.nan)), "hyper.noise_var: expected a finite"),
+        ((X, y[:9], h), "X and y: expected the same length, got 10 and 9"),
     ]:
         with pytest.raises(ValueError, match=match):
             condition(*args)
@@ -233,4 +235,88 @@ def test_a_search_stuck_at_its_start_by_lost_precision_warns():
         shifted = fit_hyperparameters([(X + 100.0, y)])
     start = gp._bounds([(X + 100.0, y)])[0]
     np.testing.assert_array_equal(shifted.to_theta(), start)
+    # the documented start: ℓ = std(X), σ_f² = mean(y²), σ_n² = mean(y²) / 100
+    np.testing.assert_allclose(shifted.lengthscales, X.std(0), rtol=1e-12)
+    scale = np.mean(y * y)
+    np.testing.assert_allclose(
+        [shifted.signal_var, shifted.noise_var], [scale, scale / 100], rtol=1e-12
+    )
     assert np.abs(centred.to_theta() - start).max() > 0.1  # it moved
+
+
+def _hyper_set_args():
+    return {
+        "lengthscales": np.ones((2, 3, 3)),
+        "signal_var": np.full((2, 3), 2.0),
+        "noise_var": np.full((2, 3), 0.1),
+    }
+
+
+@pytest.mark.parametrize(
+    ("name", "value", "match"),
+    [
+        ("lengthscales", np.ones((2, 3, 2)), r"scales: expected shape \(A, D, D\)"),
+        ("signal_var", np.ones((2, 2)), r"signal_var: expected shape \(2, 3\)"),
+        ("noise_var", np.ones(3), r"noise_var: expected shape \(2, 3\)"),
+        ("signal_var", np.full((2, 3), np.inf), "signal_var: expected finite values"),
+        ("noise_var", np.zeros((2, 3)), "noise_var: expected finite values > 0"),
+        ("lengthscales", -np.ones((2, 3, 3)), "lengthscales: expected finite values"),
+        ("periodic", (3,), "periodic"),
+    ],
+)  # fmt: skip
+def test_hyper_set_refuses_bad_arrays(name, value, match):
+    with pytest.raises(ValueError, match=match):
+        HyperSet(**(_hyper_set_args() | {name: value}))
+
+
+def test_hyper_set_get_is_one_gps_hyperparameters():
+    rng = np.random.default_rng(0)
+    ell, sf2, sn2 = (
+        rng.uniform(0.5, 2, (2, 3, 3)),
+        rng.uniform(1, 2, (2, 3)),
+        rng.uniform(0.1, 0.2, (2, 3)),
+    )
+    hyper = HyperSet(ell, sf2, sn2, periodic=[np.int64(1)])
+    assert hyper.periodic == (1,)
+    h = hyper.get(1, 2)
+    np.testing.assert_array_equal(h.lengthscales, ell[1, 2])
+    assert (h.signal_var, h.noise_var, h.periodic) == (sf2[1, 2], sn2[1, 2], (1,))
+
+
+def test_fit_takes_a_constant_input_and_zero_targets():
+    """A state dimension that never moves (std 0) and a Δ dimension that is
+    always 0 (mean(y²) = 0) set the search's scales: log 0 made θ₀ -inf and the
+    fit returned NaN or zero hyperparameters. Their scales fall back to 1 and
+    1e-12, so the fit is finite and positive."""
+    rng = np.random.default_rng(0)
+    X = np.column_stack([rng.normal(size=30), np.full(30, 2.0)])
+    for y in (np.sin(X[:, 0]), np.zeros(30)):
+        h = fit_hyperparameters([(X, y)])
+        theta = h.to_theta()
+        assert np.all(np.isfinite(theta)), theta
+
+
+def test_fit_needs_two_points():
+    X, y = np.zeros((1, 2)), np.ones(1)
+    for groups in ([], [(X, y)], [(X, y), (X[:0], y[:0])]):
+        with pytest.raises(ValueError, match="groups: expected at least 2 data points"):
+            fit_hyperparameters(groups)
+
+
+def test_predicted_variance_is_never_negative():
+    """At a training input the latent variance is below σ_n²; with σ_f² = 1e4 the
+    difference σ_f² - ‖L⁻¹k‖² is round-off of ~1e4·1e-16 around a true value
+    below σ_n² = 1e-12, so it comes out negative at some of these inputs (11 of
+    60 when written): it is clipped at 0."""
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(60, 2))
+    h = GPHyper(np.array([1.0, 1.0]), 1e4, 1e-12)
+    _, var = condition(X, rng.normal(size=60), h).predict(X)
+    assert np.all(var >= 0.0)
+
+
+def test_periodic_predict_mean_is_predicts_mean():
+    rng = np.random.default_rng(1)
+    X, Xs = rng.uniform(-3, 3, size=(20, 2)), rng.uniform(-3, 3, size=(5, 2))
+    post = condition(X, np.sin(X[:, 0]), GPHyper(np.array([1.0, 2.0]), 1.0, 0.01, (0,)))
+    np.testing.assert_allclose(post.predict_mean(Xs), post.predict(Xs)[0], atol=1e-12)
