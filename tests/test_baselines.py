@@ -240,3 +240,75 @@ def test_named_baselines_refuse_the_arguments_they_set():
         batch_only(data, rng=rng, name="x")
     with pytest.raises(ValueError, match="keep, name: set by this baseline"):
         batch_plus_train(data, data, rng=rng, keep=None, name="x")
+
+
+def test_fit_gp_baseline_checks_n_actions_and_hyper_against_the_data():
+    """n_actions below the data's dropped the higher actions' transitions; a
+    HyperSet of other (A, D) failed later with an IndexError or used the wrong
+    GPs."""
+    rng = np.random.default_rng(6)
+    data = _instance(0, 0.0, 40, rng)
+    with pytest.raises(ValueError, match=r"n_actions: expected >= 2 \(data\), got 1"):
+        fit_gp_baseline(data, rng=rng, n_actions=1)
+    one = HyperSet(np.ones((1, D, D)), np.ones((1, D)), np.ones((1, D)))
+    with pytest.raises(ValueError, match=r"hyper: expected \(A, D\) = \(2, 2\)"):
+        fit_gp_baseline(data, rng=rng, hyper=one)
+
+
+def test_fit_gp_baseline_fits_hyperparameters_on_n_hyper_transitions(monkeypatch):
+    from hipmdp import baselines
+
+    sizes = []
+
+    def record(groups, periodic):
+        sizes.append([len(y) for _, y in groups])
+        return np.ones(D), 1.0, 0.1
+
+    monkeypatch.setattr(baselines, "fit_hyperparameters", record)
+    data = _instance(0, 0.0, 80, np.random.default_rng(6))
+    fit_gp_baseline(data, rng=np.random.default_rng(0), n_hyper=7)
+    assert sizes == [[7]] * (2 * D)  # one pooled group per (a, d)
+
+
+def test_an_action_with_one_transition_is_conditioned_on_it():
+    """With the hyperparameters given one transition is enough: the GP of that
+    action is conditioned on it (not left at the prior)."""
+    rng = np.random.default_rng(6)
+    data = _instance(0, 0.0, 20, rng).select(actions=[0])
+    s = np.array([[0.3, -0.2]])
+    one = Transitions(s, np.array([1]), s + 1.0, np.zeros(1, int))
+    data = Transitions.concatenate([data, one])
+    with pytest.raises(ValueError, match="action 1 has 1 transitions"):
+        fit_gp_baseline(data, rng=rng)  # one is not enough to fit them
+    hyper = HyperSet(np.ones((2, D, D)), np.ones((2, D)), np.full((2, D), 0.01))
+    model = fit_gp_baseline(data, rng=rng, hyper=hyper)
+    mean, var = model.predict(s, np.array([1]))
+    # one point at Δ = 1: mean σ_f²/(σ_f² + σ_n²), variance
+    # σ_f² σ_n²/(σ_f² + σ_n²) + σ_n²
+    np.testing.assert_allclose(mean, [[1 / 1.01, 1 / 1.01]], rtol=1e-12)
+    np.testing.assert_allclose(var, [[0.01 + 0.01 / 1.01] * 2], rtol=1e-12)
+
+
+def test_each_actions_gp_sees_only_that_actions_transitions():
+    """Kept train transitions of every action were given to every action's GP."""
+    rng = np.random.default_rng(2)
+    batch, train = _batch(rng), _instance(9, 2.0, 20, rng)
+    model = batch_plus_train(batch, train, rng=np.random.default_rng(3), n_max=30)
+    both = Transitions.concatenate([batch, train])
+    for a in range(2):
+        own = both.states[both.actions == a]
+        for X in (model.posteriors[a][d].X for d in range(D)):
+            assert (X[:, None, :] == own[None]).all(-1).any(1).all()
+
+
+def test_the_baselines_are_named():
+    rng = np.random.default_rng(2)
+    batch, train = _batch(rng), _instance(9, 2.0, 20, rng)
+    hyper = HyperSet(np.ones((2, D, D)), np.ones((2, D)), np.full((2, D), 0.01))
+    names = [
+        batch_only(batch, rng=rng, hyper=hyper).name,
+        train_only(train, rng=rng, hyper=hyper).name,
+        batch_plus_train(batch, train, rng=rng, hyper=hyper).name,
+        fit_gp_baseline(train, rng=rng, hyper=hyper).name,
+    ]
+    assert names == ["batch only", "train only", "batch + train", "gp"]
