@@ -93,3 +93,17 @@ def test_periodic_incremental_matches_dense_reference():
         picks[0].index, greedy_support(X, kernels, 20, periodic=(1,)).index
     )
     assert not np.array_equal(picks[0].index, picks[1].index)
+
+
+def test_greedy_support_takes_1_to_n_distinct_points():
+    """Each candidate at most once, even where a chosen point's remaining error
+    ties with a near-duplicate's (both ~σ_n², argmax's lowest index is the
+    chosen one); m outside [1, n] is refused, not an empty or repeated set."""
+    X = np.array([[0.0, 0.0], [1e-9, 0.0], [5.0, 5.0]])
+    kernels = _kernels(_hyper())
+    sup = greedy_support(X, kernels, 3)
+    assert sorted(sup.index.tolist()) == [0, 1, 2]
+    np.testing.assert_array_equal(sup.index, greedy_support_dense(X, kernels, 3).index)
+    for m in (0, 4):
+        with pytest.raises(ValueError, match=r"m: expected 1 <= m <= 3"):
+            greedy_support(X, kernels, m)
