@@ -257,6 +257,14 @@ def test_save_bytes_depend_only_on_the_model(fitted, tmp_path):
         # passed, then the prior refused it (True) or failed on a (2,) σ_w
         (lambda m: {"sigma_w": True}, "sigma_w: expected a finite number > 0"),
         (lambda m: {"sigma_w": np.ones(2)}, "sigma_w: expected a finite number > 0"),
+        (lambda m: {"sigma_w": 0.0}, "sigma_w: expected a finite number > 0"),
+        (lambda m: {"f": _last_nan(m.f)}, "f: expected finite values"),
+        (lambda m: {"support": m.support[1:]}, r"support: expected shape \("),
+        (lambda m: {"z": _no_mean_dynamics(m.z)}, r"z: expected .* z\[0\] all True"),
+        # any other value filtered as "training"
+        (lambda m: {"filter_weights": "mean"}, "filter_weights: expected one of"),
+        # a HyperSet with more actions was used for its first A silently
+        (lambda m: {"hyper": _one_more_action(m.hyper)}, r"hyper: expected \(A, D\)"),
     ],
 )
 def test_a_model_built_in_python_names_the_field_of_bad_arrays(fitted, change, match):
@@ -294,6 +302,21 @@ def test_a_models_arrays_are_read_only(fitted):
     belief = fitted.prior()
     with pytest.raises(ValueError, match="read-only"):
         belief.P[...] = 0.0
+
+
+def _no_mean_dynamics(z):
+    z = np.array(z)
+    z[0, 0, 0] = False
+    return z
+
+
+def _one_more_action(h):
+    return HyperSet(
+        *(
+            np.concatenate([x, x[:1]])
+            for x in (h.lengthscales, h.signal_var, h.noise_var)
+        )
+    )
 
 
 def _last_nan(x):
@@ -567,3 +590,26 @@ def test_periodic_fit_uses_the_data_angle_dims():
         model.predict_mean(S, acts, model.prior()),
         atol=1e-3,
     )
+
+
+def test_periodic_interpolation_variance_is_the_dense_formula(fitted):
+    """v_ad(s) = σ_f² - k(s, S*) (K + σ² I)⁻¹ k(S*, s) with the periodic kernel in
+    both k and K (a factor of the plain K passed the shift checks: it is the
+    same for a support shifted by 2π)."""
+    from hipmdp.kernels import se_kernel
+
+    h = fitted.hyper
+    hyper = HyperSet(h.lengthscales, h.signal_var, h.noise_var, periodic=(0,))
+    periodic = dataclasses.replace(fitted, hyper=hyper)
+    rng = np.random.default_rng(9)
+    S, acts = rng.uniform(-2, 2, size=(6, D)), rng.integers(0, A, size=6)
+    v = periodic.interpolation_var(S, acts)
+    S_star, m = periodic.support, len(periodic.support)
+    for i, (s, a) in enumerate(zip(S, acts, strict=True)):
+        for d in range(D):
+            g = hyper.get(a, d)
+            K = se_kernel(S_star, S_star, g.lengthscales, g.signal_var, (0,))
+            k = se_kernel(s[None], S_star, g.lengthscales, g.signal_var, (0,))[0]
+            want = g.signal_var - k @ np.linalg.solve(K + g.noise_var * np.eye(m), k)
+            # round-off of a solve with K + σ² I (condition ≤ σ_f²/σ² ~ 1e6 here)
+            np.testing.assert_allclose(v[i, d], max(want, 0.0), rtol=1e-6, atol=1e-9)
