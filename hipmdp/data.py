@@ -23,6 +23,7 @@ can travel in the same file.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import io
 import os
 import re
@@ -666,6 +667,13 @@ class Transitions:
                 )
             arrays.update(table._arrays())
         return arrays
+
+    def sha256(self) -> str:
+        """The SHA-256 (hex) of the data's arrays: of the file :meth:`save` writes
+        without a parameter table. Equal data give equal digests, however they
+        were read or built; ``hipmdp.fit`` records its data's in the model's
+        ``info["data_sha256"]``."""
+        return hashlib.sha256(npz_bytes(self.arrays())).hexdigest()
 
     def save(
         self, path: str | os.PathLike, table: ParameterTable | None = None

@@ -401,6 +401,7 @@ def fit(data: Transitions, config: FitConfig, *, rng: np.random.Generator) -> Hi
         "config": asdict(config),
         "best_log_joint": float(result.best_log_joint),
         "n_transitions": int(len(data)),
+        "data_sha256": data.sha256(),  # which data: a check can tie model to data
         "angle_dims": list(data.angle_dims),
         "dt": data.dt,
     }

@@ -248,7 +248,13 @@ def read_run(run: Path, seed: int | None = None) -> RunFiles:
 
     ``seed``, a check's own: refused if it is the run's, whose first streams
     (``SeedSequence(seed).spawn``) the run drew its batch data and fit from, so
-    the check's would repeat them for another purpose."""
+    the check's would repeat them for another purpose.
+
+    The model must have been fitted on the batch data (:func:`check_model_data`):
+    a ``batch.npz`` or ``hipmdp_model.npz`` copied from another run is refused.
+    A model fitted before models recorded their data's digest is checked on its
+    instance ids and number of transitions alone (another seed's run has the
+    same ids and may have the same number)."""
     config = json.loads((run / "config.json").read_text())
     if seed is not None and seed == config.get("seed"):
         raise ValueError(
@@ -257,6 +263,7 @@ def read_run(run: Path, seed: int | None = None) -> RunFiles:
         )
     hip = hipmdp.load(run / "hipmdp_model.npz")
     batch = hipmdp.Transitions.load(run / "batch.npz")
+    check_model_data(hip, batch, run / "hipmdp_model.npz", run / "batch.npz")
     try:
         _average_settings(config, batch)
     except (KeyError, TypeError, ValueError) as err:
@@ -265,6 +272,35 @@ def read_run(run: Path, seed: int | None = None) -> RunFiles:
             f"({type(err).__name__}: {err})"
         ) from err
     return RunFiles(config, hip, batch)
+
+
+def check_model_data(hip, batch: hipmdp.Transitions, model_file, batch_file) -> None:
+    """Raise ValueError, naming both files, unless the model ``hip`` (read from
+    ``model_file``) was fitted on ``batch`` (read from ``batch_file``): its
+    training instance ids, number of transitions and the digest of the data's
+    arrays (``info["data_sha256"]``, :meth:`hipmdp.Transitions.sha256`) must be
+    the batch's. A model fitted before the digest was recorded is checked on
+    the ids and number alone."""
+    differs = f"{model_file} was not fitted on {batch_file}"
+    advice = "; were the files copied from different runs?"
+    fitted = np.sort(hip.instance_ids)  # the model's columns, in any order
+    if not np.array_equal(fitted, batch.instance_ids):
+        raise ValueError(
+            f"{differs}: the model's training instances {fitted.tolist()} are not "
+            f"the batch's {batch.instance_ids.tolist()}{advice}"
+        )
+    n = hip.info.get("n_transitions")
+    if n is not None and n != len(batch):
+        raise ValueError(
+            f"{differs}: the model was fitted on {n} transitions, the batch holds "
+            f"{len(batch)}{advice}"
+        )
+    recorded = hip.info.get("data_sha256")
+    if recorded is not None and recorded != batch.sha256():
+        raise ValueError(
+            f"{differs}: the SHA-256 of the model's data ({recorded}) is not that "
+            f"of the batch's arrays ({batch.sha256()}){advice}"
+        )
 
 
 def _average_settings(config: dict[str, Any], batch: hipmdp.Transitions) -> dict:

@@ -186,6 +186,45 @@ def test_a_damaged_run_config_is_a_usage_error_naming_the_file(
     assert "config.json: not a swing-up run's config" in err and match in err
 
 
+def test_a_model_and_batch_of_different_runs_are_refused_naming_both_files(
+    run, tmp_path, capsys
+):
+    """A batch.npz copied from another run (here: one value changed, so the
+    instance ids and the number of transitions still agree, as between runs of
+    two seeds) is refused before any work, naming both files; a model fitted
+    before models recorded their data's digest is checked on the ids and the
+    number alone, as it was."""
+    copy = tmp_path / "run"
+    shutil.copytree(run[0], copy)
+    batch = hipmdp.Transitions.load(copy / "batch.npz")
+    table = hipmdp.data.ParameterTable.load(copy / "batch.npz")
+    states = batch.states.copy()
+    states[7, 0] += 1e-9
+    dataclasses.replace(batch, states=states).save(copy / "batch.npz", table=table)
+    with pytest.raises(SystemExit) as stopped:
+        acrobot_identified.cli([str(copy)])
+    assert stopped.value.code == 2
+    err = capsys.readouterr().err
+    assert f"{copy / 'hipmdp_model.npz'} was not fitted on {copy / 'batch.npz'}" in err
+    assert "SHA-256" in err
+    batch.take(np.arange(len(batch) - 1)).save(copy / "batch.npz", table=table)
+    with pytest.raises(ValueError, match=f"fitted on {len(batch)} transitions"):
+        acrobot_identified.read_run(copy)
+    fewer = batch.select(instances=batch.instance_ids[1:])
+    fewer.save(copy / "batch.npz", table=table)
+    with pytest.raises(ValueError, match="training instances .* are not the batch's"):
+        acrobot_identified.read_run(copy)
+
+    # a model written before the digest: the changed batch is read as before
+    dataclasses.replace(batch, states=states).save(copy / "batch.npz", table=table)
+    hip = hipmdp.load(copy / "hipmdp_model.npz")
+    info = {k: v for k, v in hip.info.items() if k != "data_sha256"}
+    dataclasses.replace(hip, info=info).save(copy / "hipmdp_model.npz")
+    np.testing.assert_array_equal(
+        acrobot_identified.read_run(copy).batch.states, states
+    )
+
+
 def test_rejects_a_folder_that_is_not_a_run_and_unknown_variants(tmp_path, run):
     with pytest.raises(FileNotFoundError, match="has no config.json"):
         acrobot_identified.main(tmp_path)

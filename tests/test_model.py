@@ -173,6 +173,7 @@ def test_save_load_identical_predictions(fitted, tmp_path):
     ):
         np.testing.assert_array_equal(x, y)
     assert loaded.info == fitted.info
+    assert loaded.info["data_sha256"] == _batch().sha256()  # what it was fitted on
 
 
 def test_the_filter_weights_setting_is_fitted_saved_and_loaded(fitted, tmp_path):
