@@ -59,7 +59,6 @@ against ``true`` and between the two filters.
 from __future__ import annotations
 
 import dataclasses
-import json
 import sys
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -68,7 +67,7 @@ import numpy as np
 
 import hipmdp
 from hipmdp import baselines
-from hipmdp.data import wrap_angle
+from hipmdp.data import is_real_number, wrap_angle
 from tasks import transfer
 from tasks.acrobot import AcrobotParams
 from tasks.acrobot_swingup import run_streams, run_test_instances
@@ -84,6 +83,7 @@ from tasks.experiment import (
     one_blas_thread,
     paired_difference,
     pool_map,
+    read_json_object,
     run_or_exit,
     run_parser,
     to_jsonable,
@@ -255,7 +255,7 @@ def read_run(run: Path, seed: int | None = None) -> RunFiles:
     A model fitted before models recorded their data's digest is checked on its
     instance ids and number of transitions alone (another seed's run has the
     same ids and may have the same number)."""
-    config = json.loads((run / "config.json").read_text())
+    config = read_run_config(run)
     if seed is not None and seed == config.get("seed"):
         raise ValueError(
             f"seed: {seed} is the run's own seed (its streams made the run's batch "
@@ -272,6 +272,73 @@ def read_run(run: Path, seed: int | None = None) -> RunFiles:
             f"({type(err).__name__}: {err})"
         ) from err
     return RunFiles(config, hip, batch)
+
+
+#: The fields of a swing-up run's config.json that the checks read.
+RUN_CONFIG_FIELDS = (
+    "seed", "fit", "average_n_max", "n_trials", "transfer", "test_masses",
+)  # fmt: skip
+
+
+def read_run_config(run: Path) -> dict[str, Any]:
+    """``run``'s ``config.json``, checked to be a swing-up run's as far as the
+    checks read it, before any work: an object with the ``RUN_CONFIG_FIELDS``,
+    ``seed`` an integer >= 0, ``average_n_max`` and ``n_trials`` integers >= 1,
+    ``fit`` and ``transfer`` objects of ``hipmdp.FitConfig`` and
+    ``TransferConfig`` fields with valid values (an older run's missing fields
+    take the values it ran with), ``test_masses`` a list of ``[m1, m2]`` masses
+    > 0 and ``book_inertia``, if there, a boolean. Other fields are not read and
+    not checked. Raises ValueError naming the file and the field (a file that is
+    not JSON or not an object too)."""
+    path = run / "config.json"
+    config = read_json_object(path)
+    try:
+        _check_run_config(config)
+    except ValueError as err:
+        raise ValueError(f"{path}: not a swing-up run's config: {err}") from None
+    return config
+
+
+def _check_run_config(config: dict[str, Any]) -> None:
+    missing = [name for name in RUN_CONFIG_FIELDS if name not in config]
+    if missing:
+        raise ValueError(f"{', '.join(missing)}: missing")
+    check_integer("seed", config["seed"], 0)
+    check_integer("average_n_max", config["average_n_max"], 1)
+    check_integer("n_trials", config["n_trials"], 1)
+    fit = with_added_fields(config)["fit"]
+    for name, kind in (
+        ("fit", hipmdp.fitting.FitConfig),
+        ("transfer", transfer.TransferConfig),
+    ):
+        value = fit if name == "fit" else config[name]
+        if not isinstance(value, dict):
+            raise ValueError(
+                f"{name}: expected an object of {kind.__name__} fields, got {value!r}"
+            )
+        unknown = sorted(set(value) - {f.name for f in dataclasses.fields(kind)})
+        if unknown:
+            raise ValueError(f"{name}: unknown {kind.__name__} fields {unknown}")
+        try:
+            kind(**value)
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"{name}: {err}") from None
+    masses = config["test_masses"]
+    if not isinstance(masses, list) or not masses:
+        raise ValueError(f"test_masses: expected a list of [m1, m2], got {masses!r}")
+    for i, pair in enumerate(masses):
+        if not (
+            isinstance(pair, list)
+            and len(pair) == 2
+            and all(is_real_number(m) and np.isfinite(m) and m > 0 for m in pair)
+        ):
+            raise ValueError(
+                f"test_masses[{i}]: expected a pair [m1, m2] of masses > 0 (kg), "
+                f"got {pair!r}"
+            )
+    book = config.get("book_inertia", False)  # runs before it had the default
+    if not isinstance(book, bool):
+        raise ValueError(f"book_inertia: expected true or false, got {book!r}")
 
 
 def check_model_data(hip, batch: hipmdp.Transitions, model_file, batch_file) -> None:

@@ -26,7 +26,6 @@ the settings changed in its preset.
 from __future__ import annotations
 
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
@@ -36,7 +35,7 @@ import numpy as np
 
 import hipmdp
 from hipmdp.data import atomic_folder, atomic_write, check_empty_folder
-from tasks.acrobot_identified import check_run
+from tasks.acrobot_identified import check_run, read_run_config
 from tasks.acrobot_swingup import run_streams
 from tasks.experiment import (
     check_folder_out,
@@ -106,7 +105,7 @@ def main(
         raise ValueError(f"out: expected a folder other than the run ({run})")
     check_folder_out(out)
     check_empty_folder(out, "out")
-    config = json.loads((run / "config.json").read_text())
+    config = read_run_config(run)  # an error names the file and the field
     # every check happens here, before any work (FitConfig validates the values)
     old = with_added_fields(config)["fit"]  # as the run fitted
     fit_config = hipmdp.FitConfig(**{**old, **fit, "progress": progress})

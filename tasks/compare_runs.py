@@ -51,6 +51,7 @@ from hipmdp.data import load_npz
 from tasks.experiment import (
     ADDED_FIT_FIELDS,
     check_out_file,
+    read_json_object,
     sort_blas,
     with_added_fields,
     write_json,
@@ -175,7 +176,7 @@ def _read_json(run: Path, name: str, required: bool = True) -> dict:
         if not required:
             return {}
         raise FileNotFoundError(f"{run}: no {name}; expected a finished run folder")
-    return json.loads(path.read_text())
+    return read_json_object(path)  # an error names the file
 
 
 def read_run(run: Path) -> tuple[dict, dict, dict | None]:

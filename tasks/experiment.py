@@ -752,6 +752,25 @@ ADDED_FIELDS = {"split": "random", "methods": []}
 ADDED_FIT_FIELDS = {"periodic": False, "filter_weights": "prior_mean"}
 
 
+def read_json_object(path: Path) -> dict[str, Any]:
+    """The JSON object in the file ``path`` (a run's ``config.json`` or
+    ``metrics.json``). Raises ValueError naming the file if it is not JSON (cut
+    short, another kind of file) or holds something else than an object;
+    FileNotFoundError if there is none."""
+    try:
+        value = json.loads(Path(path).read_text())
+    except ValueError as err:  # JSONDecodeError, UnicodeDecodeError
+        raise ValueError(f"{path}: not a JSON file ({err})") from None
+    if not isinstance(value, dict):
+        kind = {list: "an array", str: "a string", bool: "a boolean"}.get(
+            type(value), "a number" if value is not None else "null"
+        )
+        raise ValueError(
+            f"{path}: expected a JSON object ({{...}}) at the top level, got {kind}"
+        )
+    return value
+
+
 def with_added_fields(config: dict[str, Any]) -> dict[str, Any]:
     """An experiment's config (as in its config.json) with the ADDED_FIELDS and
     ADDED_FIT_FIELDS an older run lacks, at the values it ran with."""

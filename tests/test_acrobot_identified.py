@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import json
+import re
 import shutil
 
 import numpy as np
@@ -163,10 +164,27 @@ def test_an_error_refitting_the_average_model_is_not_a_usage_error(
 @pytest.mark.parametrize(
     "damage, match",
     [
-        (lambda c: c.pop("average_n_max"), "KeyError: 'average_n_max'"),
+        (lambda c: c.pop("average_n_max"), "average_n_max: missing"),
         (lambda c: c.update(average_n_max=0), "average_n_max: expected >= 1, got 0"),
-        (lambda c: c["fit"].update(n_support=0), "FitConfig.n_support"),
-        (lambda c: c.update(seed=-1), "ValueError"),
+        (lambda c: c["fit"].update(n_support=0), "fit: FitConfig.n_support"),
+        (lambda c: c.update(seed=-1), "seed: expected >= 0, got -1"),
+        # the reviewer's cases: a TypeError, a KeyError, a message of AcrobotParams
+        (
+            lambda c: c["transfer"].update(episodes=3),
+            "transfer: unknown TransferConfig fields ['episodes']",
+        ),
+        (lambda c: c.pop("test_masses"), "test_masses: missing"),
+        (
+            lambda c: c.update(test_masses=[[0.9]]),
+            r"test_masses[0]: expected a pair [m1, m2] of masses > 0 (kg), got [0.9]",
+        ),
+        (lambda c: c.update(test_masses=[[0.9, True]]), "test_masses[0]: expected"),
+        (lambda c: c.update(test_masses=[]), "test_masses: expected a list"),
+        (lambda c: c["fit"].update(sweeps=3), "fit: unknown FitConfig fields"),
+        (lambda c: c.update(fit=[1]), "fit: expected an object of FitConfig fields"),
+        (lambda c: c["transfer"].update(n_episodes=0), "transfer: n_episodes: "),
+        (lambda c: c.update(n_trials="3"), "n_trials: expected an integer >= 1"),
+        (lambda c: c.update(book_inertia=1), "book_inertia: expected true or false"),
     ],
 )
 def test_a_damaged_run_config_is_a_usage_error_naming_the_file(
@@ -184,6 +202,37 @@ def test_a_damaged_run_config_is_a_usage_error_naming_the_file(
     assert stopped.value.code == 2
     err = capsys.readouterr().err
     assert "config.json: not a swing-up run's config" in err and match in err
+
+
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ('[{"seed": 0}]', r"expected a JSON object \({...}\) at the top level, got an"),
+        ('{"seed": 0, "fit": {"n_supp', r"not a JSON file \(Unterminated string"),
+        ("", r"not a JSON file \(Expecting value"),
+    ],
+)
+def test_a_config_json_that_is_no_json_object_is_refused_naming_it(
+    run, tmp_path, capsys, text, match
+):
+    """A top-level list gave AttributeError, a cut-short file a JSON error
+    without the file's path: each reader of a run's config names the file."""
+    from tasks import acrobot_refit, compare_runs
+
+    copy = tmp_path / "run"
+    shutil.copytree(run[0], copy)
+    (copy / "config.json").write_text(text)
+    for cli in (
+        lambda: acrobot_identified.cli([str(copy)]),
+        lambda: acrobot_refit.cli([str(copy), str(tmp_path / "refit")]),
+        lambda: compare_runs.cli([str(run[0]), str(copy)]),
+    ):
+        with pytest.raises(SystemExit) as stopped:
+            cli()
+        assert stopped.value.code == 2
+        err = capsys.readouterr().err
+        assert re.search(f"{re.escape(str(copy / 'config.json'))}: {match}", err)
+    assert not (tmp_path / "refit").exists()
 
 
 def test_a_model_and_batch_of_different_runs_are_refused_naming_both_files(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -127,6 +128,14 @@ def test_bad_folders_and_values_fail_before_any_file_is_written(run, tmp_path):
         acrobot_refit.main(run, tmp_path / "bad", {"n_support": 0})
     with pytest.raises(ValueError, match="FitConfig.filter_weights: expected one"):
         acrobot_refit.main(run, tmp_path / "bad", {"filter_weights": "mean"})
+    damaged = tmp_path / "damaged"  # a field FitConfig lacks gave a TypeError
+    shutil.copytree(run, damaged)
+    config = json.loads((damaged / "config.json").read_text())
+    config["fit"]["sweeps"] = 3
+    (damaged / "config.json").write_text(json.dumps(config))
+    match = "config.json: not a swing-up run's config: fit: unknown FitConfig fields"
+    with pytest.raises(ValueError, match=match):
+        acrobot_refit.main(damaged, tmp_path / "bad", {})
     assert not (tmp_path / "bad").exists()
 
 
