@@ -30,7 +30,8 @@ import re
 import shutil
 import tempfile
 import zipfile
-from collections.abc import Iterable, Sequence
+import zlib
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -175,12 +176,25 @@ def atomic_folder(path: str | os.PathLike):
     fsync_folder(path.parent)
 
 
-def load_npz(path: str | os.PathLike | io.IOBase):
+#: What reading damaged bytes of an archive raises: zipfile's checks (a CRC or a
+#: header that does not match, an unknown compression method), the
+#: decompressor's, numpy's reading of an array's header and data, and the seeks
+#: to offsets read from the archive.
+_DAMAGED = (
+    zipfile.BadZipFile, zlib.error, EOFError, ValueError, NotImplementedError,
+    OSError,  # e.g. a seek to a damaged offset (the file itself opened)
+)  # fmt: skip
+
+
+def load_npz(path: str | os.PathLike | io.IOBase) -> NpzArchive:
     """``np.load(path, allow_pickle=False)`` of an ``.npz`` archive (a path or a
     binary file object), refusing a file that is not one (empty, cut short, or
     another kind of file) with a ``ValueError`` that names it, where numpy would
-    raise ``EOFError`` or advise loading the file with pickle. Errors reading
-    the file (a missing file, a folder, a permission) stay ``OSError``s."""
+    raise ``EOFError`` or advise loading the file with pickle; and a damaged one
+    (a byte changed: ``zipfile.BadZipFile``, e.g. a bad CRC-32) with a
+    ``ValueError`` naming it, and the array where one is being read
+    (:class:`NpzArchive`). Errors reading the file (a missing file, a folder, a
+    permission) stay ``OSError``s."""
     if isinstance(path, (str, os.PathLike)):
         with open(path, "rb") as fh:  # OSError: the file cannot be read at all
             is_zip = zipfile.is_zipfile(fh)
@@ -191,7 +205,54 @@ def load_npz(path: str | os.PathLike | io.IOBase):
         raise ValueError(
             f"{path}: not an .npz archive (empty, cut short, or another kind of file)"
         )
-    return np.load(path, allow_pickle=False)
+    try:
+        return NpzArchive(np.load(path, allow_pickle=False), path)
+    except _DAMAGED as err:
+        raise ValueError(
+            f"{path}: not a readable .npz archive ({type(err).__name__}: {err}); "
+            "is the file damaged?"
+        ) from None
+
+
+class NpzArchive(Mapping):
+    """An open ``.npz`` archive, as ``np.load`` gives it (``files``, ``[name]``,
+    ``in``, ``with``), whose reads of damaged bytes (or of an array numpy cannot
+    read without pickle) raise ``ValueError`` naming the file and the array
+    instead of zipfile's or numpy's error."""
+
+    def __init__(self, npz, path) -> None:
+        self._npz, self._path = npz, path
+
+    @property
+    def files(self) -> list[str]:
+        return self._npz.files
+
+    def __getitem__(self, key: str) -> Array:
+        try:
+            return self._npz[key]
+        except _DAMAGED as err:
+            raise ValueError(
+                f"{self._path}: array {key!r} cannot be read ({type(err).__name__}: "
+                f"{err}); is the file damaged?"
+            ) from None
+
+    def __contains__(self, key: object) -> bool:
+        return key in self._npz  # without reading the array
+
+    def __iter__(self):
+        return iter(self._npz)
+
+    def __len__(self) -> int:
+        return len(self._npz)
+
+    def close(self) -> None:
+        self._npz.close()
+
+    def __enter__(self) -> NpzArchive:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 def npz_bytes(arrays: dict[str, Array]) -> bytes:
@@ -429,6 +490,12 @@ class ParameterTable:
         with load_npz(path) as f:
             if "table_instances" not in f:
                 return None
+            missing = [k for k in ("table_names", "table_values") if k not in f]
+            if missing:
+                raise ValueError(
+                    f"{path}: an incomplete parameter table (missing "
+                    f"{', '.join(missing)})"
+                )
             return cls(
                 instances=f["table_instances"],
                 names=tuple(str(s) for s in f["table_names"]),

@@ -264,6 +264,26 @@ def test_a_refit_folder_compares_with_its_run(tmp_path):
     }  # fmt: skip
 
 
+def test_a_damaged_array_is_named_unreadable(tmp_path):
+    """A changed byte in one run's array file (zipfile's BadZipFile, which
+    stopped the comparison) is reported for that array, naming the file."""
+    from hipmdp.data import npz_bytes
+    from tests.test_data import flipped, member_data
+
+    a, b = _run(tmp_path / "a"), _run(tmp_path / "b")
+    arrays = {"returns": np.arange(12.0), "methods": np.array(["a", "b", "c"])}
+    good = npz_bytes(arrays)
+    for run, content in (
+        (a, good),
+        (b, flipped(good, member_data(good, "returns.npy").stop - 2)),
+    ):
+        (run / "trials.npz").write_bytes(content)
+    result = main(a, b)
+    unreadable = result.arrays["trials.npz:returns"]["unreadable"]
+    assert unreadable.startswith(f"{b / 'trials.npz'}: array 'returns' cannot be read")
+    assert result.arrays["trials.npz:methods"] == "identical"
+
+
 def test_compare_arrays_nan_shapes_dtypes_and_strings():
     nan = np.array([1.0, np.nan, 3.0])
     assert compare_arrays(nan, nan.copy()) == "identical"

@@ -314,6 +314,66 @@ def test_files_that_are_not_npz_archives_are_refused_by_name(tmp_path, content):
         load(tmp_path)  # (Transitions.load reads a folder as a sharded run)
 
 
+def member_data(content: bytes, name: str) -> slice:
+    """Where the stored bytes of the member ``name`` (``"states.npy"``) are in
+    the archive ``content``: after its local header, with its .npy header."""
+    import struct
+    import zipfile
+
+    with zipfile.ZipFile(io.BytesIO(content)) as z:
+        info = z.getinfo(name)
+    start = (
+        info.header_offset
+        + 30
+        + sum(
+            struct.unpack(
+                "<HH", content[info.header_offset + 26 : info.header_offset + 30]
+            )
+        )
+    )
+    return slice(start, start + info.compress_size)
+
+
+def flipped(content: bytes, at: int) -> bytes:
+    damaged = bytearray(content)
+    damaged[at] ^= 0x10
+    return bytes(damaged)
+
+
+def test_a_changed_byte_is_refused_naming_the_file_and_the_array(tmp_path):
+    """One byte changed inside an array gave zipfile's "Bad CRC-32 for file
+    'states.npy'" without the file; every loader names the file and the array.
+    Over the whole file (every 11th byte, and the end record whose offsets
+    numpy seeks to), a changed byte is read or refused by a ValueError naming
+    the file, never another error."""
+    t = make(n=10)
+    path = t.save(tmp_path / "x.npz", table=table_for(t))
+    good = path.read_bytes()
+    for loader, name in (
+        (Transitions.load, "states"),
+        (ParameterTable.load, "table_values"),
+    ):
+        where = member_data(good, f"{name}.npy")
+        path.write_bytes(flipped(good, where.stop - 5))  # in the last value
+        match = rf"{path}: array '{name}' cannot be read \(BadZipFile: Bad CRC-32"
+        with pytest.raises(ValueError, match=match):
+            loader(path)
+    states = member_data(good, "states.npy")
+    with pytest.raises(ValueError, match="BytesIO.*: array 'states' cannot be read"):
+        Transitions.load(io.BytesIO(flipped(good, states.stop - 5)))
+    # a name in the central directory: the table lacks a member (was a KeyError)
+    path.write_bytes(flipped(good, good.rfind(b"table_names.npy") + 7))
+    with pytest.raises(ValueError, match=f"{path}: an incomplete parameter table"):
+        ParameterTable.load(path)
+    for at in [*range(0, len(good), 11), *range(len(good) - 22, len(good))]:
+        path.write_bytes(flipped(good, at))
+        for loader in (Transitions.load, ParameterTable.load):
+            try:
+                loader(path)
+            except ValueError as err:
+                assert str(err).startswith(f"{path}: "), (at, err)
+
+
 def test_an_archive_in_memory_loads_as_its_file_does(tmp_path):
     t = make(n=10)
     t.save(tmp_path / "x.npz")

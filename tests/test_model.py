@@ -176,6 +176,16 @@ def test_save_load_identical_predictions(fitted, tmp_path):
     assert loaded.info["data_sha256"] == _batch().sha256()  # what it was fitted on
 
 
+def test_a_model_file_with_a_changed_byte_is_refused_naming_it(fitted, tmp_path):
+    from tests.test_data import flipped, member_data
+
+    path = fitted.save(tmp_path / "model.npz")
+    good = path.read_bytes()
+    path.write_bytes(flipped(good, member_data(good, "f.npy").stop - 3))
+    with pytest.raises(ValueError, match=f"{path}: array 'f' cannot be read"):
+        load(path)
+
+
 def test_the_filter_weights_setting_is_fitted_saved_and_loaded(fitted, tmp_path):
     """fit gives the model FitConfig.filter_weights; the file keeps it; a file
     written before the setting existed loads as it filtered, at μ_w."""
