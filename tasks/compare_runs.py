@@ -226,6 +226,7 @@ def compare_arrays(a: np.ndarray, b: np.ndarray) -> Any:
             ja, jb = str(a), str(b)
         if isinstance(ja, dict) and isinstance(jb, dict):
             ja, jb = _model_meta(ja), _model_meta(jb)
+            ja, jb = _without_one_sided_records(ja, jb)
             diff = differences(ja, jb, PRESENTATION)
             return "identical" if not diff else {"json": diff}
     numeric = a.dtype.kind in "iufcb" and b.dtype.kind in "iufcb"
@@ -256,6 +257,26 @@ def _model_meta(meta: dict) -> dict:
     if isinstance(config, dict):
         out["info"] = {**meta["info"], "config": {**ADDED_FIT_FIELDS, **config}}
     return out
+
+
+#: Records of a model's ``info`` that describe its data, not how it behaves,
+#: added since some models were saved: compared where both models have them (two
+#: runs' batch data are compared in ``batch.npz`` anyway), else left out.
+ADDED_RECORDS = ("data_sha256",)
+
+
+def _without_one_sided_records(a: dict, b: dict) -> tuple[dict, dict]:
+    """Two model metadata with the :data:`ADDED_RECORDS` that only one holds
+    taken out of both (an older model lacks them: no difference of results)."""
+    ia, ib = a.get("info"), b.get("info")
+    if not (isinstance(ia, dict) and isinstance(ib, dict)):
+        return a, b
+    one_sided = [k for k in ADDED_RECORDS if (k in ia) != (k in ib)]
+    if not one_sided:
+        return a, b
+    keep = {k: v for k, v in ia.items() if k not in one_sided}
+    keep_b = {k: v for k, v in ib.items() if k not in one_sided}
+    return {**a, "info": keep}, {**b, "info": keep_b}
 
 
 def _count(a: np.ndarray, b: np.ndarray) -> dict[str, int]:

@@ -68,6 +68,29 @@ def test_an_experiment_older_than_a_field_counts_as_its_old_behaviour(tmp_path):
     assert main(a, e).config == {"fit.filter_weights": ["prior_mean", "training"]}
 
 
+def test_a_model_from_before_the_data_digest_is_compared_without_it():
+    """A model saved before ``info["data_sha256"]`` and one of the same fit after:
+    identical results (the digest records the data, which ``batch.npz`` holds);
+    two digests that differ are a difference."""
+
+    def meta(**info):
+        return np.array(
+            json.dumps(
+                {"format_version": 1, "filter_weights": "prior_mean",
+                 "info": {"config": {"periodic": False}, "n_transitions": 9, **info}}
+            )
+        )  # fmt: skip
+
+    assert compare_arrays(meta(), meta(data_sha256="ab")) == "identical"
+    assert compare_arrays(meta(data_sha256="ab"), meta()) == "identical"
+    assert compare_arrays(meta(data_sha256="ab"), meta(data_sha256="cd")) == {
+        "json": {"info.data_sha256": ["ab", "cd"]}
+    }
+    assert compare_arrays(meta(), meta(data_sha256="ab", n_transitions=8)) == {
+        "json": {"info.n_transitions": [9, 8]}
+    }
+
+
 def test_a_model_older_than_a_field_counts_as_its_old_behaviour():
     """A model file written before ``filter_weights`` (and its fit config before
     ``periodic``) filtered at μ_w with kernels not periodic."""
