@@ -35,6 +35,7 @@ import numpy as np
 
 import hipmdp
 from hipmdp.data import atomic_folder, atomic_write, check_empty_folder
+from hipmdp.fitting import check_batch
 from tasks.acrobot_identified import check_run, read_run_config
 from tasks.acrobot_swingup import run_streams
 from tasks.experiment import (
@@ -115,6 +116,7 @@ def main(
     batch = hipmdp.Transitions.load(run / "batch.npz")  # an error names the file
     data = (run / "batch.npz").read_bytes()  # copied as it is, once fitted
     ss_fit = run_streams(config["seed"]).fit  # as the run did
+    check_batch(batch, fit_config)  # e.g. more support points than states
     inputs_checked()
     t0 = time.perf_counter()
     model = hipmdp.fit(batch, fit_config, rng=np.random.default_rng(ss_fit))

@@ -185,3 +185,18 @@ def test_cli_reports_bad_options(run, tmp_path, capsys):
         acrobot_refit.cli([str(run), str(tmp_path / "o"), "--fit", "nope=1"])
     assert "--fit 'nope=1'" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+    # more support points than the batch has states: known once the batch is
+    # read, before the fit (it was a traceback from inside the fit)
+    with pytest.raises(SystemExit) as stopped:
+        acrobot_refit.cli(
+            [
+                str(run),
+                str(tmp_path / "o"),
+                "--fit",
+                "n_support=100000",
+                "n_candidates=100000",
+            ]
+        )
+    assert stopped.value.code == 2
+    assert "FitConfig.n_support: expected at most" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
