@@ -817,6 +817,10 @@ def apply_common(
             from tasks.methods import load_all  # tasks.methods imports this module
 
             load_all(config.methods, build=False)  # import each, before any work
+        if getattr(config, "record", False):
+            from tasks.recording import recording_enabled
+
+            recording_enabled()  # a RERUN that is neither on nor off
         check_out(args.out, config.name, artefacts)
     except ValueError as err:
         parser.error(flag_error(err))

@@ -9,6 +9,7 @@ import pytest
 import rerun.blueprint as rrb
 from scipy.spatial.transform import Rotation
 
+from tasks import acrobot_swingup, cartpole_prediction
 from tasks.recording import (
     Recording,
     capsule_poses,
@@ -59,7 +60,7 @@ def test_recording_reads_back_with_entities_and_rows(tmp_path):
 
 
 @pytest.mark.parametrize("value", ["garbage", "of", "2"])
-def test_an_unknown_rerun_value_is_refused(monkeypatch, value):
+def test_an_unknown_rerun_value_is_refused(monkeypatch, capsys, value):
     """The SDK took it as on and only warned once recording began, after the
     work; the experiments read it in ``resolve_record``, before."""
     monkeypatch.setenv("RERUN", value)
@@ -71,6 +72,14 @@ def test_an_unknown_rerun_value_is_refused(monkeypatch, value):
     for off in ("off", "0", "False", "no"):
         monkeypatch.setenv("RERUN", off)
         assert not recording_enabled()
+    # the experiments' command lines say so as a usage error, naming it
+    monkeypatch.setenv("RERUN", value)
+    for parse_args in (acrobot_swingup.parse_args, cartpole_prediction.parse_args):
+        with pytest.raises(SystemExit) as stopped:
+            parse_args([])
+        assert stopped.value.code == 2
+        assert "RERUN: expected on or off" in capsys.readouterr().err
+        parse_args(["--no-record"])  # no recording: RERUN is not read
 
 
 def test_rerun_off_writes_nothing(tmp_path, monkeypatch):
