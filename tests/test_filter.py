@@ -385,3 +385,24 @@ def test_predictive_without_latent_weights_returns_new_arrays():
     var += 1.0
     np.testing.assert_array_equal(f1, [[1.0, 2.0]])
     np.testing.assert_array_equal(noise, [[0.5, 0.5]])
+
+
+def test_interpolation_variance_is_never_negative():
+    """At a support point v_ad = σ_f² - ‖L⁻¹k‖² is below σ² = 1e-12; with σ_f² =
+    1e4 it is computed as round-off of ~1e4·1e-16 around that value and comes out
+    negative at some of these points (as in `hipmdp.gp`'s prediction): it is
+    clipped at 0, so that no variance the model adds it to shrinks."""
+    rng = np.random.default_rng(0)
+    m = 60
+    model = dataclasses.replace(
+        _model(),
+        support=rng.normal(size=(m, D)),
+        f=rng.normal(size=(K, A, D, m)),
+        hyper=HyperSet(
+            np.ones((A, D, D)), np.full((A, D), 1e4), np.full((A, D), 1e-12)
+        ),
+    )
+    states, actions = np.repeat(model.support, A, axis=0), np.tile(np.arange(A), m)
+    v = model.interpolation_var(states, actions)
+    assert np.all(v >= 0.0)
+    assert v.max() < 1e-9  # round-off of 1e4·1e-16 per term, summed over 60 terms

@@ -310,6 +310,15 @@ def test_a_models_arrays_are_read_only(fitted):
             getattr(fitted, name)[...] = 0
     with pytest.raises(ValueError, match="read-only"):
         fitted.hyper.noise_var[...] = 1.0
+    # the model-error terms too, and as copies: the caller's array stays theirs
+    r0, c = np.full((A, D), 1e-3), np.full((A, D), 2.0)
+    model = dataclasses.replace(fitted, residual_var=r0, interp_var_scale=c)
+    r0[...], c[...] = 5.0, 7.0
+    np.testing.assert_array_equal(model.residual_var, 1e-3)
+    np.testing.assert_array_equal(model.interp_var_scale, 2.0)
+    for name in ("residual_var", "interp_var_scale"):
+        with pytest.raises(ValueError, match="read-only"):
+            getattr(model, name)[...] = 0.0
     belief = fitted.prior()
     with pytest.raises(ValueError, match="read-only"):
         belief.P[...] = 0.0
@@ -328,6 +337,17 @@ def _one_more_action(h):
             for x in (h.lengthscales, h.signal_var, h.noise_var)
         )
     )
+
+
+def _meta(meta_json, **change):
+    """meta_json with the fields in `change` set (deleted where the value is ...)."""
+    meta = json.loads(str(meta_json))
+    for k, v in change.items():
+        if v is ...:
+            del meta[k]
+        else:
+            meta[k] = v
+    return np.array(json.dumps(meta))
 
 
 def _last_nan(x):
@@ -353,8 +373,17 @@ def _last_nan(x):
         ("weights", lambda x: _last_nan(x), r"weights: expected finite values"),
         ("mu_w", lambda x: _last_nan(x), r"mu_w: expected finite values"),
         ("meta_json", lambda x: np.array("{not json"), "meta_json is not valid JSON"),
+        # a file of another format version is not read as this one
+        ("meta_json", lambda x: _meta(x, format_version=2),
+         "expected format_version 1, got 2"),
+        ("meta_json", lambda x: _meta(x, format_version=None),
+         "expected format_version 1, got None"),
+        ("meta_json", lambda x: _meta(x, sigma_w=...),
+         r"meta_json lacks \['sigma_w'\]"),
+        # float(None), a TypeError, names the file as the ValueErrors do
+        ("meta_json", lambda x: _meta(x, sigma_w=None), r"float\(\) argument"),
     ],
-)
+)  # fmt: skip
 def test_load_names_the_field_of_a_damaged_file(fitted, tmp_path, name, edit, match):
     """A hand-edited or damaged model file fails on load, naming the file and
     the field, not later inside numpy or scipy."""
@@ -378,6 +407,12 @@ def test_filtering_data_must_treat_angles_as_the_fit_did(fitted):
     )
     with pytest.raises(ValueError, match=r"data: angle_dims \(0,\) differs"):
         fitted.update(fitted.prior(), as_angle)
+    # the fit had no dt (angle changes wrapped); data unwrapped with a dt differ
+    with_dt = Transitions(
+        data.states, data.actions, data.next_states, data.instances, dt=0.05
+    )
+    with pytest.raises(ValueError, match=r"data: dt 0.05 differs .* None"):
+        fitted.update(fitted.prior(), with_dt)
 
 
 def test_a_belief_is_filtered_on_one_instance(fitted):
