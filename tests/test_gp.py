@@ -158,10 +158,15 @@ def test_periodic_gp_interpolates_across_the_wrap():
     assert np.all(sd[(0,)] < sd[()])  # it knows it has data across the wrap
 
 
-def test_hyper_set_fits_each_action_on_at_most_n_subsample_transitions(monkeypatch):
+@pytest.mark.parametrize(("n_subsample", "per_instance"), [(40, 10), (5, 2)])
+def test_hyper_set_fits_each_action_on_at_most_n_subsample_transitions(
+    monkeypatch, n_subsample, per_instance
+):
     """n_subsample is split across the B instances (n_subsample // B each, at
-    least 2), each action's groups are that action's transitions of one
-    instance, and every (a, d) is fitted on them."""
+    least 2: 5 // 4 = 1 point per instance has no length scale to fit), each
+    action's groups are that action's transitions of one instance, and every
+    (a, d) is fitted on them with the periodic dimensions, which the HyperSet
+    keeps."""
     rng = np.random.default_rng(0)
     n, D, A, B = 600, 2, 2, 4
     states = rng.normal(size=(n, D))
@@ -172,15 +177,18 @@ def test_hyper_set_fits_each_action_on_at_most_n_subsample_transitions(monkeypat
 
     def record(groups, periodic):
         calls.append([(x.copy(), y.copy()) for x, y in groups])
+        assert periodic == (1,)
         return np.ones(3)
 
     monkeypatch.setattr(gp, "fit_hyperparameters", record)
-    gp.fit_hyper_set(states, actions, deltas, instances, A, n_subsample=40,
-                     rng=np.random.default_rng(1))  # fmt: skip
+    hyper = gp.fit_hyper_set(states, actions, deltas, instances, A,
+                             n_subsample=n_subsample, rng=np.random.default_rng(1),
+                             periodic=(1,))  # fmt: skip
+    assert hyper.periodic == (1,)
     assert len(calls) == A * D
     for k, groups in enumerate(calls):
         a, d = divmod(k, D)
-        assert len(groups) == B and all(len(y) == 40 // B for _, y in groups)
+        assert len(groups) == B and all(len(y) == per_instance for _, y in groups)
         for (x, y), b in zip(groups, range(B), strict=True):
             rows = np.flatnonzero((actions == a) & (instances == b))
             i = [int(np.flatnonzero((states[rows] == s).all(axis=1))[0]) for s in x]
@@ -320,3 +328,32 @@ def test_periodic_predict_mean_is_predicts_mean():
     X, Xs = rng.uniform(-3, 3, size=(20, 2)), rng.uniform(-3, 3, size=(5, 2))
     post = condition(X, np.sin(X[:, 0]), GPHyper(np.array([1.0, 2.0]), 1.0, 0.01, (0,)))
     np.testing.assert_allclose(post.predict_mean(Xs), post.predict(Xs)[0], atol=1e-12)
+
+
+def test_subsample_draws_sorted_distinct_indices_uniformly():
+    """Sorted (as documented: callers keep a subsample in the data's order),
+    distinct, and each item equally likely: in 4000 draws of 5 of 20, each is
+    drawn Binomial(4000, 1/4) times, mean 1000, sd 27.4; all 20 counts lie
+    within 5 sd (probability of failing ~1e-5 for a correct draw)."""
+    rng = np.random.default_rng(0)
+    np.testing.assert_array_equal(gp.subsample(7, 7, rng=rng), np.arange(7))
+    np.testing.assert_array_equal(gp.subsample(7, 10, rng=rng), np.arange(7))
+    counts = np.zeros(20)
+    for _ in range(4000):
+        idx = gp.subsample(20, 5, rng=rng)
+        assert len(idx) == 5 and np.all(np.diff(idx) > 0)
+        counts[idx] += 1
+    assert np.all(np.abs(counts - 1000) < 5 * np.sqrt(4000 * 0.25 * 0.75))
+
+
+def test_condition_takes_one_state_of_shape_d():
+    """One state given as (D,) is conditioned on as one point (1, D)."""
+    x, y = np.array([0.3, -0.2]), np.array([0.7])
+    h = GPHyper(np.array([0.9, 1.1]), 1.3, 0.05)
+    Xs = np.random.default_rng(0).normal(size=(4, 2))
+    for got, want in zip(
+        condition(x, y, h).predict(Xs),
+        condition(x[None], y, h).predict(Xs),
+        strict=True,
+    ):
+        np.testing.assert_array_equal(got, want)
