@@ -2,7 +2,8 @@
 sides run the same sweep (found by a mutation review): the z step leaves
 singletons to the new-feature step, born features take f from the residual
 without the old singletons, the weight draw's fallback for a singular
-covariance, and the eigenvalue floor."""
+covariance, the eigenvalue floor, the w block with a single latent feature and
+σ_w ≠ σ_w0, f = 0 wherever z is off, and the removal of an unused feature."""
 
 from __future__ import annotations
 
@@ -11,8 +12,16 @@ import pytest
 
 from hipmdp import gibbs_dense as dense
 from hipmdp import gibbs_eigen as fast
-from hipmdp.gibbs import GibbsData, GibbsPriors, prepare
-from hipmdp.gibbs_sweep import new_feature_step, z_step_row
+from hipmdp.gibbs import (
+    GibbsData,
+    GibbsPriors,
+    GibbsState,
+    gibbs_sweep,
+    init_state,
+    log_joint,
+    prepare,
+)
+from hipmdp.gibbs_sweep import f_block, new_feature_step, sweep, z_step_row
 from tests.test_gibbs_sampler import assert_whitened, small_problem
 
 
@@ -85,3 +94,61 @@ def test_weight_draw_fallback_refuses_a_covariance_that_is_truly_indefinite(
     alg = fast.EigenAlgebra(prepare(small_problem(3)[0]))
     with pytest.raises(np.linalg.LinAlgError):
         alg.w_draw(None, None, None, 1.0, rng=np.random.default_rng(0))
+
+
+def test_the_w_block_runs_with_a_single_latent_feature():
+    """Kf = 2 (one latent feature, on in every row and kept there by the data):
+    the sweep's w[1] is the w-block's conditional mean given the f-block's f
+    (dense formula, with means for draws), with the weights' prior sd σ_w, not
+    σ_w0. The block was skipped unless there were two latent features."""
+    rng = np.random.default_rng(0)
+    R, B, m = 3, 4, 5
+    data, _ = small_problem(3, R=R, B=B, m=m)
+    w_true = np.array([2.0, -1.5, 1.0, 2.5])
+    f_true = rng.normal(size=(2, R, m))
+    Y = f_true[0][:, None] + w_true[None, :, None] * f_true[1][:, None]
+    data = GibbsData(Y + 0.05 * rng.normal(size=Y.shape), data.K, data.noise)
+    alg = dense.MeanDraws(dense.DenseAlgebra(data))
+    priors = GibbsPriors(alpha=0.1, sigma_w=2.0, sigma_w0=0.5, n_w=20)
+    z = np.ones((2, R), dtype=bool)
+    w, mu_w = np.vstack([np.ones(B), np.ones(B)]), np.array([0.0, 0.5])
+    f = np.zeros((2, R, m))
+    # the f-block's means do not depend on the draws the sweep takes
+    f1 = f_block(alg, z, w, f, rng=np.random.default_rng(1))
+    want = dense.w_posterior(z, f1, data.Y, data.noise, mu_w, priors.sigma_w).mean
+    z2, w2, _, _ = sweep(alg, z, w, f, mu_w, priors, rng=np.random.default_rng(2))
+    assert z2[1].all()  # feature 1 kept in every row: w2[1] is the w-block's
+    np.testing.assert_allclose(w2[1], want[0], rtol=1e-10)
+
+
+def test_a_sweep_leaves_f_at_0_wherever_z_is_off():
+    """The state's f is 0 where z[k,r] is off (`GibbsState`): a feature the z
+    step switches off in a row, while another row keeps it, has its f[k,r]
+    set to 0 (it kept its last value)."""
+    data, _ = small_problem(15, R=4, B=5, m=6)
+    priors = GibbsPriors(alpha=2.0, sigma_w=1.0, sigma_w0=1.0, n_w=50)
+    cache = prepare(data)
+    rng = np.random.default_rng(16)
+    state = init_state(data, priors, rng=rng)
+    partial = 0  # sweeps that end with a feature on in some rows, off in others
+    for _ in range(30):
+        state = gibbs_sweep(state, data, priors, cache, rng=rng)
+        off = ~state.z
+        assert not state.f[off].any()
+        partial += bool(off[1:].any())
+    assert partial > 0  # the check above saw features off in some rows
+
+
+def test_a_sweep_drops_a_feature_no_row_uses():
+    """A state may hold a feature with z[k,:] all off (`check_state` takes it;
+    the IBP prior of `log_joint` does not): the sweep's step 4 removes it."""
+    data, rng = small_problem(3)
+    priors = GibbsPriors(alpha=1.0, sigma_w=1.0, sigma_w0=1.0, n_w=20)
+    z = np.array([[1, 1, 1], [0, 0, 0]], dtype=bool)
+    state = GibbsState(
+        z, np.vstack([np.ones(4), rng.normal(size=4)]), np.zeros((2, 3, 5)),
+        np.array([0.0, 0.3]),
+    )  # fmt: skip
+    out = gibbs_sweep(state, data, priors, prepare(data), rng=rng)
+    assert out.z[1:].any(axis=1).all()
+    assert np.isfinite(log_joint(out, data, priors))
