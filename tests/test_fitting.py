@@ -12,7 +12,12 @@ import pytest
 from hipmdp import FitConfig, fit
 from hipmdp import gibbs_dense as dense
 from hipmdp.data import Transitions
-from hipmdp.fitting import MAX_MAGNITUDE, posterior_weights, smooth_onto_support
+from hipmdp.fitting import (
+    MAX_MAGNITUDE,
+    check_batch,
+    posterior_weights,
+    smooth_onto_support,
+)
 from hipmdp.gp import HyperSet, subsample
 
 
@@ -86,6 +91,9 @@ def test_posterior_weights_match_the_dense_w_posterior_mean():
     ref = dense.w_posterior(z, f, Y, noise, mu_w, 0.7)
     np.testing.assert_array_equal(W[0], 1.0)
     np.testing.assert_allclose(W[1:], ref.mean, rtol=1e-10, atol=1e-12)
+    # f where z is off is not part of the model: the weights ignore it
+    junk = np.where(z[:, :, None], f, rng.normal(size=f.shape))
+    np.testing.assert_array_equal(posterior_weights(Y, junk, z, noise, mu_w, 0.7), W)
 
 
 def test_data_at_the_magnitude_limit_fit_without_overflow():
@@ -154,3 +162,14 @@ def test_posterior_weights_refuse_mismatched_shapes(name, bad, match):
     args[name] = bad
     with pytest.raises(ValueError, match=match):
         posterior_weights(**args, sigma_w=0.7)
+
+
+def test_check_batch_counts_distinct_states_for_the_support():
+    """A batch holding each state twice has as many distinct states as once:
+    n_support may equal that number, not exceed it."""
+    data = _batch(np.random.default_rng(0))
+    twice = Transitions.concatenate([data, data])
+    n = len(data)  # 120 distinct states, 240 transitions
+    check_batch(twice, FitConfig(n_support=n, n_candidates=n))
+    with pytest.raises(ValueError, match=f"at most {n} \\(distinct states"):
+        check_batch(twice, FitConfig(n_support=n + 1, n_candidates=n + 1))

@@ -452,6 +452,8 @@ def test_a_belief_is_filtered_on_one_instance(fitted):
         ("n_candidates", 10),
         ("n_smooth", 0),
         ("n_sweeps", 2.5),
+        ("n_sweeps", True),  # a bool is no count
+        ("n_support", True),
         ("progress", "yes"),
         ("periodic", 1),
     ],
@@ -469,6 +471,40 @@ def test_a_fit_runs_at_the_ends_of_the_prior_ranges(prior):
     config = dataclasses.replace(CONFIG, n_sweeps=5, n_chains=1, **prior)
     model = fit(_batch(), config, rng=np.random.default_rng(1))
     assert np.all(np.isfinite(model.weights)) and np.all(np.isfinite(model.f))
+
+
+def test_config_takes_as_many_candidates_as_support_points():
+    """n_candidates >= n_support: every candidate may become a support point."""
+    assert FitConfig(n_support=10, n_candidates=10).n_candidates == 10
+
+
+def test_fit_gives_each_stage_its_setting(monkeypatch):
+    """n_hyper transitions per action for the hyperparameters, n_residual per
+    action for the model error, σ_w (not σ_w0) for the weights; the data's
+    angle_dims and dt are recorded for the filter's check."""
+    seen = {}
+
+    def hyper_set(*args, **kwargs):
+        seen["n_subsample"] = kwargs["n_subsample"]
+        return real_hyper_set(*args, **kwargs)
+
+    def error(model, data):
+        seen["residual_actions"] = np.bincount(data.actions)
+        return real_error(model, data)
+
+    real_hyper_set, real_error = fitting.fit_hyper_set, fitting.model_error
+    monkeypatch.setattr(fitting, "fit_hyper_set", hyper_set)
+    monkeypatch.setattr(fitting, "model_error", error)
+    batch = dataclasses.replace(_batch(), angle_dims=(0,), dt=0.1)
+    config = dataclasses.replace(
+        CONFIG, n_sweeps=5, n_chains=1, n_hyper=120, n_residual=50,
+        sigma_w=2.0, sigma_w0=4.0,
+    )  # fmt: skip
+    model = fit(batch, config, rng=np.random.default_rng(1))
+    assert seen["n_subsample"] == 120
+    np.testing.assert_array_equal(seen["residual_actions"], [50, 50])  # of 600 each
+    assert model.sigma_w == 2.0
+    assert model.info["angle_dims"] == [0] and model.info["dt"] == 0.1
 
 
 def test_config_takes_numpy_numbers_as_python_ones():

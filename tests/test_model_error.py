@@ -178,3 +178,44 @@ def test_bad_terms_are_rejected(fitted):  # noqa: F811
         dataclasses.replace(fitted, interp_var_scale=np.ones(3))
     with pytest.raises(ValueError, match="instances \\[9\\] are not training"):
         model_error(fitted, _instance(9, np.zeros(2), 10, np.random.default_rng(5)))
+
+
+def test_model_error_of_an_action_without_transitions_is_the_uncalibrated_model(
+    fitted,  # noqa: F811
+):
+    """Data of action 0 only: action 1's terms are r0 = 0, c = 1 (documented),
+    action 0's those of the same data with both actions."""
+    data = _batch().take(np.arange(0, 1200, 3))
+    r0, c = model_error(fitted, data.take(np.flatnonzero(data.actions == 0)))
+    np.testing.assert_array_equal(r0[1], 0.0)
+    np.testing.assert_array_equal(c[1], 1.0)
+    both = model_error(fitted, data)
+    np.testing.assert_array_equal(r0[0], both[0][0])
+    np.testing.assert_array_equal(c[0], both[1][0])
+
+
+def test_another_start_replaces_the_first_only_if_better_by_the_tolerance(
+    monkeypatch,
+):
+    """The three starts' optima, given: the second is better than the first by
+    less than ERROR_TERMS_TOLERANCE and is not taken; the third, better by more,
+    is."""
+    tol = ERROR_TERMS_TOLERANCE
+    results = iter(
+        [
+            optimize.OptimizeResult(x=np.log([0.5, 2.0]), fun=10.0),
+            optimize.OptimizeResult(x=np.log([0.25, 3.0]), fun=10.0 - 0.5 * tol),
+            optimize.OptimizeResult(x=np.log([0.125, 4.0]), fun=10.0 - 0.5 * tol),
+        ]
+    )
+    monkeypatch.setattr(optimize, "minimize", lambda *a, **k: next(results))
+    r2 = np.full(10, 2.0)  # mean(r²) = 2 scales r0
+    assert _fit_error_terms(r2, np.ones(10), 1e-3) == pytest.approx((1.0, 2.0))
+    results = iter(
+        [
+            optimize.OptimizeResult(x=np.log([0.5, 2.0]), fun=10.0),
+            optimize.OptimizeResult(x=np.log([0.25, 3.0]), fun=10.0 - 0.5 * tol),
+            optimize.OptimizeResult(x=np.log([0.125, 4.0]), fun=10.0 - 2 * tol),
+        ]
+    )
+    assert _fit_error_terms(r2, np.ones(10), 1e-3) == pytest.approx((0.25, 4.0))
