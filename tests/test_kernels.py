@@ -44,10 +44,28 @@ def test_bad_parameters_raise():
         se_kernel(X, X, np.array([1.0]), 1.0)
     with pytest.raises(ValueError, match="lengthscales"):
         se_kernel(X, X, np.array([1.0, -1.0]), 1.0)
-    with pytest.raises(ValueError, match="signal_var"):
-        se_kernel(X, X, np.array([1.0, 1.0]), 0.0)
+    with pytest.raises(ValueError, match="lengthscales"):  # a division by 0
+        se_kernel(X, X, np.array([1.0, 0.0]), 1.0)
+    for sf2 in (0.0, np.nan, np.inf):
+        with pytest.raises(ValueError, match="signal_var"):
+            se_kernel(X, X, np.array([1.0, 1.0]), sf2)
     with pytest.raises(ValueError, match="dimension"):
         se_kernel(X, np.zeros((2, 3)), np.array([1.0, 1.0]), 1.0)
+
+
+def test_scaled_distances_are_never_negative():
+    """Points 3000-10000 length scales from the origin (|a|² ≈ 1.4e8): the
+    expanded form |a|² + |b|² - 2 a·b of a point's distance to itself is
+    round-off of ~1.4e8·2e-16 ≈ 3e-8, of either sign (5 of these 40 negative
+    when written); it is clipped at 0. The distances between points (~10-1000)
+    are the direct formula's to 1e-4, over a thousand times that round-off."""
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(40, 3)) + 1e3
+    ell = np.array([0.1, 0.2, 0.3])
+    d2 = kernels.scaled_sqdist(X, X, ell)
+    assert np.all(d2 >= 0.0)
+    direct = (((X[:, None] - X[None]) / ell) ** 2).sum(-1)
+    np.testing.assert_allclose(d2, direct, atol=1e-4)
 
 
 def test_kernel_means_are_the_per_output_kernel_sums(monkeypatch):
@@ -98,6 +116,11 @@ def test_kernel_means_reject_bad_input():
         KernelMeans([x], -ell, sf2, [np.zeros((2, 2))])
     with pytest.raises(ValueError, match="expected 1 actions"):
         KernelMeans([x, x], ell, sf2, [np.zeros((2, 2))])
+    with pytest.raises(ValueError, match="expected 1 actions, got 1 and 2"):
+        KernelMeans([x], ell, sf2, [np.zeros((2, 2))] * 2)
+    # one σ_f² for both outputs: (1, 1) broadcast against (1, 2)
+    with pytest.raises(ValueError, match=r"signal_var: expected shapes .* \(1, 1\)"):
+        KernelMeans([x], ell, sf2[:, :1], [np.zeros((2, 2))])
     means = KernelMeans([x], ell, sf2, [np.zeros((2, 2))])
     with pytest.raises(ValueError, match="actions"):
         means(np.zeros((1, 3)), np.array([1]))
