@@ -236,13 +236,20 @@ class GPPosterior(NamedTuple):
 
 def condition(X: Array, y: Array, hyper: GPHyper) -> GPPosterior:
     """Condition the zero-mean GP on (X (n, D), y (n,))."""
-    X = np.atleast_2d(np.asarray(X, dtype=float))
+    given = np.asarray(X, dtype=float)
+    X = np.atleast_2d(given)
     y = np.asarray(y, dtype=float)
     if y.ndim != 1:  # (n, 1) gave (n_s, 1) means, broadcast silently downstream
         raise ValueError(f"y: expected shape (n,), got {y.shape}")
     if X.shape[0] != y.shape[0]:
+        one_point = ""
+        if given.ndim == 1 and given.size == y.size > 1:
+            one_point = (
+                f" (a 1-D X is one point of dimension {given.size}; for "
+                f"{given.size} points of one dimension pass X[:, None])"
+            )
         raise ValueError(
-            f"X and y: expected the same length, got {len(X)} and {len(y)}"
+            f"X and y: expected the same length, got {len(X)} and {len(y)}" + one_point
         )
     for name, value in (("X", X), ("y", y)):
         if not np.all(np.isfinite(value)):

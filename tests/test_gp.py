@@ -111,6 +111,8 @@ def test_prediction_matches_dense_formula():
         ((X, y, h._replace(noise_var=-5.0)), "hyper.noise_var: expected a finite"),
         ((X, y, h._replace(noise_var=np.nan)), "hyper.noise_var: expected a finite"),
         ((X, y[:9], h), "X and y: expected the same length, got 10 and 9"),
+        # n points of one dimension as a 1-D X read as one point of dimension n
+        ((X[:, 0], y, h), r"got 1 and 10 \(a 1-D X is one point of dimension 10;"),
     ]:
         with pytest.raises(ValueError, match=match):
             condition(*args)
