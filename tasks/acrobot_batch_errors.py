@@ -107,7 +107,7 @@ def main(run: str | Path, *, fast: float = 10.0, out: str | Path | None = None):
 
 
 def cli(argv: list[str] | None = None) -> int:
-    parser = run_parser("python -m tasks.acrobot_batch_errors", __doc__)
+    parser = run_parser("python -m tasks.acrobot_batch_errors", __doc__, progress=False)
     parser.add_argument("--fast", type=float, default=10.0, help="rad/s (default 10)")
     parser.add_argument(
         "--out", default=None, help="the JSON file (default: RUN/batch_errors.json)"

@@ -659,6 +659,7 @@ def cli(argv: list[str] | None = None) -> int:
         n_states=args.states, last=args.last, real=args.real,
         seed=args.seed,
         workers=args.workers, out=args.out,
+        progress=not args.no_progress,
     ))  # fmt: skip
     s = results.summary
     n = s["promised_steps_mean"]["true"]["n"]

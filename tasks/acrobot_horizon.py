@@ -172,6 +172,7 @@ def cli(argv: list[str] | None = None) -> int:
     results = run_or_exit(parser, lambda: main(
         args.run, horizons=tuple(args.horizons), identify=args.identify,
         evaluate=args.evaluate, seed=args.seed, out=args.out,
+        progress=not args.no_progress,
     ))  # fmt: skip
     s = results.summary
     n = len(s["test_masses"])

@@ -563,6 +563,7 @@ def cli(argv: list[str] | None = None) -> int:
         first_planning=args.first_planning,
         initial_planning=args.initial_planning, seed=args.seed,
         run_seeds=args.run_seeds, workers=args.workers, out=args.out,
+        progress=not args.no_progress,
     ))  # fmt: skip
     for v, r in results.returns.items():
         se = r.std(axis=0, ddof=1) / np.sqrt(len(r)) if len(r) > 1 else 0 * r[0]

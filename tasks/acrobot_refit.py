@@ -137,7 +137,6 @@ def cli(argv: list[str] | None = None) -> int:
         "--fit", nargs="+", default=[], metavar="NAME=VALUE",
         help="FitConfig fields to change, e.g. n_smooth=4000 periodic=true",
     )  # fmt: skip
-    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = parser.parse_args(argv)
     progress = not args.no_progress
     results = run_or_exit(

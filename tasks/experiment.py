@@ -667,13 +667,18 @@ def path_argument(text: str) -> Path:
     return Path(text)
 
 
-def run_parser(prog: str, doc: str):
+def run_parser(prog: str, doc: str, progress: bool = True):
     """The argument parser of a check on a finished run: ``prog``, the module
-    docstring ``doc`` as its description, and the positional ``run`` folder."""
+    docstring ``doc`` as its description, the positional ``run`` folder and,
+    with ``progress`` (a check that shows progress bars), ``--no-progress``."""
     parser = argparse.ArgumentParser(
         prog=prog, description=doc, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("run", help="a finished acrobot_swingup run folder")
+    if progress:
+        parser.add_argument(
+            "--no-progress", action="store_true", help="no progress bars"
+        )
     return parser
 
 

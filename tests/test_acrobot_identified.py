@@ -756,3 +756,25 @@ def test_the_identified_variants_get_beliefs_filtered_on_their_instance(
             np.testing.assert_array_equal(beliefs[key][i].mean, want.mean)
             assert not np.allclose(beliefs[key][i].mean, hip.prior().mean)
         assert not np.allclose(beliefs["model"][i].mean, beliefs["paper"][i].mean)
+
+
+@pytest.mark.parametrize("check", ["identified", "energy", "horizon", "refit"])
+def test_the_checks_command_lines_take_no_progress(monkeypatch, check):
+    """``--no-progress`` reaches ``main`` (the run checks had no way to hide their
+    bars, unlike the experiments)."""
+    module = importlib.import_module(f"tasks.acrobot_{check}")
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def main(*args, progress=True, **kwargs):
+        seen.append(progress)
+        raise Stop
+
+    monkeypatch.setattr(module, "main", main)
+    argv = ["RUN"] + (["OUT"] if check == "refit" else [])
+    for extra, progress in (([], True), (["--no-progress"], False)):
+        with pytest.raises(Stop):
+            module.cli(argv + extra)
+        assert seen.pop() is progress
