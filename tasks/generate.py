@@ -70,7 +70,7 @@ from hipmdp import shards
 from tasks._common import parameter_matrix
 from tasks.acrobot import AcrobotParams, book_inertia_range, with_book_inertia
 from tasks.collect import DOMAINS, collect, collect_sarsa, get_domain
-from tasks.distributions import KINDS, SPLITS, Distribution, draw
+from tasks.distributions import KINDS, MAX_GRID_POINTS, SPLITS, Distribution, draw
 from tasks.experiment import (
     check_folder_out,
     check_integer,
@@ -133,6 +133,11 @@ class Config:
                 raise ValueError("instances (--instances): expected None for a grid")
         else:
             check_integer("instances (--instances)", self.instances, 1)
+            if self.instances > MAX_GRID_POINTS:  # the plan's arrays alone: GBs
+                raise ValueError(
+                    f"instances (--instances): expected at most "
+                    f"{MAX_GRID_POINTS:,} (as a grid), got {self.instances:,}"
+                )
         check_integer("episodes_per_instance (--episodes-per-instance)",
                       self.episodes_per_instance, 1)  # fmt: skip
         check_integer("seed (--seed)", self.seed, 0)

@@ -270,6 +270,11 @@ def test_other_policies_write_chained_episodes(tmp_path, policy):
             "--workers and --scheduler are exclusive",
         ),
         (["--domain", "acrobot", "--seed", "-1"], "--seed: expected an integer >= 0"),
+        # a memory error (a traceback) while planning, or minutes before any output
+        (
+            ["--domain", "acrobot", "--instances", "1000000000"],
+            "(--instances): expected at most 10,000,000 (as a grid), got 1,000,000,000",
+        ),
     ],
 )
 def test_bad_options_stop_with_a_message_and_write_nothing(
