@@ -193,8 +193,11 @@ def load_npz(path: str | os.PathLike | io.IOBase) -> NpzArchive:
     raise ``EOFError`` or advise loading the file with pickle; and a damaged one
     (a byte changed: ``zipfile.BadZipFile``, e.g. a bad CRC-32) with a
     ``ValueError`` naming it, and the array where one is being read
-    (:class:`NpzArchive`). Errors reading the file (a missing file, a folder, a
-    permission) stay ``OSError``s."""
+    (:class:`NpzArchive`). Errors opening the file (a missing file, a folder, a
+    permission) stay ``OSError``s; once it is open, an ``OSError`` while reading
+    it (a seek to an offset read from damaged bytes, but also a failing disk)
+    is reported as a ``ValueError`` that names the file and keeps the error's
+    text."""
     if isinstance(path, (str, os.PathLike)):
         with open(path, "rb") as fh:  # OSError: the file cannot be read at all
             is_zip = zipfile.is_zipfile(fh)
@@ -736,11 +739,31 @@ class Transitions:
         return arrays
 
     def sha256(self) -> str:
-        """The SHA-256 (hex) of the data's arrays: of the file :meth:`save` writes
-        without a parameter table. Equal data give equal digests, however they
-        were read or built; ``hipmdp.fit`` records its data's in the model's
-        ``info["data_sha256"]``."""
-        return hashlib.sha256(npz_bytes(self.arrays())).hexdigest()
+        """The SHA-256 (hex) of the data: each array's name, shape and values, at
+        fixed little-endian dtypes (float64, int64, bool), in a fixed order; not
+        the file format's version, nor the bytes of an ``.npz`` (numpy's
+        archive layout), nor the platform's default integer. Equal data give
+        equal digests, however and wherever they were read or built;
+        ``hipmdp.fit`` records its data's in the model's ``info["data_sha256"]``."""
+        h = hashlib.sha256()
+        fields = [
+            ("states", self.states, "<f8"),
+            ("actions", self.actions, "<i8"),
+            ("next_states", self.next_states, "<f8"),
+            ("instances", self.instances, "<i8"),
+            ("angle_dims", np.array(self.angle_dims, dtype=np.int64), "<i8"),
+            ("rewards", self.rewards, "<f8"),
+            ("dones", self.dones, "|b1"),
+            ("dt", None if self.dt is None else np.array(self.dt), "<f8"),
+        ]
+        for name, value, dtype in fields:
+            if value is None:  # absent: named as absent
+                h.update(f"{name}:none;".encode())
+                continue
+            x = np.ascontiguousarray(value, dtype=np.dtype(dtype))
+            h.update(f"{name}:{x.shape};".encode())
+            h.update(x.tobytes())
+        return h.hexdigest()
 
     def save(
         self, path: str | os.PathLike, table: ParameterTable | None = None

@@ -501,8 +501,9 @@ def load(path: str | os.PathLike) -> HipMDP:
         periodic = (
             tuple(int(j) for j in npz["periodic"]) if "periodic" in npz.files else ()
         )
+        raw = str(npz["meta_json"])  # a damaged array: the archive's error
         try:
-            meta = json.loads(str(npz["meta_json"]))
+            meta = json.loads(raw)
         except ValueError:
             raise ValueError(f"{path}: meta_json is not valid JSON") from None
     if not isinstance(meta, dict) or meta.get("format_version") != FORMAT_VERSION:

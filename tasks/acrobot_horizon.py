@@ -181,9 +181,15 @@ def cli(argv: list[str] | None = None) -> int:
         print(f"{what} of the k-step open-loop prediction, mean over {n} settings")
         print(head)
         for k in s["horizons"]:
+            with_windows = sum(w > 0 for w in s["windows"][str(k)])
             for m in MODELS:
-                row = np.mean(s[stat][m][str(k)], axis=0)
+                values = np.asarray(s[stat][m][str(k)], dtype=float)
+                row = (  # over the settings with windows of length k
+                    np.nanmean(values, axis=0) if with_windows else values[0]
+                )
                 print(f"{m:>11} {k:3d} " + " ".join(f"{x:12.3g}" for x in row))
+            if with_windows < n:
+                print(f"{'':>15}(k = {k}: windows on {with_windows} of {n} settings)")
     print(f"wrote {results.out}")
     return 0
 

@@ -264,12 +264,11 @@ def read_run(run: Path, seed: int | None = None) -> RunFiles:
     hip = hipmdp.load(run / "hipmdp_model.npz")
     batch = hipmdp.Transitions.load(run / "batch.npz")
     check_model_data(hip, batch, run / "hipmdp_model.npz", run / "batch.npz")
-    try:
-        _average_settings(config, batch)
-    except (KeyError, TypeError, ValueError) as err:
+    try:  # the config is checked; what is left is its fit against the batch
+        _average_settings(config, batch)  # (e.g. periodic kernels, no angle_dims)
+    except ValueError as err:
         raise ValueError(
-            f"{run / 'config.json'}: not a swing-up run's config "
-            f"({type(err).__name__}: {err})"
+            f"{run / 'config.json'}: not a swing-up run's config: {err}"
         ) from err
     return RunFiles(config, hip, batch)
 
@@ -421,8 +420,8 @@ def main(
     after the first real one and before it (None: the run's)."""
     machine = environment()  # the code and machine as the check starts
     run = Path(run)
-    out_path = check_out_file(run / "identified.json" if out is None else out, [run])
     check_run(run)
+    out_path = check_out_file(run / "identified.json" if out is None else out, [run])
     unknown = set(variants) - set(VARIANTS)
     if unknown or not variants or len(set(variants)) != len(variants):
         # a repeated variant ran its trials twice and counted them as more trials

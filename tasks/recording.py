@@ -133,7 +133,8 @@ class Recording:
         self.path = Path(path)
         if self.path.suffix != ".rrd":
             raise ValueError(f"path: expected a .rrd file name, got {self.path.name!r}")
-        self.enabled = recording_enabled() and (enabled is None or bool(enabled))
+        # `enabled` first: a Recording told not to record does not read RERUN
+        self.enabled = (enabled is None or bool(enabled)) and recording_enabled()
         self._rec = None
         self._styled: set[str] = set()
         if not self.enabled:

@@ -104,7 +104,7 @@ def test_rejects_bad_options(tmp_path, run):
 
 
 def test_a_horizon_no_held_out_episode_reaches_is_recorded_as_no_windows(
-    run, tmp_path, monkeypatch
+    run, tmp_path, monkeypatch, capsys
 ):
     """When every held-out episode ends (at the goal) within k steps there are no
     k-step windows: no error (the 99th percentile of nothing raised after all
@@ -128,6 +128,15 @@ def test_a_horizon_no_held_out_episode_reaches_is_recorded_as_no_windows(
     for stat in ("rmse", "p99"):
         assert np.isnan(np.array(data[stat]["identified"][str(k_long)], float)).all()
         assert np.isfinite(data[stat]["identified"]["1"]).all()
+    # the printed table says so (its means were over settings without windows)
+    acrobot_horizon.cli([
+        str(run[0]), "--horizons", "1", str(k_long), "--identify", "30",
+        "--evaluate", "40", "--out", str(out), "--no-progress",
+    ])  # fmt: skip
+    printed = capsys.readouterr().out
+    n = len(TINY.test_masses)
+    assert printed.count(f"(k = {k_long}: windows on 0 of {n} settings)") == 2
+    assert "(k = 1:" not in printed
 
 
 def test_out_writes_the_named_file_and_leaves_the_default_alone(run, tmp_path):

@@ -277,6 +277,10 @@ def test_a_model_and_batch_of_different_runs_are_refused_naming_both_files(
 def test_rejects_a_folder_that_is_not_a_run_and_unknown_variants(tmp_path, run):
     with pytest.raises(FileNotFoundError, match="has no config.json"):
         acrobot_identified.main(tmp_path)
+    file = tmp_path / "file"  # named as no run, not as an --out it was not given
+    file.write_text("")
+    with pytest.raises(FileNotFoundError, match="file has no config.json"):
+        acrobot_identified.main(file)
     with pytest.raises(ValueError, match="variants: expected some of"):
         acrobot_identified.main(run[0], variants=("oracle",))
     # a repeated variant ran its trials twice and counted them as twice the trials

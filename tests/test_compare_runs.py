@@ -305,6 +305,14 @@ def test_a_damaged_array_is_named_unreadable(tmp_path):
     unreadable = result.arrays["trials.npz:returns"]["unreadable"]
     assert unreadable.startswith(f"{b / 'trials.npz'}: array 'returns' cannot be read")
     assert result.arrays["trials.npz:methods"] == "identical"
+    # the methods array too (it is read first, to line up the rows)
+    (b / "trials.npz").write_bytes(
+        flipped(good, member_data(good, "methods.npy").stop - 2)
+    )
+    result = main(a, b)
+    unreadable = result.arrays["trials.npz:methods"]["unreadable"]
+    assert unreadable.startswith(f"{b / 'trials.npz'}: array 'methods' cannot be read")
+    assert result.arrays["trials.npz:returns"] == "identical"
 
 
 def test_compare_arrays_nan_shapes_dtypes_and_strings():

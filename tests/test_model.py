@@ -181,9 +181,10 @@ def test_a_model_file_with_a_changed_byte_is_refused_naming_it(fitted, tmp_path)
 
     path = fitted.save(tmp_path / "model.npz")
     good = path.read_bytes()
-    path.write_bytes(flipped(good, member_data(good, "f.npy").stop - 3))
-    with pytest.raises(ValueError, match=f"{path}: array 'f' cannot be read"):
-        load(path)
+    for array in ("f", "meta_json"):  # meta_json's was "not valid JSON"
+        path.write_bytes(flipped(good, member_data(good, f"{array}.npy").stop - 3))
+        with pytest.raises(ValueError, match=f"{path}: array '{array}' cannot be read"):
+            load(path)
 
 
 def test_the_filter_weights_setting_is_fitted_saved_and_loaded(fitted, tmp_path):

@@ -66,6 +66,8 @@ def test_an_unknown_rerun_value_is_refused(monkeypatch, capsys, value):
     monkeypatch.setenv("RERUN", value)
     with pytest.raises(ValueError, match=f"^RERUN: expected on or off.*'{value}'"):
         recording_enabled()
+    # a Recording told not to record does not read it
+    assert not Recording("r.rrd", application_id="t", enabled=False).enabled
     for on in ("on", "1", "TRUE", "yes", ""):
         monkeypatch.setenv("RERUN", on)
         assert recording_enabled()
