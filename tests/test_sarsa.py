@@ -13,6 +13,7 @@ from hipmdp.sarsa import (
     epsilon_greedy,
     epsilon_greedy_batch,
     init_state,
+    q_values,
     reset_traces,
     sarsa_update,
     sarsa_update_batch,
@@ -324,6 +325,8 @@ def test_update_refuses_inputs_that_do_not_match_the_weights() -> None:
          r"state.traces: expected shape \(A, F\) = \(3, 2\), got \(1, 3, 2\)"),
         ({"state": SarsaState(np.zeros(2), np.zeros(2))},
          r"state.weights: expected shape \(A, F\), got \(2,\)"),
+        ({"state": SarsaState(np.zeros((1, 3, 2)), np.zeros((1, 3, 2)))},
+         r"state.weights: expected shape \(A, F\), got \(1, 3, 2\)"),
         ({"phi": np.ones(3)}, r"phi: expected shape \(F,\) = \(2,\), got \(3,\)"),
         ({"phi_next": np.ones((1, 2))}, r"phi_next: expected shape \(F,\)"),
         ({"step_sizes": np.ones(3)}, r"step_sizes: expected shape \(F,\)"),
@@ -360,6 +363,11 @@ def test_batch_update_refuses_arrays_that_do_not_match_n_episodes() -> None:
          r"rewards: expected shape \(N,\) = \(2,\), got \(1,\)"),
         (good, {"state": SarsaState(state.weights, state.traces[0])},
          r"state.traces: expected shape \(N >= 1, A, F\) with \(A, F\) = \(3, 2\)"),
+        (good, {"state": reset_traces(state, 1)._replace(traces=np.zeros((0, 3, 2))),
+                "phi": two[:0], "actions": np.array([], int), "rewards": np.zeros(0),
+                "phi_next": two[:0], "actions_next": np.array([], int),
+                "terminal": np.zeros(0, bool), "active": np.ones(0, bool)},
+         r"state.traces: expected shape \(N >= 1, A, F\)"),
         (good, {"phi": two[:1]}, r"phi: expected shape \(N, F\) = \(2, 2\)"),
         (good, {"phi_next": two[:, :1]}, r"phi_next: expected shape \(N, F\)"),
         (good, {"actions": np.array([0, 1, 2])}, r"actions: expected shape \(N,\)"),
@@ -375,3 +383,85 @@ def test_batch_update_refuses_arrays_that_do_not_match_n_episodes() -> None:
     ]:  # fmt: skip
         with pytest.raises(ValueError, match=match):
             sarsa_update_batch(**(base | change))
+
+
+def test_q_values_are_theta_times_phi() -> None:
+    """Q(s, a) = θ_a · φ(s), for one state and for a batch (A = F would hide a
+    transposed θ from the shapes)."""
+    rng = np.random.default_rng(7)
+    weights = rng.normal(size=(3, 3))
+    phi = rng.normal(size=(4, 3))
+    expected = [[weights[a] @ p for a in range(3)] for p in phi]
+    np.testing.assert_allclose(q_values(weights, phi), expected, atol=1e-12)
+    np.testing.assert_allclose(q_values(weights, phi[0]), expected[0], atol=1e-12)
+
+
+def test_replacing_trace_takes_phi_only_where_it_is_larger_in_magnitude() -> None:
+    """With γλ = 1 the taken action's trace row e = (0.5, −0.8, 0.2, −0.3) and
+    φ = (−0.9, 0.3, 0.1, 0.3) give (−0.9, −0.8, 0.2, −0.3): a negative φ_0 larger
+    in magnitude replaces, a smaller positive φ_1 above a negative e_1 does not, and
+    a tie keeps e; single and (general-path) batch updates agree."""
+    config = SarsaConfig(alpha=0.1, lam=1.0, gamma=1.0, traces="replacing")
+    row = np.array([0.5, -0.8, 0.2, -0.3])
+    phi = np.array([-0.9, 0.3, 0.1, 0.3])
+    expected = np.array([-0.9, -0.8, 0.2, -0.3])
+    traces = np.stack([row, np.zeros(4)])
+    alphas = np.full(4, 0.1)
+    one = sarsa_update(SarsaState(np.zeros((2, 4)), traces), phi, 0, 0.0, None,
+                       None, alphas, config)  # fmt: skip
+    np.testing.assert_array_equal(one.state.traces[0], expected)
+    n = 2
+    many = sarsa_update_batch(
+        SarsaState(np.zeros((2, 4)), np.tile(traces, (n, 1, 1))),
+        np.tile(phi, (n, 1)), np.zeros(n, dtype=int), np.zeros(n), np.tile(phi, (n, 1)),
+        np.zeros(n, dtype=int), np.ones(n, dtype=bool), np.ones(n, dtype=bool),
+        alphas, config,
+    )  # fmt: skip
+    for j in range(n):
+        np.testing.assert_array_equal(many.state.traces[j], one.state.traces)
+
+
+def test_an_inactive_terminal_episode_leaves_theta_alone() -> None:
+    """An inactive episode's δ is 0 whatever its terminal flag: the batch step is
+    the active episode's single update (n_active = 1)."""
+    rng = np.random.default_rng(8)
+    config = SarsaConfig(alpha=0.05, lam=0.9, gamma=0.95)
+    weights = rng.normal(size=(2, 4))
+    traces = rng.uniform(-1, 1, size=(2, 2, 4))
+    phi, phi2 = rng.uniform(-1, 1, size=(2, 2, 4))
+    alphas = np.full(4, config.alpha)
+    out = sarsa_update_batch(
+        SarsaState(weights, traces.copy()), phi, np.array([0, 1]),
+        np.array([0.5, 2.0]), phi2, np.array([1, 0]), np.array([False, True]),
+        np.array([True, False]), alphas, config,
+    )  # fmt: skip
+    one = sarsa_update(SarsaState(weights, traces[0].copy()), phi[0], 0, 0.5,
+                       phi2[0], 1, alphas, config)  # fmt: skip
+    np.testing.assert_allclose(out.state.weights, one.state.weights, atol=1e-12)
+    np.testing.assert_array_equal(out.td_error[1], 0.0)
+    np.testing.assert_array_equal(out.state.traces[1], traces[1])
+
+
+def test_closed_ends_of_the_valid_ranges_are_accepted() -> None:
+    """α = 1 and ε = 1 are valid (the table's (0, 1] and [0, 1]); a zero step size
+    freezes its feature's weight."""
+    assert SarsaConfig(alpha=1.0, epsilon=1.0).alpha == 1.0
+    rng = np.random.default_rng(9)
+    picks = epsilon_greedy_batch(np.tile([0.0, 5.0], (4000, 1)), 1.0, rng=rng)
+    # ε = 1: uniform over 2 actions, sd of the count sqrt(4000/4) ≈ 32, ±4 sd = 126
+    assert abs(np.sum(picks == 1) - 2000) < 126
+    assert epsilon_greedy(np.array([0.0, 5.0]), 1.0, rng=rng) in (0, 1)
+    state = init_state(2, 3)
+    phi = np.array([1.0, 0.5, -0.5])
+    out = sarsa_update(state, phi, 0, -1.0, None, None, np.array([0.1, 0.0, 0.1]),
+                       SarsaConfig())  # fmt: skip
+    assert out.state.weights[0, 1] == 0.0
+    np.testing.assert_allclose(out.state.weights[0, [0, 2]], [-0.1, 0.05], atol=1e-15)
+
+
+def test_batch_ties_are_broken_only_among_maximal_actions() -> None:
+    """Values closer than 1 apart: the random tie-break key must not move the
+    argmax to a smaller value."""
+    rng = np.random.default_rng(10)
+    q = np.tile([0.0, 0.1, 0.05], (1000, 1))
+    np.testing.assert_array_equal(epsilon_greedy_batch(q, 0.0, rng=rng), 1)
