@@ -64,6 +64,13 @@ def test_step_scale_is_inverse_coefficient_norm() -> None:
         ({"order": 2, "low": [0.0, 0.0], "high": [1.0]}, "low, high"),
         ({"order": 2, "low": [1.0], "high": [1.0]}, "high"),
         ({"order": 2, "low": [np.nan], "high": [1.0]}, "low, high"),
+        # an infinite high gave 1 / (high - low) = 0: every x = 0, φ constant
+        ({"order": 2, "low": [0.0], "high": [np.inf]}, "low, high: expected finite"),
+        # one bad dimension among good ones
+        ({"order": 2, "low": [0.0, 1.0], "high": [1.0, 1.0]}, "high: expected high >"),
+        # 2-D bounds were taken with D = their size; no dimensions gave F = 1
+        ({"order": 2, "low": [[0.0, 0.0]], "high": [[1.0, 1.0]]}, "low, high: exp"),
+        ({"order": 2, "low": [], "high": []}, "low, high: expected two 1-D arrays"),
     ],
 )
 def test_bad_input_raises_naming_the_field(kwargs: dict, field: str) -> None:
@@ -75,6 +82,9 @@ def test_wrong_state_shape_raises() -> None:
     basis = FourierBasis(1, np.zeros(2), np.ones(2))
     with pytest.raises(ValueError, match="states"):
         basis(np.zeros(3))
+    # a 3-D batch gave 3-D features
+    with pytest.raises(ValueError, match=r"states: expected shape \(2,\) or \(N, 2\)"):
+        basis(np.zeros((1, 1, 2)))
 
 
 def test_non_finite_states_raise() -> None:
@@ -85,6 +95,9 @@ def test_non_finite_states_raise() -> None:
             ValueError, match=r"states: non-finite value at index \(1, 0\)"
         ):
             basis(np.array([[0.5, 0.5], [bad, 0.5]]))
+    # the first non-finite value is named
+    with pytest.raises(ValueError, match=r"index \(0, 1\)"):
+        basis(np.array([[0.5, np.nan], [np.inf, 0.5]]))
 
 
 @pytest.mark.parametrize(
@@ -95,3 +108,24 @@ def test_feature_count_guard_holds_for_numpy_integer_orders(order, dim) -> None:
     passed the 1e6 guard and then ran out of memory building the coefficients."""
     with pytest.raises(ValueError, match=r"order: \(order \+ 1\)\^D = \d+ features"):
         FourierBasis(order, np.zeros(dim), np.ones(dim))
+
+
+def test_feature_count_guard_is_at_one_million() -> None:
+    """(order + 1)^D = 10^6 features is allowed, 1001^2 and 2^21 are not."""
+    assert FourierBasis(999, np.zeros(2), np.ones(2)).n_features == 1_000_000
+    for order, dim in [(1000, 2), (1, 21)]:
+        with pytest.raises(ValueError, match=r"order: \(order \+ 1\)\^D = \d+"):
+            FourierBasis(order, np.zeros(dim), np.ones(dim))
+
+
+def test_the_basis_owns_read_only_arrays() -> None:
+    """The bounds are copied (the caller's arrays stay writable and changing them
+    does not move the basis) and the basis's arrays cannot be changed in place."""
+    low, high = np.zeros(2), np.ones(2)
+    basis = FourierBasis(2, low, high)
+    low[:] = 0.5
+    np.testing.assert_array_equal(basis.low, 0.0)
+    np.testing.assert_array_equal(basis.normalise(np.array([0.25, 0.5])), [0.25, 0.5])
+    for name in ("low", "high", "coefficients", "step_scale"):
+        with pytest.raises(ValueError, match="read-only"):
+            getattr(basis, name)[0] = 7
