@@ -3,6 +3,10 @@ reproducible bytes; a run loads by instance reading only the shards it needs."""
 
 from __future__ import annotations
 
+import json
+import os
+import shutil
+
 import numpy as np
 import pytest
 
@@ -108,14 +112,22 @@ def test_temporaries_are_removed_and_foreign_manifests_refused(tmp_path):
     (tmp_path / "manifest.json").write_text('{"format": "something else"}')
     with pytest.raises(ValueError, match="not a hipmdp-shards/1 manifest"):
         shards.Dataset(tmp_path)
+    # shards missing or not listed by index (a line of the log would finish the
+    # wrong shard)
+    for listed in ("", ', "shards": [{"index": 1}, {"index": 0}]'):
+        (tmp_path / "manifest.json").write_text(
+            '{"format": "hipmdp-shards/1"' + listed + "}"
+        )
+        with pytest.raises(ValueError, match="expected shards listed by index 0, 1"):
+            shards.Dataset(tmp_path)
+    (tmp_path / "notes.txt").write_text("")
+    with pytest.raises(ValueError, match="expected a run folder or its manifest.json"):
+        shards.Dataset(tmp_path / "notes.txt")
 
 
 def unfinished_copy(run, to):
     """Copy the finished run ``run`` to ``to`` with the manifest its start wrote
     (nothing finished, nothing logged); returns the finished run's manifest."""
-    import json
-    import shutil
-
     whole = shards.read_manifest(run)
     shutil.copytree(run, to)
     blank = json.loads(json.dumps(whole))
@@ -145,6 +157,7 @@ def test_progress_lines_finish_shards_of_an_unfinished_run(run, tmp_path):
     shards.append_progress(part, whole["shards"][2])
     for beyond in (99, len(whole["shards"]), -1):  # -1: refused, not the last
         shards.append_progress(part, {**whole["shards"][2], "index": beyond})
+    assert -1 not in shards.read_progress(part)  # not applied to the last shard
     assert len(shards.read_manifest(part)["shards"]) == len(whole["shards"])
     dataset = shards.Dataset(part)
     assert not dataset.complete
@@ -180,6 +193,74 @@ def test_a_reader_racing_the_final_manifest_reads_it_again(run, tmp_path, monkey
 
     monkeypatch.setattr(shards, "read_progress", the_run_completes_meanwhile)
     assert shards.read_manifest(part) == whole and len(calls) == 2
+
+
+@pytest.mark.parametrize("how", ["replaced, same mtime", "rewritten in place"])
+def test_a_manifest_changed_under_a_reader_is_read_again(
+    run, tmp_path, monkeypatch, how
+):
+    """The reader notices a replaced manifest by its inode even where the clock
+    is coarse (same mtime), and one rewritten in place (same inode) by its
+    mtime."""
+    part = tmp_path / "part"
+    whole = unfinished_copy(run, part)
+    path = part / shards.MANIFEST
+    read, calls = shards.read_progress, []
+
+    def the_manifest_changes_meanwhile(directory):
+        calls.append(directory)
+        if len(calls) == 1:
+            st = path.stat()
+            if how == "rewritten in place":
+                path.write_text(json.dumps(whole))
+                os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+            else:
+                shards.write_manifest(part, whole)
+                os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
+        return read(directory)
+
+    monkeypatch.setattr(shards, "read_progress", the_manifest_changes_meanwhile)
+    assert shards.read_manifest(part) == whole and len(calls) == 2
+
+
+def test_progress_lines_hold_every_field_and_malformed_ones_are_skipped(tmp_path):
+    """A line is one record with all of PROGRESS_FIELDS (diverged episodes too),
+    one per line; records without every field or with an index that is not a
+    non-negative integer are skipped, not fatal."""
+    entry = {"index": 0, "file": "shard-00000.npz", "sha256": "ab",
+             "counts": {"episodes": 2, "transitions": 9, "diverged_episodes": 1},
+             "diverged": [[3, 1]]}  # fmt: skip
+    shards.append_progress(tmp_path, entry)
+    shards.append_progress(tmp_path, {**entry, "index": 1})
+    lines = (tmp_path / shards.PROGRESS).read_bytes().split(b"\n")
+    assert lines[2:] == [b""] and all(json.loads(line) for line in lines[:2])
+    progress = shards.read_progress(tmp_path)
+    assert progress[0] == {k: entry[k] for k in shards.PROGRESS_FIELDS}
+    with open(tmp_path / shards.PROGRESS, "a") as fh:
+        for record in ({"index": 2, "sha256": "cd"}, {**progress[0], "index": 3.0},
+                       {**progress[0], "index": "4"}):  # fmt: skip
+            fh.write(json.dumps(record) + "\n")
+    assert sorted(shards.read_progress(tmp_path)) == [0, 1]
+
+
+def test_config_differences_name_keys_on_either_side():
+    old, new = {"seed": 0, "gone": 1}, {"seed": 1, "added": 2}
+    assert shards.config_differences(old, new) == [
+        "added: None -> 2",
+        "gone: 1 -> None",
+        "seed: 0 -> 1",
+    ]
+    assert shards.config_differences(old, dict(old)) == []
+
+
+def test_verify_checks_every_shard(run, tmp_path):
+    copy = tmp_path / "copy"
+    shutil.copytree(run, copy)
+    shards.Dataset(copy).verify()
+    last = copy / shards.shard_name(2)
+    last.write_bytes(last.read_bytes()[:-1])
+    with pytest.raises(ValueError, match="shard-00002.npz does not match its checksum"):
+        shards.Dataset(copy).verify()
 
 
 def test_transitions_load_reads_a_run_directory_or_its_manifest(run):
