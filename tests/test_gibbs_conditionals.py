@@ -157,3 +157,27 @@ def test_normal_logpdf_matches_scipy():
 
     x = np.array([0.3, -1.2, 2.0])
     assert abs(normal_logpdf(x, 0.5, 2.0) - norm.logpdf(x, 0.5, 2**0.5).sum()) < 1e-12
+
+
+def test_weight_log_prior_is_the_sum_of_normal_log_densities():
+    """Σ_{k≥1} [Σ_b log N(w[k,b]; μ_w[k], σ_w²) + log N(μ_w[k]; 0, σ_w0²)], against
+    scipy; feature 0 (w = 1, μ_w = 0 unused) is not part of it."""
+    from scipy.stats import norm
+
+    rng = np.random.default_rng(5)
+    w = np.vstack([np.ones(4), rng.normal(size=(2, 4))])
+    mu_w = np.array([0.0, 0.4, -1.1])
+    priors = GibbsPriors(alpha=1.0, sigma_w=1.3, sigma_w0=0.6, n_w=5)
+    want = norm.logpdf(w[1:], mu_w[1:, None], 1.3).sum()
+    want += norm.logpdf(mu_w[1:], 0.0, 0.6).sum()
+    assert abs(weight_log_prior(w, mu_w, priors) - want) < 1e-12 * abs(want)
+    # feature 0's values do not enter
+    w[0], mu_w[0] = 7.0, 3.0
+    assert abs(weight_log_prior(w, mu_w, priors) - want) < 1e-12 * abs(want)
+
+
+def test_ibp_log_prior_refuses_a_feature_no_row_uses():
+    """Such a feature has no left-ordered class (log (m_k − 1)! of m_k = 0)."""
+    z = np.array([[1, 1], [1, 0], [0, 0]], dtype=bool)
+    with pytest.raises(ValueError, match="z has a feature used by no row"):
+        ibp_log_prior(z, 1.0)

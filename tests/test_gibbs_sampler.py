@@ -30,6 +30,7 @@ from hipmdp import gibbs_eigen as fast
 from hipmdp.gibbs import (
     GibbsData,
     GibbsPriors,
+    GibbsState,
     gibbs_sweep,
     init_state,
     log_joint,
@@ -37,7 +38,13 @@ from hipmdp.gibbs import (
     prepare,
     run_chains,
 )
-from hipmdp.gibbs_model import draw_new_weights, harmonic, sample_mu_w
+from hipmdp.gibbs_model import (
+    check_data,
+    check_state,
+    draw_new_weights,
+    harmonic,
+    sample_mu_w,
+)
 from hipmdp.gibbs_sweep import (
     logsumexp,
     new_feature_step,
@@ -391,7 +398,8 @@ def test_bad_data_raises(field, bad):
 @pytest.mark.parametrize(
     ("field", "bad"),
     [("alpha", 0.0), ("alpha", -1.0), ("sigma_w", -1.0), ("n_w", 0), ("n_w", 5.0),
-     ("alpha", True), ("sigma_w0", "1")],  # True ran as α = 1; "1" a TypeError
+     ("alpha", True), ("sigma_w0", "1"),  # True ran as α = 1; "1" a TypeError
+     ("alpha", np.inf), ("sigma_w0", np.inf)],
 )  # fmt: skip
 def test_bad_priors_raise(field, bad):
     """In every entry point: log_joint and log_marginal returned NaN or -inf for
@@ -409,6 +417,51 @@ def test_bad_priors_raise(field, bad):
     ):  # fmt: skip
         with pytest.raises(ValueError, match=f"GibbsPriors.{field}"):
             call()
+
+
+def test_check_data_names_what_is_wrong():
+    """R = 2 rows, B = 3, m = 4: each bad input alone, with a specific message (a
+    4-D Y failed unpacking its shape; zero rows or support points, noise of shape
+    (R, 1), σ² = 0, an infinite or asymmetric K passed)."""
+    Y, K, noise = np.zeros((2, 3, 4)), np.tile(np.eye(4), (2, 1, 1)), np.ones(2)
+    good = GibbsData(Y, K, noise)
+    check_data(good)
+    K_inf, K_asym = K.copy(), K.copy()
+    K_inf[0, 0, 0], K_asym[1, 0, 1] = np.inf, 0.5
+    for change, match in [
+        ({"Y": Y[..., None]}, r"GibbsData.Y: expected shape \(R, B, m\)"),
+        ({"Y": Y[:, :, :0], "K": K[:, :0, :0]}, "need R >= 1 rows and m >= 1"),
+        ({"Y": Y[:0], "K": K[:0], "noise": noise[:0]}, "need R >= 1 rows"),
+        ({"noise": noise[:, None]}, r"GibbsData.noise: expected shape \(2,\)"),
+        ({"K": K_inf}, "GibbsData.K: contains non-finite values"),
+        ({"noise": np.array([1.0, 0.0])}, r"every σ²\[r\] must be > 0"),
+        ({"K": K_asym}, r"GibbsData.K: every K\[r\] must be symmetric"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            check_data(good._replace(**change))
+
+
+def test_check_state_refuses_states_off_the_model():
+    """Feature 0 is the mean dynamics: z[0] on everywhere and w[0] = 1; z is bool
+    (0/1 integers index rows instead of masking them); at least feature 0."""
+    z = np.array([[True, True], [True, False]])
+    state = GibbsState(z, np.array([[1.0] * 3, [0.5] * 3]), np.zeros((2, 2, 4)),
+                       np.array([0.0, 0.1]))  # fmt: skip
+    check_state(state, 2, 3, 4)
+    assert state.n_features == 1
+    z_off = z.copy()
+    z_off[0, 1] = False
+    w_bad = state.w.copy()
+    w_bad[0, 2] = 2.0
+    for change, match in [
+        ({"z": z[:0], "w": state.w[:0], "f": state.f[:0], "mu_w": state.mu_w[:0]},
+         r"GibbsState.z: expected shape"),
+        ({"z": z_off}, r"GibbsState.z: must be bool with z\[0\] all True"),
+        ({"z": z.astype(int)}, "GibbsState.z: must be bool"),
+        ({"w": w_bad}, r"GibbsState.w: w\[0\] must be all ones"),
+    ]:  # fmt: skip
+        with pytest.raises(ValueError, match=match):
+            check_state(dataclasses.replace(state, **change), 2, 3, 4)
 
 
 @pytest.mark.parametrize("field", ["w", "f", "mu_w"])
