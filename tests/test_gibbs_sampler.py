@@ -25,6 +25,7 @@ from scipy import linalg
 from scipy.special import expit
 from scipy.stats import poisson
 
+from hipmdp import gibbs as gibbs_mod
 from hipmdp import gibbs_dense as dense
 from hipmdp import gibbs_eigen as fast
 from hipmdp.gibbs import (
@@ -358,6 +359,7 @@ def test_init_state_is_consistent():
     priors = GibbsPriors(alpha=2.0, sigma_w=1.0, sigma_w0=1.0, n_w=5)
     st = init_state(data, priors, rng=np.random.default_rng(0))
     assert st.z.shape == (1, 3) and st.z.all() and np.all(st.w == 1.0)
+    np.testing.assert_array_equal(st.mu_w, [0.0])  # μ_w[0] is stored as 0
     # f[0] | Y is each row's GP posterior of the instance-average: its draws must
     # be the dense posterior's (one draw's distance from the mean could not tell a
     # start that ignores Y, f = 0, from a right one: the mean is ~1 sd from 0)
@@ -412,6 +414,8 @@ def test_bad_priors_raise(field, bad):
         lambda: init_state(data, bad_priors, rng=np.random.default_rng(0)),
         lambda: log_joint(state, data, bad_priors),
         lambda: log_marginal(state, data, bad_priors),
+        lambda: gibbs_sweep(state, data, bad_priors, prepare(data),
+                            rng=np.random.default_rng(0)),
         lambda: run_chains(data, bad_priors, n_sweeps=2, n_chains=1,
                            rng=np.random.default_rng(0), progress=False),
     ):  # fmt: skip
@@ -485,6 +489,7 @@ def test_a_state_with_non_finite_values_is_refused(field):
     for call in (
         lambda: gibbs_sweep(bad, data, priors, cache, rng=np.random.default_rng(0)),
         lambda: log_joint(bad, data, priors),
+        lambda: log_marginal(bad, data, priors),
     ):
         with pytest.raises(ValueError, match=f"GibbsState.{field}: expected finite"):
             call()
@@ -499,6 +504,10 @@ def test_a_sweep_refuses_a_cache_of_other_data():
     others = (
         data._replace(noise=2 * data.noise),
         small_problem(12, B=3)[0],
+        data._replace(Y=data.Y[:, :3]),  # the same σ², one instance fewer
+        # a change in one entry far below the data's scale, and in K's diagonal
+        data._replace(Y=data.Y + 1e-6 * np.abs(data.Y).max() * (np.arange(5) == 2)),
+        data._replace(K=data.K + 1e-4 * np.eye(5)),
         data._replace(Y=2 * data.Y),  # log_joint scored the original Y
         data._replace(K=2 * data.K),
     )
@@ -514,8 +523,11 @@ def test_a_sweep_refuses_a_cache_of_other_data():
         for call in calls:
             with pytest.raises(ValueError, match="cache: prepared from other data"):
                 call(other)
-    # the cache of these very data passes, the round trip's round-off included
+    # the cache of these very data passes, the round trip's round-off included,
+    # also for data far from unit scale (the tolerance is relative to max |Y|)
     assert log_joint(state, data, priors, cache) == log_joint(state, data, priors)
+    big = data._replace(Y=1e9 * data.Y)
+    init_state(big, priors, rng=np.random.default_rng(0), cache=prepare(big))
 
 
 @pytest.mark.parametrize(
@@ -545,6 +557,8 @@ def test_a_rng_that_is_not_a_generator_is_refused_first(call):
         ({"anneal": 1.0}, "anneal"),
         ({"anneal": 5}, "anneal"),
         ({"select": "mean"}, "select"),
+        ({"anneal": -1}, "anneal"),  # ran as anneal = 0
+        ({"n_chains": 0}, "n_chains"),  # failed unpacking no best sample
     ],
 )
 def test_bad_run_chains_arguments_raise(kwargs, field):
@@ -697,3 +711,57 @@ def test_weight_draw_survives_a_covariance_round_off_left_indefinite(monkeypatch
     monkeypatch.setattr(fast, "w_posterior", lambda *args: (mean, np.diag([1.0, -0.5])))
     with pytest.raises(np.linalg.LinAlgError):
         alg.w_draw(None, None, None, 1.0, rng=rng)
+
+
+def test_annealing_follows_its_schedule_and_traces_are_the_true_log_joint(monkeypatch):
+    """Sweep s < anneal runs with σ²[r]·T0[r]^((anneal − s)/anneal), T0[r] =
+    max(1, mean(Y[r]²)/σ²[r]) (row 0's data are scaled below its noise: T0 = 1),
+    the later sweeps with σ²; each trace is log_joint of the sweep's sample under
+    the model's σ², annealing or not; the default anneal is n_sweeps // 4."""
+    data, _ = small_problem(14)
+    data = data._replace(Y=data.Y * np.array([0.1, 3.0, 1.0])[:, None, None])
+    priors = GibbsPriors(alpha=1.0, sigma_w=1.0, sigma_w0=1.0, n_w=5)
+    n_sweeps, anneal = 6, 4
+    T0 = np.maximum(1.0, np.mean(data.Y**2, axis=(1, 2)) / data.noise)
+    assert T0[0] == 1.0 and T0[1] > 1.0  # both branches of the max
+    seen, sweep = [], gibbs_mod.sweep
+
+    def recorded(alg, *args, **kwargs):
+        out = sweep(alg, *args, **kwargs)
+        seen.append((alg.noise.copy(), out))
+        return out
+
+    monkeypatch.setattr(gibbs_mod, "sweep", recorded)
+    res = run_chains(data, priors, n_sweeps=n_sweeps, n_chains=1, anneal=anneal,
+                     rng=np.random.default_rng(3), progress=False)  # fmt: skip
+    cache = prepare(data)
+    for s, (noise, (z, w, ft, mu_w)) in enumerate(seen):
+        T = T0 ** ((anneal - s) / anneal) if s < anneal else np.ones(3)
+        np.testing.assert_allclose(noise, data.noise * T, rtol=1e-12)
+        state = GibbsState(z, w, fast.from_eigen(ft, cache), mu_w)
+        want = log_joint(state, data, priors)
+        assert abs(res.traces[0, s] - want) < 1e-8 * abs(want)
+    # the default is n_sweeps // 4: the same run as that anneal given explicitly
+    default, explicit = (
+        run_chains(data, priors, n_sweeps=8, n_chains=1, rng=np.random.default_rng(5),
+                   progress=False, **kwargs)
+        for kwargs in ({}, {"anneal": 2})
+    )  # fmt: skip
+    np.testing.assert_array_equal(default.traces, explicit.traces)
+    assert default.best_sweep == explicit.best_sweep
+
+
+def test_each_chain_runs_on_its_own_spawned_stream():
+    """Chain c starts with init_state and sweeps with rng.spawn(n_chains)[c] alone:
+    chain 1 is reproduced by gibbs_sweep from that stream (no annealing)."""
+    data, _ = small_problem(15)
+    priors = GibbsPriors(alpha=1.0, sigma_w=1.0, sigma_w0=1.0, n_w=5)
+    res = run_chains(data, priors, n_sweeps=3, n_chains=2, anneal=0,
+                     rng=np.random.default_rng(6), progress=False)  # fmt: skip
+    stream = np.random.default_rng(6).spawn(2)[1]
+    cache = prepare(data)
+    state = init_state(data, priors, rng=stream, cache=cache)
+    for s in range(3):
+        state = gibbs_sweep(state, data, priors, cache, rng=stream)
+        want = log_joint(state, data, priors, cache)
+        assert abs(res.traces[1, s] - want) < 1e-8 * abs(want)
