@@ -292,11 +292,27 @@ def test_atomic_folder_refuses_a_folder_with_files_before_writing(tmp_path):
         (dict(names=("a",), values=[[1.0, 2.0]]), "values: expected shape"),
         (dict(names=("a",), values=[[np.nan]]), "values: non-finite"),
         (dict(names="ab", values=[[1.0, 2.0]]), "names: expected a sequence of names"),
+        (dict(names=("a", ""), values=[[1.0, 2.0]]), "names: expected non-empty"),
+        (dict(instances=[3, 3], names=("a",), values=[[1.0], [2.0]]),
+         "instances: ids must be unique"),
     ],
-)
+)  # fmt: skip
 def test_parameter_table_bad_input(kw, match):
     with pytest.raises(ValueError, match=match):
-        ParameterTable(instances=[0], **kw)
+        ParameterTable(**({"instances": [0]} | kw))
+
+
+def test_parameter_table_rows_and_columns():
+    table = ParameterTable([7, 2, 5], ("mass", "length"), [[1.0, 10.0], [2.0, 20.0],
+                                                           [3.0, 30.0]])  # fmt: skip
+    assert table.row(5) == {"mass": 3.0, "length": 30.0}
+    np.testing.assert_array_equal(table.column("length"), [10.0, 20.0, 30.0])
+    with pytest.raises(KeyError, match="instance 4 is not in the parameter table"):
+        table.row(4)
+    with pytest.raises(KeyError, match="parameter 'width' is not in"):
+        table.column("width")
+    with pytest.raises(ValueError, match="table: expected ParameterTable"):
+        make().arrays({"instances": [0, 1, 2, 3]})
 
 
 def test_load_rejects_other_files(tmp_path):
@@ -623,3 +639,34 @@ def test_real_numbers_are_ints_floats_and_0d_arrays_not_bools():
     step = sarsa_update(state, np.ones(3), 0, np.array(-1.0), None, None,
                         np.full(3, 0.1), SarsaConfig())  # fmt: skip
     assert step.td_error == -1.0
+
+
+def test_save_makes_missing_folders_and_stores_plain_members(tmp_path):
+    """The archive's members are stored uncompressed, with the fixed date and
+    mode 0644 (what makes the bytes reproducible and readable anywhere)."""
+    import zipfile
+
+    from hipmdp.data import ZIP_DATE
+
+    path = make().save(tmp_path / "new" / "sub" / "d.npz")
+    with zipfile.ZipFile(path) as archive:
+        for info in archive.infolist():
+            assert info.compress_type == zipfile.ZIP_STORED
+            assert info.date_time == ZIP_DATE
+            assert info.external_attr >> 16 == 0o644
+
+
+def test_temporaries_are_matched_by_the_whole_file_name(tmp_path):
+    """Only ``.<name>.<random>.tmp`` of that very name: not a temporary of
+    ``d.npzz``, nor a file named like atomic_folder's temporary folder."""
+    from hipmdp.data import atomic_folder, atomic_temporaries
+
+    for name in (".d.npz.ab12.tmp", ".d.npzz.ab12.tmp"):
+        (tmp_path / name).write_bytes(b"")
+    assert [p.name for p in atomic_temporaries(tmp_path, "d.npz")] == [
+        ".d.npz.ab12.tmp"
+    ]
+    (tmp_path / ".out.abcd1234.tmp").write_bytes(b"not a folder")
+    with atomic_folder(tmp_path / "out") as tmp:
+        (tmp / "x").write_bytes(b"x")
+    assert (tmp_path / ".out.abcd1234.tmp").read_bytes() == b"not a folder"
