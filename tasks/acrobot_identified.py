@@ -305,12 +305,10 @@ def _check_run_config(config: dict[str, Any]) -> None:
     check_integer("seed", config["seed"], 0)
     check_integer("average_n_max", config["average_n_max"], 1)
     check_integer("n_trials", config["n_trials"], 1)
-    fit = with_added_fields(config)["fit"]
-    for name, kind in (
-        ("fit", hipmdp.fitting.FitConfig),
-        ("transfer", transfer.TransferConfig),
+    for name, value, kind in (
+        ("fit", with_added_fields(config)["fit"], hipmdp.fitting.FitConfig),
+        ("transfer", config["transfer"], transfer.TransferConfig),
     ):
-        value = fit if name == "fit" else config[name]
         if not isinstance(value, dict):
             raise ValueError(
                 f"{name}: expected an object of {kind.__name__} fields, got {value!r}"
@@ -362,18 +360,17 @@ def check_model_data(hip, batch: hipmdp.Transitions, model_file, batch_file) -> 
             f"{len(batch)}{advice}"
         )
     recorded = hip.info.get("data_sha256")
-    if recorded is not None and recorded != batch.sha256():
+    if recorded is not None and recorded != (digest := batch.sha256()):
         raise ValueError(
             f"{differs}: the SHA-256 of the model's data ({recorded}) is not that "
-            f"of the batch's arrays ({batch.sha256()}){advice}"
+            f"of the batch's ({digest}){advice}"
         )
 
 
 def _average_settings(config: dict[str, Any], batch: hipmdp.Transitions) -> dict:
     """:func:`average_model`'s arguments to ``baselines.batch_only``, from the
     run's config as the run derived them."""
-    fit = hipmdp.FitConfig(**with_added_fields(config)["fit"])
-    check_integer("average_n_max", config["average_n_max"], 1)
+    fit = hipmdp.FitConfig(**with_added_fields(config)["fit"])  # read_run checked
     return {
         "rng": np.random.default_rng(run_streams(config["seed"]).average),
         "n_max": config["average_n_max"],

@@ -271,12 +271,13 @@ def _without_one_sided_records(a: dict, b: dict) -> tuple[dict, dict]:
     ia, ib = a.get("info"), b.get("info")
     if not (isinstance(ia, dict) and isinstance(ib, dict)):
         return a, b
-    one_sided = [k for k in ADDED_RECORDS if (k in ia) != (k in ib)]
-    if not one_sided:
+    drop = {k for k in ADDED_RECORDS if (k in ia) != (k in ib)}
+    if not drop:
         return a, b
-    keep = {k: v for k, v in ia.items() if k not in one_sided}
-    keep_b = {k: v for k, v in ib.items() if k not in one_sided}
-    return {**a, "info": keep}, {**b, "info": keep_b}
+    return tuple(
+        {**m, "info": {k: v for k, v in info.items() if k not in drop}}
+        for m, info in ((a, ia), (b, ib))
+    )
 
 
 def _count(a: np.ndarray, b: np.ndarray) -> dict[str, int]:
