@@ -169,6 +169,7 @@ def read_progress(directory: Path) -> dict[int, dict[str, Any]]:
         if (
             isinstance(record, dict)
             and isinstance(record.get("index"), int)
+            and not isinstance(record["index"], bool)  # JSON true was shard 1
             and record["index"] >= 0
             and all(k in record for k in PROGRESS_FIELDS)
         ):

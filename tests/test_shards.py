@@ -238,9 +238,11 @@ def test_progress_lines_hold_every_field_and_malformed_ones_are_skipped(tmp_path
     assert progress[0] == {k: entry[k] for k in shards.PROGRESS_FIELDS}
     with open(tmp_path / shards.PROGRESS, "a") as fh:
         for record in ({"index": 2, "sha256": "cd"}, {**progress[0], "index": 3.0},
-                       {**progress[0], "index": "4"}):  # fmt: skip
+                       {**progress[0], "index": "4"},
+                       {**progress[0], "index": True, "sha256": "ef"}):  # fmt: skip
             fh.write(json.dumps(record) + "\n")
-    assert sorted(shards.read_progress(tmp_path)) == [0, 1]
+    again = shards.read_progress(tmp_path)
+    assert sorted(again) == [0, 1] and again[1]["sha256"] == "ab"  # true is no 1
 
 
 def test_config_differences_name_keys_on_either_side():
