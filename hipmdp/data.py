@@ -176,6 +176,9 @@ def atomic_folder(path: str | os.PathLike):
     fsync_folder(path.parent)
 
 
+#: The dtype each kind of array is hashed at (:meth:`Transitions.sha256`).
+_DIGEST_DTYPES = {"f": "<f8", "i": "<i8", "u": "<i8", "b": "|b1"}
+
 #: What reading damaged bytes of an archive raises: zipfile's checks (a CRC or a
 #: header that does not match, an unknown compression method), the
 #: decompressor's, numpy's reading of an array's header and data, and the seeks
@@ -739,28 +742,17 @@ class Transitions:
         return arrays
 
     def sha256(self) -> str:
-        """The SHA-256 (hex) of the data: each array's name, shape and values, at
-        fixed little-endian dtypes (float64, int64, bool), in a fixed order; not
-        the file format's version, nor the bytes of an ``.npz`` (numpy's
-        archive layout), nor the platform's default integer. Equal data give
-        equal digests, however and wherever they were read or built;
+        """The SHA-256 (hex) of the data: each of :meth:`arrays`' arrays but the
+        format's version, by name, shape and values at a fixed little-endian
+        dtype per kind (float64, int64, bool); not the bytes of an ``.npz``
+        (numpy's archive layout) nor the platform's default integer. Equal data
+        give equal digests, however and wherever they were read or built;
         ``hipmdp.fit`` records its data's in the model's ``info["data_sha256"]``."""
         h = hashlib.sha256()
-        fields = [
-            ("states", self.states, "<f8"),
-            ("actions", self.actions, "<i8"),
-            ("next_states", self.next_states, "<f8"),
-            ("instances", self.instances, "<i8"),
-            ("angle_dims", np.array(self.angle_dims, dtype=np.int64), "<i8"),
-            ("rewards", self.rewards, "<f8"),
-            ("dones", self.dones, "|b1"),
-            ("dt", None if self.dt is None else np.array(self.dt), "<f8"),
-        ]
-        for name, value, dtype in fields:
-            if value is None:  # absent: named as absent
-                h.update(f"{name}:none;".encode())
+        for name, value in self.arrays().items():
+            if name == "format_version":
                 continue
-            x = np.ascontiguousarray(value, dtype=np.dtype(dtype))
+            x = np.ascontiguousarray(value, dtype=_DIGEST_DTYPES[value.dtype.kind])
             h.update(f"{name}:{x.shape};".encode())
             h.update(x.tobytes())
         return h.hexdigest()

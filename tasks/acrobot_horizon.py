@@ -128,12 +128,14 @@ def main(
         for name, model in models.items():
             errors = open_loop_errors(model, held_out, horizons)
             for k, err in errors.items():
-                if len(err):
-                    rmse[name][k].append(np.sqrt(np.mean(err**2, axis=0)))
-                    p99[name][k].append(np.percentile(np.abs(err), 99, axis=0))
-                else:  # every held-out episode ended within k steps (the goal)
-                    rmse[name][k].append(np.full(err.shape[1], np.nan))
-                    p99[name][k].append(np.full(err.shape[1], np.nan))
+                # no windows: every held-out episode ended within k steps (the goal)
+                none = np.full(err.shape[1], np.nan)
+                rmse[name][k].append(
+                    np.sqrt(np.mean(err**2, axis=0)) if len(err) else none
+                )
+                p99[name][k].append(
+                    np.percentile(np.abs(err), 99, axis=0) if len(err) else none
+                )
                 if name == MODELS[0]:  # the same windows for every model
                     windows[k].append(len(err))
     summary = {
