@@ -183,6 +183,16 @@ def test_results_do_not_depend_on_the_callers_blas_threads(run, tmp_path):
     assert comparison.identical, compare_runs.report(comparison)
 
 
+def test_results_do_not_depend_on_the_workers(run, tmp_path):
+    # `run` gathered its batch and ran its trials in one process; here they are
+    # spread over two: each job draws from its own seed, so where (and in which
+    # order) it runs cannot change it (`workers` is not a difference, as
+    # compare_runs counts them)
+    again = main(dataclasses.replace(TINY, workers=2), out=tmp_path)
+    comparison = compare_runs.main(run.out, again.out)
+    assert comparison.identical, compare_runs.report(comparison)
+
+
 def test_model_file_loads_and_predicts(run):
     model = hipmdp.load(run.out / "hipmdp_model.npz")
     batch = hipmdp.Transitions.load(run.out / "batch.npz")
