@@ -4,6 +4,8 @@ z log-odds, new-feature likelihood ratios, log_joint and log_marginal."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -49,13 +51,22 @@ def test_f_posterior_matches_dense(seed, k):
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_w_posterior_matches_dense(seed):
-    data, st, _ = random_problem(seed)
+    data, st, rng = random_problem(seed)
     cache = fast.prepare(data)
     ft = fast.to_eigen(st.f, cache)
     mean, cov = fast.w_posterior(st.z, ft, cache.Yt, data.noise, st.mu_w, 1.3)
     ref = dense.w_posterior(st.z, st.f, data.Y, data.noise, st.mu_w, 1.3)
     np.testing.assert_allclose(mean, ref.mean, atol=TOL)
     np.testing.assert_allclose(cov, ref.cov, atol=TOL)
+    # f where z is off is not part of the model (`GibbsState`): both ignore it
+    junk = np.where(st.z[:, :, None], st.f, rng.normal(size=st.f.shape))
+    got = fast.w_posterior(st.z, fast.to_eigen(junk, cache), cache.Yt, data.noise,
+                           st.mu_w, 1.3)  # fmt: skip
+    np.testing.assert_allclose(got[0], ref.mean, atol=TOL)
+    np.testing.assert_allclose(got[1], ref.cov, atol=TOL)
+    ref_junk = dense.w_posterior(st.z, junk, data.Y, data.noise, st.mu_w, 1.3)
+    np.testing.assert_allclose(ref_junk.mean, ref.mean, atol=TOL)
+    np.testing.assert_allclose(ref_junk.cov, ref.cov, atol=TOL)
 
 
 def test_marginal_llr_is_the_ratio_of_two_normal_densities():
@@ -116,12 +127,40 @@ def test_new_feature_llr_near_singular_kernel_matches_dense(k):
     np.testing.assert_allclose(got, want, atol=TOL, rtol=TOL)
 
 
+@pytest.mark.parametrize("k", [1, 2])
+def test_new_feature_llr_with_every_direction_on_the_series_path_matches_dense(k):
+    """K scaled so that x = γ_max λ_j/σ² ≤ 5e-6 < SMALL for every j: new_llr is
+    then the series alone, and its second-order terms are what differ from a
+    first-order answer. A wrong one errs by ~x relative (x ~ 1e-6 here, spread by
+    K's spectrum); the series' own error is ≤ x³ ~ 1e-16, and the dense
+    reference's round-off ~ε·|log N(y; 0, σ²I)| ≈ 1e-14 against llr ≳ 1e-3, so
+    the two must agree to 1e-8 relative (no absolute slack, which would hide it)."""
+    rng = np.random.default_rng(30 + k)
+    B, m, noise = 3, 6, 0.05
+    A = rng.normal(size=(m, m))
+    K0 = A @ A.T / m + 0.3 * np.eye(m)
+    W = rng.normal(size=(5, B, k))
+    gmax = np.linalg.eigvalsh(np.swapaxes(W, 1, 2) @ W).max()
+    K = K0 * (0.5 * fast.SMALL * noise / (gmax * np.linalg.eigvalsh(K0).max()))
+    cache = fast.prepare(GibbsData(np.zeros((1, B, m)), K[None], np.array([noise])))
+    assert np.all(cache.lam[0] / noise * gmax <= fast.SMALL)  # the series path only
+    E = rng.normal(size=(B, m))
+    got = fast.new_llr(E @ cache.U[0], W, cache.lam[0], noise)
+    want = [dense.marginal_llr(E, Wn, K, noise) for Wn in W]
+    np.testing.assert_allclose(got, want, rtol=1e-8, atol=0)
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_log_joint_and_marginal_match_dense(seed):
-    data, st, _ = random_problem(seed)
+    data, st, rng = random_problem(seed)
     priors = GibbsPriors(alpha=1.7, sigma_w=1.2, sigma_w0=0.8, n_w=5)
     want = dense.dense_log_joint(st, data, priors)
     assert abs(log_joint(st, data, priors) - want) < TOL * abs(want)
+    # f where z is off enters neither the likelihood nor log_joint (`GibbsState`)
+    junk = np.where(st.z[:, :, None], st.f, rng.normal(size=st.f.shape))
+    assert abs(
+        log_joint(dataclasses.replace(st, f=junk), data, priors) - want
+    ) < TOL * abs(want)
     # f marginalised: N(vec Y_r; 0, (W_r W_rᵀ) ⊗ K + σ²I), W_r incl. feature 0
     lm = sum(
         dense.mvn_logpdf(
