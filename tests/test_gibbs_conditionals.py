@@ -150,6 +150,25 @@ def test_new_feature_llr_with_every_direction_on_the_series_path_matches_dense(k
     np.testing.assert_allclose(got, want, rtol=1e-8, atol=0)
 
 
+def test_the_dense_and_structured_algebras_agree_row_by_row():
+    """The `Algebra` objects a sweep calls (the sweep comparison and the benchmark
+    run the dense one): z_llr, and new_llr for 1, 2 and 3 new features, on every
+    row, each with its own K[r] and σ²[r]. The conditionals above are checked as
+    functions; this checks what the two algebras hand them."""
+    data, _, rng = random_problem(7, B=4)
+    fa, da = fast.EigenAlgebra(fast.prepare(data)), dense.DenseAlgebra(data)
+    for r in range(data.Y.shape[0]):
+        E = rng.normal(size=data.Y.shape[1:])
+        Et = E @ fa.cache.U[r]
+        w = rng.normal(size=data.Y.shape[1])
+        want = da.z_llr(r, E, w)
+        assert abs(fa.z_llr(r, Et, w) - want) < TOL * max(1.0, abs(want))
+        for k in (1, 2, 3):
+            W = 1.5 * rng.normal(size=(3, data.Y.shape[1], k))
+            got, want = fa.new_llr(r, Et, W), da.new_llr(r, E, W)
+            np.testing.assert_allclose(got, want, rtol=TOL, atol=TOL)
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_log_joint_and_marginal_match_dense(seed):
     data, st, rng = random_problem(seed)

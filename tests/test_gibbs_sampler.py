@@ -190,6 +190,29 @@ def test_structured_sweeps_follow_the_dense_reference_sweeps():
     assert len(n_features) > 1  # features were born or died: the test is informative
 
 
+def test_the_dense_sweep_runs_the_same_chain_without_data():
+    """`dense_gibbs_sweep` (the benchmark's reference) is the sweep of
+    `gibbs_sweep` with dense algebra and the same priors. With B = 0 instances no
+    likelihood enters and both algebras take the same normals for f (k·m per
+    row), so z and μ_w (drawn from its prior) must agree sweep by sweep, while
+    features are born and die (checked); f differs by the square root used."""
+    R, m = 4, 3
+    data = GibbsData(
+        np.zeros((R, 0, m)), np.tile(np.eye(m) + 0.5, (R, 1, 1)), np.ones(R)
+    )
+    priors = GibbsPriors(alpha=1.5, sigma_w=0.7, sigma_w0=1.3, n_w=3)
+    cache = prepare(data)
+    a = b = init_state(data, priors, rng=np.random.default_rng(0))
+    n_features = set()
+    for i in range(20):
+        a = gibbs_sweep(a, data, priors, cache, rng=np.random.default_rng(i))
+        b = dense.dense_gibbs_sweep(b, data, priors, rng=np.random.default_rng(i))
+        np.testing.assert_array_equal(b.z, a.z)
+        np.testing.assert_allclose(b.mu_w, a.mu_w, rtol=1e-12)
+        n_features.add(a.z.shape[0])
+    assert len(n_features) > 2  # the IBP moves: the comparison is informative
+
+
 def test_mu_w_draws_reproduce_gaussian_conditioning():
     """μ | w by conditioning the joint Gaussian of (μ, w_1..w_B): Cov(μ, w_b) = σ_w0²,
     Cov(w_b, w_c) = σ_w0² + δ_bc σ_w² — an independent route to the conjugate
@@ -381,6 +404,8 @@ def test_init_state_is_consistent():
         ("Y", np.full((3, 4, 5), np.nan)),
         # an eigenvalue of -0.5 was raised to the floor: another K was fitted
         ("K", np.tile(np.diag([1.0, -0.5, 0.2, 1.0, 1.0]), (3, 1, 1))),
+        # K[r] = 0 (a fitted signal variance of 0): f ≡ 0, its floor would be 0
+        ("K", np.zeros((3, 5, 5))),
     ],
 )
 def test_bad_data_raises(field, bad):
