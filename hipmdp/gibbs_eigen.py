@@ -72,7 +72,8 @@ def prepare(data: GibbsData) -> GibbsCache:
             np.argmax((lam[:, -1] <= 0) | (lam[:, 0] < -PSD_TOLERANCE * lam[:, -1]))
         )
         raise ValueError(
-            f"GibbsData.K: every K[r] must be positive semi-definite; K[{r}] has "
+            f"GibbsData.K: every K[r] must be positive semi-definite and not zero "
+            f"(a positive largest eigenvalue); K[{r}] has "
             f"eigenvalues from {lam[r, 0]:.3g} to {lam[r, -1]:.3g}"
         )
     lam = np.maximum(lam, floor)  # round-off below the floor, as in the docstring
