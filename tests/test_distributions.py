@@ -14,7 +14,7 @@ from scipy import stats
 from tasks._common import parameter_matrix
 from tasks.acrobot import AcrobotParams
 from tasks.cartpole import CartpoleParams
-from tasks.distributions import Distribution, draw, in_box
+from tasks.distributions import MAX_GRID_POINTS, Distribution, draw, in_box
 
 MASSES = {"link_mass_1": (0.6, 1.4), "link_mass_2": (0.8, 1.2)}
 
@@ -86,6 +86,8 @@ def test_uniform_extrapolation_is_uniform_on_the_outer_minus_inner_box():
         (0.15, 0.4, 0.5),  # wholly above it
         (1.0, 2.0, 0.2),  # 45 σ above it: Φ underflows
         (0.02, 0.09, 0.002),  # 50 σ below it
+        # 40 σ below, 0.05 σ wide: Φ(a) / Φ(b) = 0.14 is not negligible there
+        (0.092, 0.09201, 0.002),
     ],
 )
 def test_relative_normal_is_the_truncated_normal_around_the_nominal(low, high, sigma):
@@ -159,7 +161,12 @@ def test_parameter_matrix_takes_one_type_and_any_field_count():
         ({"sigma": -1.0}, "sigma must be a positive"),
         ({"inner_fraction": 0.0}, "inner_fraction must be in (0, 1)"),
         ({"sigma": "0.1"}, "sigma must be a number"),
+        ({"sigma": True}, "sigma must be a number"),
+        ({"sigma": float("inf")}, "sigma must be a positive"),
+        ({"inner_fraction": "0.5"}, "inner_fraction must be a number"),
         ({"kind": "grid", "grid": 2.5}, "grid must be a positive int"),
+        ({"kind": "grid", "grid": 0}, "grid must be a positive int"),
+        ({"kind": "grid", "grid": True}, "grid must be a positive int"),
         # built as a list of 25 million tuples (2.7 GB) before failing
         ({"kind": "grid", "grid": 5000}, "K^p = 5000^2 = 25,000,000 points"),
         (
@@ -214,3 +221,72 @@ def test_a_nominal_far_outside_the_truncation_box_is_named(capsys, tmp_path):
         "--out", str(tmp_path / "run"), "--no-progress",
     ])  # fmt: skip
     assert "warning: pole_mass: the nominal 0.1 lies 3.1σ" in capsys.readouterr().err
+
+
+def test_grid_size_limit_is_inclusive_and_one_point_per_parameter_is_a_grid():
+    """K^p = MAX_GRID_POINTS is allowed (the limit is "the most points"; nothing
+    is built on construction); K = 1 is a positive int, one point per parameter."""
+    one = {"link_mass_1": (0.6, 1.4)}
+    assert dist(kind="grid", grid=MAX_GRID_POINTS, vary=one).grid == MAX_GRID_POINTS
+    assert draw(dist(kind="grid", grid=1), None, rng=None).varied.shape == (1, 2)
+
+
+def test_extrapolation_draws_n_points_and_a_fixed_range_stays_put():
+    """Extrapolation draws in rounds of at least 64 and keeps those outside the
+    inner box: it returns exactly n. One fixed range is fine while another has a
+    width: every point is then outside the inner box along the other."""
+    fixed = {"link_mass_1": (1.1, 1.1), "link_mass_2": (0.8, 1.2)}
+    for kind in ("uniform", "relative-normal"):
+        d = dist(kind=kind, vary=fixed, split="extrapolation", sigma=0.3)
+        v = draw(d, 5, rng=np.random.default_rng(0)).varied
+        assert v.shape == (5, 2)
+        np.testing.assert_array_equal(v[:, 0], 1.1)
+        # the inner box along link_mass_2 is [0.9, 1.1]
+        assert np.all((v[:, 1] < 0.9) | (v[:, 1] > 1.1))
+
+
+def test_in_box_is_closed():
+    """A point on a face of the box is inside it (as the docstring says: the
+    closed box); one just past a face is not."""
+    lows, highs = [0.8, 0.9], [1.2, 1.1]
+    points = np.array([[0.8, 0.9], [1.2, 1.1], [1.0, 1.1 + 1e-12], [0.8 - 1e-12, 1.0]])
+    np.testing.assert_array_equal(in_box(points, lows, highs), [1, 1, 0, 0])
+
+
+def test_far_from_nominal_uses_the_box_the_draws_are_truncated_to():
+    """Interpolation draws are truncated to the inner box as train ones are; a
+    nominal above the box is as far as one below, and the message names the edge
+    the draws crowd. Cart-pole pole mass (nominal 0.1) over [0.05, 0.5] at σ = 0.2
+    (scale 0.02): inner box [0.1625, 0.3875], gap 0.0625 = 3.125σ. Cart mass
+    (nominal 1.0) over [0.1, 0.5] at σ = 0.1 (scale 0.1): gap 0.5 = 5σ."""
+    vary = {"pole_mass": (0.05, 0.5), "pole_half_length": (0.25, 1.0)}
+    held_out = Distribution(
+        CartpoleParams, vary, kind="relative-normal", split="interpolation", sigma=0.2
+    )
+    assert held_out.far_from_nominal() == [
+        "pole_mass: the nominal 0.1 lies 3.1σ outside the inner box "
+        "[0.1625, 0.3875]; its draws crowd the edge at 0.1625"
+    ]
+    above = Distribution(
+        CartpoleParams, {"cart_mass": (0.1, 0.5)}, kind="relative-normal", sigma=0.1
+    )
+    assert above.far_from_nominal() == [
+        "cart_mass: the nominal 1 lies 5.0σ outside the range [0.1, 0.5]; its "
+        "draws crowd the edge at 0.5"
+    ]
+
+
+def test_as_json_gives_only_the_options_that_apply():
+    """What the manifest records: σ only for the relative normal, the inner
+    fraction only for a split that uses the inner box."""
+    plain = dist().as_json()
+    assert plain == {
+        "kind": "uniform",
+        "split": "all",
+        "vary": {"link_mass_1": [0.6, 1.4], "link_mass_2": [0.8, 1.2]},
+        "grid": None,
+        "sigma": None,
+        "inner_fraction": None,
+    }
+    normal = dist(kind="relative-normal", split="train", sigma=0.3).as_json()
+    assert (normal["sigma"], normal["inner_fraction"]) == (0.3, 0.5)
