@@ -418,3 +418,274 @@ def test_mse_table_notes_intervals_that_reach_below_zero():
     assert text.startswith("| method | dx | dtheta |")
     assert "| hipmdp | 2 [1, 3] | 4.60e-05 [-4.60e-05, 1.40e-04] † |" in text
     assert text.endswith("The per-setting ratios are the better guide there.")
+
+
+@pytest.mark.parametrize("levels", [(0.0, 0.5), ((0.5, 0.95),)])
+def test_coverage_refuses_a_level_of_zero_or_a_table_of_levels(levels):
+    """A 0% interval covers nothing and means nothing; levels are one flat list
+    (the result's first axis)."""
+    from tasks.prediction import coverage
+
+    with pytest.raises(ValueError, match="levels: expected values in"):
+        coverage(np.zeros((3, 2)), np.ones((3, 2)), np.zeros((3, 2)), levels)
+
+
+def test_gather_split_counts_episodes_and_transitions_as_documented():
+    """At max_steps = 5 every cart-pole episode lasts 5 steps (the pole, started
+    near upright, cannot fall in 5 steps), so the counts follow by hand: at least
+    n_episodes = 3 episodes (15 transitions) even when 10 are asked; exactly 15
+    asked are enough without a 4th; at most max_episodes episodes are learned
+    (1 + 1 more of 5 steps: 10 transitions) before giving up."""
+    from tasks.agents import CARTPOLE
+    from tasks.cartpole import CartpoleParams
+    from tasks.prediction import gather_split
+
+    params = CartpoleParams()
+
+    def gathered(n_train, n_test, **kw):
+        rng = np.random.default_rng(0)
+        return gather_split(CARTPOLE, params, n_train, n_test, rng=rng, **kw)
+
+    few = gathered(5, 5, max_steps=5)
+    assert len(few.episodes) == 15 and len(few.train) == len(few.test) == 5
+    exact = gathered(10, 5, max_steps=5)
+    assert len(exact.episodes) == 15 and (len(exact.train), len(exact.test)) == (10, 5)
+    with pytest.raises(ValueError, match="only 10 gathered in 2 episodes"):
+        gathered(50, 50, max_steps=5, n_episodes=1, max_episodes=2)
+
+
+class _Spy:
+    """A fitted model that predicts a constant mean and variance for Δs and
+    records the data it is given (its log-likelihood: a distinct constant)."""
+
+    def __init__(self, mean, var=1.0, loglik=0.0):
+        self.mean, self.var, self.loglik = mean, var, loglik
+        self.n_actions, self.hyper = 2, SimpleNamespace(periodic=(1,))
+        self.seen = {}
+
+    def prior(self):
+        return "prior"
+
+    def update(self, belief, data):
+        self.seen["update"] = (belief, data)
+        return "posterior"
+
+    def predict(self, states, actions, belief=None):
+        self.seen["predict"] = (states, belief)
+        shape = (len(states), 4)
+        return np.full(shape, self.mean), np.full(shape, self.var)
+
+    def log_likelihood(self, data, belief=None):
+        self.seen["log_likelihood"] = (data, belief)
+        return self.loglik
+
+
+def test_score_instance_fits_scores_and_filters_on_the_data_the_protocol_says(
+    monkeypatch,
+):
+    """The protocol (module docstring): "train only" on the train transitions,
+    measuring angles as the average model does; "batch + train" on both, with the
+    average model's hyperparameters; the HiP-MDP's belief filtered from its prior
+    on the train transitions; every method predicts and is scored on the test
+    transitions, each with its own predictions; an added method is given the
+    train and test transitions and its key. Batch, train and test differ in
+    size, so a swap shows; each spy predicts its own constant, so a swapped method
+    shows in the MSE, which is written out as the plain mean of squares."""
+    from tasks import prediction
+
+    fitted = {}
+    spies = {
+        "train only": _Spy(1.0, loglik=-2.0),
+        "batch + train": _Spy(2.0, loglik=-3.0),
+    }
+
+    def train_only(train, *, rng, **kw):
+        fitted["train only"] = (train, kw)
+        return spies["train only"]
+
+    def batch_plus_train(batch, train, *, rng, **kw):
+        fitted["batch + train"] = (batch, train, kw)
+        return spies["batch + train"]
+
+    monkeypatch.setattr(prediction.baselines, "train_only", train_only)
+    monkeypatch.setattr(prediction.baselines, "batch_plus_train", batch_plus_train)
+
+    def data(n, rng):
+        s = rng.normal(size=(n, 4))
+        a = rng.integers(0, 2, n)
+        return hipmdp.Transitions(s, a, s + rng.normal(size=(n, 4)), np.zeros(n, int))
+
+    rng = np.random.default_rng(8)
+    batch, train, test = data(30, rng), data(20, rng), data(10, rng)
+    average, hip = _Spy(0.5, loglik=-1.0), _Spy(-1.0, loglik=-4.0)
+    seen = []
+
+    def predict(*args):  # an added method's: a constant Δs = 3
+        seen.append(args)
+        return np.full((len(test), 4), 3.0), np.ones((len(test), 4))
+
+    mine = SimpleNamespace(name="mine", predict=predict)
+    scores = prediction.score_instance(
+        [hip], average, batch, train, test, rng=rng, added=[mine], key=(3, 1)
+    )
+    assert seen == [(train, test, (3, 1))]  # its key: (table, setting)
+    assert fitted["train only"][0] is train
+    assert fitted["train only"][1]["periodic"] == average.hyper.periodic
+    assert fitted["batch + train"][:2] == (batch, train)
+    assert fitted["batch + train"][2]["hyper"] is average.hyper
+    assert hip.seen["update"] == ("prior", train)
+    assert hip.seen["predict"][1] == "posterior"
+    assert hip.seen["log_likelihood"] == (test, "posterior")
+    for spy in (average, hip, *spies.values()):
+        np.testing.assert_array_equal(spy.seen["predict"][0], test.states)
+        assert spy.seen["log_likelihood"][0] is test
+    means = {
+        "hipmdp": -1.0,
+        "batch only": 0.5,
+        "train only": 1.0,
+        "batch + train": 2.0,
+        "mine": 3.0,
+    }
+    for method, mean in means.items():
+        want = [np.mean([(d - mean) ** 2 for d in col]) for col in test.deltas.T]
+        np.testing.assert_allclose(scores.mse[method], want, err_msg=method)
+    assert {m: scores.loglik[m] for m in PREDICTION_METHODS} == {
+        "hipmdp": -4.0,
+        "batch only": -1.0,
+        "train only": -2.0,
+        "batch + train": -3.0,
+    }
+
+
+def test_entity_names_have_no_spaces_and_differ():
+    """Recording paths and reserved --method names: the docstring's rule, each
+    " + " and then each space to "_"."""
+    from tasks.prediction import entity
+
+    assert [entity(m) for m in PREDICTION_METHODS] == [
+        "hipmdp",
+        "batch_only",
+        "train_only",
+        "batch_train",
+    ]
+
+
+def test_summarise_refuses_scores_with_other_methods_or_too_few_flags():
+    from tasks.prediction import InstanceScores, summarise
+
+    def scores(methods):
+        return InstanceScores(
+            mse={m: np.ones(4) for m in methods},
+            loglik={m: 0.0 for m in methods},
+            coverage={m: np.full((2, 4), 0.5) for m in methods},
+        )
+
+    both = [scores(PREDICTION_METHODS), scores(PREDICTION_METHODS)]
+    with pytest.raises(ValueError, match="seen: expected 2 flags, got 1"):
+        summarise(both, DIM_NAMES, [True])
+    # an added method on the first setting only
+    mixed = [scores([*PREDICTION_METHODS, "mine"]), scores(PREDICTION_METHODS)]
+    with pytest.raises(ValueError, match="expected the methods .* on every instance"):
+        summarise(mixed, DIM_NAMES)
+
+
+def test_mse_ratios_leave_out_zero_baselines_and_count_only_strictly_lower():
+    """A setting where either MSE is 0 has no finite log ratio and is left out;
+    an equal MSE is not "lower"; a dimension with no usable setting is None."""
+    from tasks.prediction import mse_ratios
+
+    per = {
+        "hipmdp": {"dx": [1.0, 2.0, 3.0], "dtheta": [0.0, 0.0, 0.0]},
+        "batch only": {"dx": [2.0, 2.0, 0.0], "dtheta": [1.0, 1.0, 1.0]},
+    }
+    r = mse_ratios(per)["batch only"]
+    # settings 1 and 2: ratios 1/2 and 1, geometric mean sqrt(1/2); only 1 < 2
+    assert r["dx"]["n"] == 2 and r["dx"]["hipmdp_lower"] == 1
+    assert r["dx"]["geometric_mean"] == pytest.approx(np.sqrt(0.5))
+    assert r["dtheta"] is None
+
+
+def test_score_settings_gives_each_setting_its_own_stream_and_key(monkeypatch):
+    """Settings with the same parameters still get independent data (a stream
+    each, spawned from the seed); the same seed gives the same streams, and a
+    setting's stream does not depend on how many follow it; added methods are
+    keyed (table, setting)."""
+    from tasks import prediction
+
+    draws, keys = [], []
+
+    def gather_split(domain, params, n_train, n_test, *, rng, split):
+        draws.append(rng.random())
+        return prediction.Split(None, None, None)
+
+    def score_instance(hips, average, batch, train, test, *, rng, added, key):
+        keys.append(key)
+        return key
+
+    monkeypatch.setattr(prediction, "gather_split", gather_split)
+    monkeypatch.setattr(prediction, "score_instance", score_instance)
+
+    def run(n):
+        draws.clear()
+        keys.clear()
+        seed = np.random.SeedSequence(11)
+        prediction.score_settings(
+            None, [], None, None, ["same"] * n, n_train=1, n_test=1, seed=seed, table=2
+        )
+        return list(draws), list(keys)
+
+    three, keys3 = run(3)
+    assert len(set(three)) == 3
+    assert keys3 == [(2, 0), (2, 1), (2, 2)]
+    again, _ = run(3)
+    two, _ = run(2)
+    assert again == three and two == three[:2]
+
+
+def test_report_sections_say_what_the_metrics_hold():
+    """The report's text functions on small hand-made metrics: the coverage table
+    shows each level's mean, levels in order; the unseen section counts the
+    settings seen in training and says when none is new; the ratio lines name
+    "lower on k of n" and skip a dimension without a ratio; the added-methods
+    paragraph marks only the policies; runs without coverage or ratios get no
+    text."""
+    from tasks.prediction import added_text, coverage_text, ratio_text, unseen_section
+
+    def ci(x):
+        return {"mean": x, "low": x - 0.1, "high": x + 0.1, "n": 3}
+
+    coverage = {
+        "hipmdp": {"0.5": {"dx": ci(0.41)}, "0.95": {"dx": ci(0.93)}},
+        "batch only": {"0.5": {"dx": ci(0.62)}, "0.95": {"dx": ci(0.99)}},
+    }
+    text = coverage_text(coverage)
+    assert "central 50% / 95% Gaussian" in text and "gives 0.50 / 0.95" in text
+    assert "| hipmdp | 0.41 / 0.93 |" in text
+    assert "| batch only | 0.62 / 0.99 |" in text
+    assert coverage_text(None) == coverage_text({}) == ""
+
+    none_new = {"test_settings_seen": [True, False, True], "unseen": None}
+    assert unseen_section(none_new) == (
+        "2 of the 3 test settings are training settings (the HiP-MDP has their "
+        "dynamics among its training instances). No test setting is new."
+    )
+    assert unseen_section({}) == ""
+
+    mse = {m: {"dx": ci(1.0), "dtheta": ci(1.0)} for m in PREDICTION_METHODS}
+    mse["train only"] = {"dx": ci(0.5), "dtheta": ci(0.5)}
+    ratios = {"train only": {"dx": {"geometric_mean": 0.25, "low": 0.125,
+                                    "high": 0.5, "n": 5, "hipmdp_lower": 4},
+                             "dtheta": None}}  # fmt: skip
+    lines = ratio_text({"mse": mse, "mse_ratio_per_setting": ratios})
+    assert "- dx: 0.25 " in lines
+    assert lines.endswith("against train only; lower on 4 of 5 settings")
+    assert "dtheta" not in lines
+    assert ratio_text({"mse": mse}) == ""
+
+    added = added_text(["mine=my.module:Mine", "greedy=my.module:Greedy"], {"greedy"})
+    assert "mine (`my.module:Mine`)," in added
+    assert (
+        "greedy (`my.module:Greedy`, a policy, so not in the prediction tables)"
+        in added
+    )
+    assert added_text([]) == ""
