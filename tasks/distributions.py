@@ -127,6 +127,14 @@ class Distribution:
             raise ValueError(
                 f"inner_fraction must be in (0, 1), got {self.inner_fraction!r}"
             )
+        if self.kind == "relative-normal":  # its scale is σ θ₀: θ₀ must be > 0
+            for name, value in zip(self.names, self.nominal(), strict=True):
+                if not value > 0:
+                    raise ValueError(
+                        f"vary: {name}'s nominal value is {value:g}; "
+                        "'relative-normal' scales σ by the nominal, so it needs a "
+                        "positive one (use kind 'uniform')"
+                    )
         if self.split == "extrapolation" and np.all(self.widths == 0):
             raise ValueError(
                 "split 'extrapolation' needs a range with low < high: every varied "

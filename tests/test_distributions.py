@@ -181,6 +181,19 @@ def test_impossible_distributions_are_rejected(kwargs, message):
     assert message in str(error.value)
 
 
+@pytest.mark.parametrize("nominal", [0.0, -1.0])
+def test_relative_normal_refuses_a_nominal_that_is_not_positive(nominal):
+    # its scale σ θ₀ would be 0 (every draw NaN) or negative (the truncation
+    # interval's ends swapped); the uniform draws do not use the nominal
+    Offset = dataclasses.make_dataclass(
+        "Offset", [("x", float, dataclasses.field(default=nominal))], frozen=True
+    )
+    with pytest.raises(ValueError, match="x's nominal value is .*positive"):
+        Distribution(Offset, {"x": (-0.5, 0.5)}, kind="relative-normal")
+    uniform = Distribution(Offset, {"x": (-0.5, 0.5)})
+    assert np.all(np.abs(draw(uniform, 5, rng=np.random.default_rng(0)).values) <= 0.5)
+
+
 def test_draw_rejects_bad_counts_and_unreachable_regions():
     with pytest.raises(ValueError, match="positive int"):
         draw(dist(), 0, rng=np.random.default_rng(0))
