@@ -62,6 +62,9 @@ def test_bayesian_linear_equals_its_function_space_form():
     lam = 3.0
     method = BayesianLinear(prior_strength=lam)
     method.fit(batch, rng=rng)
+    # the documented x = (1, s, sin θ, cos θ), column for column (a user reading
+    # the weights W_a needs the order; the predictions alone do not show it)
+    np.testing.assert_array_equal(method.features(test.states), features(test.states))
     mean, var = method.adapt(train, rng=rng).predict(test.states, test.actions)
 
     for a in (0, 1):
@@ -110,10 +113,14 @@ def test_bayesian_linear_falls_back_for_actions_with_too_few_batch_transitions()
     assert np.all(mean[~one] != 0.0)
     with pytest.raises(ValueError, match="actions: expected 0..1 .*, got 2..2"):
         method.adapt(empty, rng=rng).predict(test.states, np.full(20, 2))
+    # a negative index would silently pick the last action's weights
+    with pytest.raises(ValueError, match="actions: expected 0..1 .*, got -1..0"):
+        method.adapt(empty, rng=rng).predict(test.states, test.actions - 1)
     with pytest.raises(ValueError, match="call fit before adapt"):
         BayesianLinear().adapt(empty, rng=rng)
-    with pytest.raises(ValueError, match="prior_strength: expected a finite"):
-        BayesianLinear(prior_strength=0.0)
+    for bad in (0.0, np.inf, np.nan):
+        with pytest.raises(ValueError, match="prior_strength: expected a finite"):
+            BayesianLinear(prior_strength=bad)
 
 
 def test_bayesian_linear_moves_from_the_batch_fit_to_the_instance():
@@ -146,6 +153,8 @@ def test_bayesian_linear_moves_from_the_batch_fit_to_the_instance():
         ("linear=:BayesianLinear", "expected NAME=module:attribute"),
         ("=tasks.methods:BayesianLinear", "the name ''"),
         ("my method=tasks.methods:BayesianLinear", "the name 'my method'"),
+        ("_mine=tasks.methods:BayesianLinear", "the name '_mine' .* start with"),
+        ("-mine=tasks.methods:BayesianLinear", "the name '-mine' .* start with"),
         ("hipmdp=tasks.methods:BayesianLinear", "'hipmdp' is .* a built-in method"),
         # the recording's name of "batch + train"
         ("batch_train=tasks.methods:BayesianLinear", "'batch_train' is .* built-in"),
@@ -176,6 +185,29 @@ def test_specs_must_be_a_sequence_of_distinct_names():
     assert methods.check_specs([LINEAR]) == (
         MethodSpec("linear", "tasks.methods", "BayesianLinear"),
     )
+
+
+def test_names_may_hold_letters_digits_and_dots_dashes_underscores():
+    """parse_spec's rule: a letter or digit first, then also '_', '.' and '-'."""
+    names = ["1st", "gp.v2", "my-method_B"]
+    specs = methods.check_specs([f"{n}=tasks.methods:BayesianLinear" for n in names])
+    assert [s.name for s in specs] == names
+
+
+def test_a_methods_stream_is_the_documented_descendant_of_the_seed():
+    """method_seed's docstring: the seed's descendant with spawn key
+    (METHOD_STREAM, crc32(name), *key), which a user can rebuild outside the run.
+    Its first key is past the run's own streams (the seed's children 0..4 in
+    cartpole_prediction, one per RunStreams field in the swing-up), so no added
+    method's stream is one of theirs or below one of them."""
+    import zlib
+
+    from tasks.acrobot_swingup import RunStreams
+
+    ss = method_seed(11, "linear", 1, 3, 2)
+    assert ss.entropy == 11
+    assert ss.spawn_key == (methods.METHOD_STREAM, zlib.crc32(b"linear"), 1, 3, 2)
+    assert methods.METHOD_STREAM >= max(5, len(RunStreams._fields))
 
 
 class Constant:
@@ -212,6 +244,10 @@ def agent_on_the_object():
     return method
 
 
+class AdaptIsNotAMethod(NoAdapt):
+    adapt = None  # a placeholder attribute, not something to call
+
+
 class AdaptsToNothing(NoAdapt):
     def adapt(self, train, *, rng):
         return None
@@ -246,6 +282,14 @@ class DisagreeingMean(Constant):
         return np.ones(states.shape)
 
 
+class FlatMean(DisagreeingMean):
+    """predict_mean has predict's values but shape (D,) for one state, where
+    planning wants (1, D) (hipmdp.planning.LearnedModel refuses it mid-trial)."""
+
+    def predict_mean(self, states, actions):
+        return np.full(states.shape, self.mean).ravel()
+
+
 class Failing:
     """Its fit, adapt or predictor raises, as the user's code might."""
 
@@ -272,6 +316,8 @@ def test_methods_that_cannot_be_loaded_are_refused(tmp_path, monkeypatch):
         ("x=tasks.no_such_module:A", "cannot import 'tasks.no_such_module'"),
         ("x=broken_method:A", "importing 'broken_method' raised RuntimeError: boom"),
         ("x=tasks.methods:NoSuchClass", "has no class or function 'NoSuchClass'"),
+        ("x=tasks.methods:TRIAL_SIZE", "has no class or function 'TRIAL_SIZE'"),
+        ("x=tests.test_methods:AdaptIsNotAMethod", "AdaptIsNotAMethod has no adapt"),
         ("x=tests.test_methods:NoAdapt", "NoAdapt has no adapt"),
         ("x=tests.test_methods:agent_on_the_object", "must be a method of its class"),
         ("x=tasks.methods:load", "calling load\\(\\) with no arguments raised"),
@@ -282,12 +328,16 @@ def test_methods_that_cannot_be_loaded_are_refused(tmp_path, monkeypatch):
     assert methods.load_all(["x=tasks.methods:load"], build=False)[0][1] is (
         methods.load
     )
+    with pytest.raises(ValueError, match="has no class or function 'TRIAL_SIZE'"):
+        methods.load_all(["x=tasks.methods:TRIAL_SIZE"], build=False)
 
 
 @pytest.mark.parametrize(
     "kw, match",
     [
         (dict(shape=(3, 4)), "mean has shape \\(3, 4\\), expected \\(5, 4\\)"),
+        # as many numbers, transposed
+        (dict(shape=(4, 5)), "mean has shape \\(4, 5\\), expected \\(5, 4\\)"),
         (dict(mean=np.nan), "mean is not finite"),
         (dict(mean=1j), "mean is complex"),
         (dict(mean="a"), "mean is not an array of numbers"),
@@ -296,6 +346,7 @@ def test_methods_that_cannot_be_loaded_are_refused(tmp_path, monkeypatch):
         (dict(var=1e-320), "log-likelihood of the test transitions is not finite"),
         (dict(mean=1e200), "mean is so far off that its squared error is not"),
         (dict(out=lambda pair: pair[0]), "must return \\(mean, var\\), got ndarray"),
+        (dict(out=lambda pair: (*pair, 0)), "must return \\(mean, var\\), got tuple"),
     ],
 )
 def test_bad_predictions_are_refused_naming_the_method(kw, match):
@@ -366,9 +417,10 @@ def test_errors_in_the_users_code_keep_their_type_and_name_the_method():
 def test_fit_all_tries_the_transfers_first_planning_too():
     """A predict_mean that disagrees with predict is refused before any run."""
     batch = transitions(weights(np.random.default_rng(0)), 40, np.random.default_rng(1))
-    loaded = [(MethodSpec("mine", "m", "A"), DisagreeingMean())]
-    with pytest.raises(ValueError, match="mine: predict_mean gives .* must agree"):
-        methods.fit_all(loaded, batch, 0)
+    for wrong in (DisagreeingMean(), FlatMean()):
+        loaded = [(MethodSpec("mine", "m", "A"), wrong)]
+        with pytest.raises(ValueError, match="mine: predict_mean gives .* must agree"):
+            methods.fit_all(loaded, batch, 0)
 
 
 def test_errors_while_planning_on_an_added_method_name_it(tmp_path):
@@ -652,6 +704,13 @@ def test_bayesian_linear_keeps_a_variance_on_a_batch_it_fits_exactly():
     (fitted,) = methods.fit_all([(spec, BayesianLinear())], still, 0)
     _, var = fitted.method.adapt(still, rng=rng).predict(states, still.actions)
     assert np.all(var >= 1e-12)
+    # an action with no more batch transitions than features (p = 5) falls back
+    # to the batch's variance of Δs, here 0: that too gets the 1e-12
+    few = still.take(np.arange(36))
+    few.actions[-3:] = 2
+    (fitted,) = methods.fit_all([(spec, BayesianLinear())], few, 0)
+    _, var = fitted.method.adapt(few, rng=rng).predict(states[:3], np.full(3, 2))
+    assert np.all(var >= 1e-12)
 
 
 class Spy:
@@ -687,6 +746,28 @@ def test_fit_all_tries_a_prediction_on_transitions_it_did_not_adapt_to():
     np.testing.assert_array_equal(test, batch.states[size : 2 * size])
     assert none.shape == (0, 2)
     np.testing.assert_array_equal(one, batch.states[:1])
+
+
+def test_fit_all_tries_a_batch_smaller_than_its_tries():
+    """A batch of fewer than TRIAL_SIZE transitions: the first try adapts to all
+    of them and predicts none (an empty prediction, which BayesianLinear gives
+    as shape (0, D)); with fewer than 2 TRIAL_SIZE, it predicts the rest."""
+    rng = np.random.default_rng(4)
+    size = methods.TRIAL_SIZE
+    spec = MethodSpec("linear", "tasks.methods", "BayesianLinear")
+    for n in (size - 2, size + 2):
+        batch = transitions(weights(rng), n, rng, noise=0.01)
+        (fitted,) = methods.fit_all([(spec, BayesianLinear())], batch, 0)
+        assert isinstance(fitted.method, BayesianLinear)
+    mean, var = fitted.method.adapt(batch, rng=rng).predict(
+        np.zeros((0, 2)), np.zeros(0, int)
+    )
+    assert mean.shape == var.shape == (0, 2)
+    Spy.seen = []
+    methods.fit_all([(MethodSpec("spy", "m", "A"), Spy())], batch, 0)
+    (_, train), (_, test) = Spy.seen[:2]
+    np.testing.assert_array_equal(train, batch.states[:size])
+    np.testing.assert_array_equal(test, batch.states[size:])
 
 
 @pytest.mark.parametrize(
