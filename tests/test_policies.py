@@ -224,6 +224,52 @@ def test_a_policy_that_breaks_in_a_trial_says_where(tmp_path, cls, where):
     assert f"in method late: {where}" in note and "setting 0, trial 0" in note
 
 
+class FailsAtTheEnd(Acts):
+    def end_episode(self):
+        raise RuntimeError("end_episode failed")
+
+
+def test_the_try_ends_its_episode_so_a_broken_end_episode_fails_early():
+    """fit_all's try calls end_episode, as every real episode's end will: a
+    policy whose end_episode breaks is refused before the run's long stages."""
+    with pytest.raises(RuntimeError, match="end_episode failed") as err:
+        methods.fit_all([(MethodSpec("e", "m", "A"), FailsAtTheEnd())], batch(), 0, 3)
+    assert "in method e: end_episode" in "".join(err.value.__notes__)
+
+
+class Records(Acts):
+    """Keeps the calls its agents get, on the class (the try runs on a copy)."""
+
+    calls: list = []
+
+    def act(self, state):
+        Records.calls.append("act")
+        return 0
+
+    def observe(self, state, action, reward, next_state, terminal):
+        Records.calls.append("observe")
+
+    def end_episode(self):
+        Records.calls.append("end_episode")
+
+
+def test_the_try_steps_once_or_on_an_empty_batch_only_ends_the_episode():
+    """fit_all's try of a policy: act, observe and end_episode on the first
+    batch transition; with no batch transition to act on, end_episode alone."""
+    for data, expected in [
+        (batch(), ["act", "observe", "end_episode"]),
+        (batch().take(np.arange(0)), ["end_episode"]),
+    ]:
+        Records.calls = []
+        methods.fit_all([(MethodSpec("r", "m", "A"), Records())], data, 0, 3)
+        assert Records.calls == expected
+
+
+def test_the_example_policy_refuses_an_unknown_domain():
+    with pytest.raises(ValueError, match="domain: expected one of .*, got 'pendulum'"):
+        SarsaPolicy("pendulum")
+
+
 def test_the_try_leaves_the_fitted_object_as_fit_left_it():
     policy = Counts()
     (fitted,) = methods.fit_all([(MethodSpec("c", "m", "A"), policy)], batch(), 0, 3)
@@ -271,9 +317,9 @@ class ModelDraws:
 
 
 def test_a_models_fit_and_each_trials_adapt_get_their_own_streams():
-    """fit gets (seed, name, 0); a transfer trial's adapt after e real
-    episodes of trial t on setting i gets (seed, name, 1, 3, i, t, e), as
-    method_seed says: the same
+    """fit gets (seed, name, 0), fit_all's tries (seed, name, 1, 2) and (seed,
+    name, 1, 2, 1); a transfer trial's adapt after e real episodes of trial t on
+    setting i gets (seed, name, 1, 3, i, t, e), as method_seed says: the same
     for the same trial, another for another (an unseeded or constant stream
     would pass the other tests: their methods draw nothing)."""
     from tasks.transfer import TrialJob, run_trial, set_models
@@ -289,6 +335,10 @@ def test_a_models_fit_and_each_trials_adapt_get_their_own_streams():
     )
     fit = np.random.default_rng(method_seed(7, "m", 0)).random()
     assert ModelDraws.drawn["fit"] == [fit]
+    # fit_all's two tries (TRIAL_SIZE transitions, then none): keys (2,), (2, 1)
+    for n_seen, key in [(methods.TRIAL_SIZE, (2,)), (0, (2, 1))]:
+        tried = np.random.default_rng(method_seed(7, "m", 1, *key)).random()
+        assert ModelDraws.drawn[n_seen] == [tried], key
     ModelDraws.drawn = {}
     params = AcrobotParams(link_mass_1=0.9, link_mass_2=1.1)
     trials = [(0, 0), (1, 2), (0, 0)]
