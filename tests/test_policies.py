@@ -523,6 +523,62 @@ def test_a_method_that_will_not_pickle_is_refused_when_workers_need_it():
     )
 
 
+class Outer:
+    class Inner(Acts):
+        pass
+
+
+def test_provenance_says_nothing_of_a_source_file_that_is_gone(tmp_path, monkeypatch):
+    """A class whose module's file is no longer there (deleted or moved after
+    the import): no file, hash or version, and no error (provenance is
+    bookkeeping and must not stop a run whose method loaded)."""
+    import sys
+    import types
+
+    module = types.ModuleType("gone_method")
+    module.__file__ = str(tmp_path / "gone_method.py")  # never written
+    monkeypatch.setitem(sys.modules, "gone_method", module)
+    gone = type("Gone", (Acts,), {"__module__": "gone_method"})()
+    (entry,) = methods.provenance(
+        [(MethodSpec("g", "gone_method", "G"), gone)]
+    ).values()
+    assert entry == {
+        "module": "gone_method", "class": "gone_method.Gone", "file": None,
+        "sha256": None, "version": None,
+    }  # fmt: skip
+
+
+def test_a_relative_installed_location_is_not_read_against_the_cwd(
+    tmp_path, monkeypatch
+):
+    """_version_holding: a distribution whose files locate as relative paths
+    (some editable installs) would claim any file of that name in the working
+    directory; the same file located absolutely is the distribution's."""
+    from pathlib import Path
+
+    (tmp_path / "mine.py").write_text("")
+    monkeypatch.chdir(tmp_path)
+
+    class Dist:
+        version, files = "1.0", ["mine.py"]
+
+        def __init__(self, root):
+            self.root = root
+
+        def locate_file(self, name):
+            return Path(self.root) / name
+
+    distributions = {"mine": ["mine"]}
+    monkeypatch.setattr(
+        methods.metadata, "packages_distributions", lambda: distributions
+    )
+    for root, expected in [("", None), (tmp_path, "1.0")]:
+        monkeypatch.setattr(
+            methods.metadata, "distribution", lambda _, root=root: Dist(root)
+        )
+        assert methods._version_holding(str(tmp_path / "mine.py"), "mine") == expected
+
+
 def test_provenance_names_the_class_its_file_and_nothing_it_cannot_tell():
     import numpy
 
@@ -541,6 +597,14 @@ def test_provenance_names_the_class_its_file_and_nothing_it_cannot_tell():
         "module": "x", "class": "not_a_module.Dynamic", "file": None,
         "sha256": None, "version": None,
     }  # fmt: skip
+    # a class nested in another is named by its qualified name, as it is found
+    (entry,) = methods.provenance([(MethodSpec("n", "x", "Y"), Outer.Inner())]).values()
+    assert entry["class"] == f"{__name__}.Outer.Inner"
+    # a class of an installed package's submodule: that package's version
+    (entry,) = methods.provenance(
+        [(MethodSpec("g", "numpy", "random.default_rng"), np.random.default_rng(0))]
+    ).values()
+    assert entry["version"] == numpy.__version__ and entry["sha256"] is not None
     # an installed package's own file gets its version; another file, none
     assert methods._version_holding(numpy.__file__, "numpy") == numpy.__version__
     assert methods._version_holding(__file__, "numpy") is None
