@@ -141,8 +141,12 @@ def check_specs(specs: Any) -> tuple[MethodSpec, ...]:
                 f"methods: {p.name!r} is (or is recorded or reported as) a built-in "
                 "method; choose another name"
             )
-        if names.count(p.name) > 1:
-            raise ValueError(f"methods: the name {p.name!r} is given twice")
+        same = [n for n in names if n.lower() == p.name.lower()]
+        if len(same) > 1:  # in any case, as the built-in names above
+            raise ValueError(
+                f"methods: the name {p.name!r} is given twice"
+                + ("" if len(set(same)) == 1 else f" ({' and '.join(map(repr, same))})")
+            )
         twins = [n for n in names if n != p.name and _crc(n) == _crc(p.name)]
         if twins:  # their streams would coincide (method_seed)
             raise ValueError(

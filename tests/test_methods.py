@@ -177,6 +177,10 @@ def test_specs_must_be_a_sequence_of_distinct_names():
         methods.check_specs(LINEAR)
     with pytest.raises(ValueError, match="'linear' is given twice"):
         methods.check_specs([LINEAR, "linear=tests.test_methods:Constant"])
+    # in any case, as the built-in names: a report with rows "linear" and
+    # "Linear" would be as ambiguous
+    with pytest.raises(ValueError, match="given twice \\('linear' and 'Linear'\\)"):
+        methods.check_specs([LINEAR, "Linear=tests.test_methods:Constant"])
     # two names with one CRC-32 would share their streams
     with pytest.raises(ValueError, match="'plumless' and 'buckeroo' would share"):
         methods.check_specs(
