@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import fnmatch
 import importlib
 import json
@@ -10,6 +11,7 @@ import os
 import pickle
 import re
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -24,22 +26,28 @@ from tasks.experiment import (
     check_counts,
     check_folder_out,
     check_out_file,
+    check_settings,
     describe_environment,
     environment,
     first_episode_within,
+    flag_error,
+    fmt_bounds,
     fmt_ci,
     margin_to_target,
+    markdown_table,
     mean_ci,
     one_blas_thread,
     paired_difference,
     path_argument,
     pool_map,
+    read_json_object,
     run_dir,
     to_jsonable,
     trial_seeds,
     with_added_fields,
     write_json,
     write_text,
+    writes_metrics,
 )
 
 
@@ -54,6 +62,18 @@ def test_mean_ci_matches_t_interval_and_covers_at_nominal_rate():
     # 400 independent intervals: coverage ~ Binomial(400, .95)/400, sd ~ 0.011
     coverage = np.mean((ci["low"] <= 3.0) & (3.0 <= ci["high"]))
     assert abs(coverage - 0.95) < 4 * np.sqrt(0.95 * 0.05 / 400)
+
+
+def test_mean_ci_counts_the_samples_along_its_axis():
+    """Along axis 1, each row's t-interval: n (and so the t quantile's degrees
+    of freedom and the standard error) is the length of that axis, not of the
+    first one (3 rows of 5 samples: df 4, not 2)."""
+    x = np.random.default_rng(5).normal(size=(3, 5))
+    ci = mean_ci(x, axis=1)
+    assert ci["n"] == 5
+    for i, row in enumerate(x):
+        low, high = stats.t.interval(0.95, df=4, loc=row.mean(), scale=stats.sem(row))
+        np.testing.assert_allclose([ci["low"][i], ci["high"][i]], [low, high])
 
 
 def test_an_older_config_reads_with_the_values_it_ran_with():
@@ -72,8 +92,12 @@ def test_an_older_config_reads_with_the_values_it_ran_with():
 
 def test_mean_ci_of_one_sample_has_no_interval():
     """It was the point itself, printed as "+91.5 [91.5, 91.5]": a zero-width
-    interval that reads as certainty (README's --trials 1 prediction runs)."""
-    ci = mean_ci([2.5])
+    interval that reads as certainty (README's --trials 1 prediction runs). It
+    says so without numpy's warnings (a standard deviation of ddof 1, a t
+    quantile of df 0), which a --trials 1 run would print once per interval."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ci = mean_ci([2.5])
     assert ci["mean"] == 2.5 and ci["n"] == 1
     assert np.isnan(ci["low"]) and np.isnan(ci["high"])
     assert fmt_ci(ci, signed=True) == "+2.5 [no interval: one sample]"
@@ -163,6 +187,12 @@ def test_margin_to_target_is_the_curve_above_the_threshold_with_an_interval():
         0.95, df=29, loc=per_trial.mean(), scale=stats.sem(per_trial)
     )
     np.testing.assert_allclose([d["low"][1], d["high"][1]], [low, high])
+    # another margin moves every trial's threshold by the margin's change times
+    # |r_i| (the reference's returns are negative: |r_i| = -r_i)
+    wider = margin_to_target(other, true, window=3, margin=0.25)
+    np.testing.assert_allclose(
+        wider["mean"] - d["mean"], 0.15 * np.abs(true[:, -3:].mean(axis=1)).mean()
+    )
     with pytest.raises(ValueError, match="same trials"):
         margin_to_target(other[:5], true, window=3)
 
@@ -170,6 +200,11 @@ def test_margin_to_target_is_the_curve_above_the_threshold_with_an_interval():
 def test_paired_difference_rejects_unpaired_shapes():
     with pytest.raises(ValueError, match="a, b: expected equal shapes"):
         paired_difference(np.zeros((3, 2)), np.zeros((4, 2)))
+    # equal shapes of another rank are not (trials, episodes) either: 3-D ones
+    # were averaged over their second axis as if it were the episodes
+    for shape in [(6,), (3, 2, 4)]:
+        with pytest.raises(ValueError, match=r"expected equal shapes \(trials, ep"):
+            paired_difference(np.zeros(shape), np.zeros(shape))
 
 
 def test_json_artefacts_are_plain_and_nan_free(tmp_path):
@@ -177,6 +212,12 @@ def test_json_artefacts_are_plain_and_nan_free(tmp_path):
     assert to_jsonable(obj) == {"a": [0, 1, 2], "b": None, "c": [1, 2]}
     path = write_json(tmp_path / "m.json", obj)
     assert json.loads(path.read_text())["a"] == [0, 1, 2]
+    # numpy booleans, paths and numpy integer keys (none of which json takes)
+    # become what reading the file back gives
+    obj = {"ok": np.bool_(True), "out": Path("runs/x"), "per": {np.int64(3): 1.5}}
+    plain = {"ok": True, "out": "runs/x", "per": {"3": 1.5}}
+    assert to_jsonable(obj) == plain and type(to_jsonable(obj)["ok"]) is bool
+    assert json.loads(write_json(tmp_path / "m.json", obj).read_text()) == plain
 
 
 def test_a_write_removes_what_killed_writes_of_the_same_file_left(tmp_path):
@@ -205,6 +246,27 @@ def test_fmt_ci_signs_a_positive_mean_only_when_asked():
     # large values whole, not as 1.19e+03 (nor 999.6 as 1e+03)
     big = {"mean": 1187.1, "low": -324.4, "high": 999.6}
     assert fmt_ci(big, signed=True) == "+1187 [-324, 1000]"
+    # zero, and small values from 1e-3 up, as plain decimals (scientific notation
+    # starts below 1e-3: a 0 reads as 0, not 0.00e+00)
+    small = {"mean": 0.0, "low": 0.001, "high": 0.005}
+    assert fmt_ci(small) == "0 [0.001, 0.005]"
+    # the bounds take the digits asked for, as the mean does
+    five = {"mean": 1.234567, "low": 0.1234567, "high": 2.345678}
+    assert fmt_ci(five, digits=5) == "1.2346 [0.12346, 2.3457]"
+
+
+def test_fmt_bounds_give_no_interval_where_either_bound_is_missing():
+    assert fmt_bounds(1.0, 2.0, str) == "[1.0, 2.0]"
+    for low, high in [(np.nan, 2.0), (1.0, np.nan), (None, 2.0), (1.0, None)]:
+        assert fmt_bounds(low, high, str) == "[no interval: one sample]"
+
+
+def test_markdown_table_has_a_rule_of_as_many_columns_as_its_header():
+    """GitHub renders a table only if the rule under the header has one cell per
+    column."""
+    assert markdown_table(["a", "b", "c"], [[1, 2.5, None]]) == (
+        "| a | b | c |\n|---|---|---|\n| 1 | 2.5 | None |"
+    )
 
 
 def test_check_counts_names_the_first_value_below_one():
@@ -383,10 +445,20 @@ def test_run_dir_replaces_the_previous_run_of_the_same_experiment(tmp_path, caps
     assert "identified.json" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("config", [None, {"name": "other"}])
+def test_run_dir_in_a_folder_without_a_previous_run_says_nothing(tmp_path, capsys):
+    """Other files in a folder that holds no run: nothing is replaced, so the
+    message that the previous run's files were replaced would be false."""
+    (tmp_path / "notes.txt").write_text("mine")
+    assert run_dir(tmp_path, "exp", ("config.json", "metrics.json")) == tmp_path
+    assert (tmp_path / "notes.txt").read_text() == "mine"
+    assert capsys.readouterr().err == ""
+
+
+@pytest.mark.parametrize("config", [None, {"name": "other"}, {"seed": 0}, [1]])
 def test_run_dir_refuses_a_folder_that_is_not_its_run(tmp_path, config):
     """A folder holding files named like the artefacts (a user's report.md, or
-    another experiment's run) is not deleted from: nothing is touched."""
+    another experiment's run, or a config.json of no run: no name, not an
+    object) is not deleted from: nothing is touched."""
     (tmp_path / "report.md").write_text("mine")
     if config is not None:
         write_json(tmp_path / "config.json", config)
@@ -404,8 +476,11 @@ def test_outputs_that_cannot_be_written_are_refused_before_any_work(tmp_path, ma
     file; nothing is made. A missing parent folder is fine: it is made."""
     file = tmp_path / "file"
     file.write_text("mine")
-    with pytest.raises(ValueError, match="^out: expected a (folder|file) path, got ''"):
-        make("", "exp")
+    for blank in ("", " "):  # Path(" ") would be a folder named by a space
+        with pytest.raises(
+            ValueError, match=f"^out: expected a (folder|file) path, got '{blank}'"
+        ):
+            make(blank, "exp")
     with pytest.raises(ValueError, match=f"^out: {file} is not a folder, so"):
         make(file / "sub" / "deeper", "exp")
     assert file.read_text() == "mine" and sorted(tmp_path.iterdir()) == [file]
@@ -422,6 +497,34 @@ def test_an_output_in_a_folder_that_takes_no_files_is_refused_before_any_work(ma
         make("/sys/hipmdp_out", "exp")
     with pytest.raises(ValueError, match="^--out: cannot write in /sys"):
         check_folder_out(Path("/sys/hipmdp_out"), "--out")
+
+
+def test_an_existing_folder_that_takes_no_files_is_refused_though_its_parent_does(
+    tmp_path, monkeypatch
+):
+    """A folder that exists is probed itself, not its parent: a read-only
+    folder (a read-only mount point, say) in a writable one would otherwise
+    pass, and the run fail at its first file. File systems that refuse files
+    even to root are not at hand in a test, so the probe's file creation is
+    refused for that one folder."""
+    import errno
+    import tempfile
+
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    real = tempfile.TemporaryFile
+
+    def refusing(*args, dir=None, **kwargs):
+        if dir is not None and Path(dir) == ro:
+            raise OSError(errno.EROFS, "Read-only file system")
+        return real(*args, dir=dir, **kwargs)
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", refusing)
+    with pytest.raises(
+        ValueError, match=f"^out: cannot write in {re.escape(str(ro))} "
+    ):
+        run_dir(ro, "exp")
+    assert run_dir(tmp_path / "rw", "exp") == tmp_path / "rw"
 
 
 def test_a_check_may_not_write_over_its_runs_files(tmp_path):
@@ -591,6 +694,77 @@ def test_git_commit_marks_uncommitted_changes_and_ignores_an_enclosing_checkout(
     assert "code aaaaaaaaaaaa+dirty." in describe_environment(env)
     answers["rev-parse"]["--show-toplevel"] = str(root.parent)
     assert experiment._git_commit() is None
+
+
+def test_check_settings_wants_two_training_pairs_and_pairs_only():
+    """Settings are (mass, mass) pairs, each checked by the domain's ``make``;
+    the latent model needs at least two training instances to vary across."""
+
+    @dataclasses.dataclass(frozen=True)
+    class Config:
+        train: tuple = ((1, 2), (3, 4))
+        test: tuple = ((5, 6),)
+
+    config = Config()
+    checked = []
+    check_settings(config, "train", "test", lambda *p: checked.append(p), "mass")
+    assert config.train == ((1.0, 2.0), (3.0, 4.0)) and config.test == ((5.0, 6.0),)
+    assert checked == [(1.0, 2.0), (3.0, 4.0), (5.0, 6.0)]
+    for train, message in [
+        (((1, 2),), "^train: expected at least two settings$"),
+        (((1, 2), (3, 4, 5)), r"^train: expected mass pairs, got \(\(1.0, 2.0\), \(3"),
+        ((), r"^train: expected mass pairs, got \(\)$"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            check_settings(
+                Config(train=train), "train", "test", lambda *p: None, "mass"
+            )
+    with pytest.raises(ValueError, match=r"^test: expected mass pairs"):
+        check_settings(Config(test=((1,),)), "train", "test", lambda *p: None, "mass")
+
+
+def test_flag_error_leads_with_the_flag_only_where_a_flag_sets_the_field():
+    assert flag_error(ValueError("n_trials: expected >= 1, got 0")) == (
+        "--trials (n_trials): expected >= 1, got 0"
+    )
+    for text in ("test_masses: expected mass pairs, got ()", "no field: here", "x"):
+        assert flag_error(ValueError(text)) == text
+
+
+@pytest.mark.parametrize(
+    "text, kind",
+    [("[1]", "an array"), ('"a"', "a string"), ("true", "a boolean"),
+     ("3", "a number"), ("null", "null")],
+)  # fmt: skip
+def test_read_json_object_refuses_other_json_naming_the_file(tmp_path, text, kind):
+    path = tmp_path / "config.json"
+    path.write_text(text)
+    with pytest.raises(
+        ValueError,
+        match=f"^{re.escape(str(path))}: expected a JSON object .* got {kind}$",
+    ):
+        read_json_object(path)
+    path.write_text('{"seed": 0')  # cut short
+    with pytest.raises(ValueError, match=f"^{re.escape(str(path))}: not a JSON file"):
+        read_json_object(path)
+    path.write_text('{"seed": 0}')
+    assert read_json_object(path) == {"seed": 0}
+
+
+def test_metrics_are_written_even_if_an_artefact_fails(tmp_path):
+    """A figure that fails after an hour's run must not lose its numbers:
+    metrics.json is written, with the timings and the machine, and the error
+    still raised."""
+    metrics, seconds = {"returns": [1.0]}, {"fit": 2.0}
+    with pytest.raises(RuntimeError, match="no display"):
+        with writes_metrics(
+            tmp_path, metrics, seconds, time.perf_counter(), {"cpu": "x"}
+        ):
+            raise RuntimeError("no display")
+    written = json.loads((tmp_path / "metrics.json").read_text())
+    assert written["returns"] == [1.0] and written["environment"] == {"cpu": "x"}
+    assert set(written["seconds"]) == {"fit", "artefacts", "total"}
+    assert written["seconds"]["total"] >= written["seconds"]["artefacts"] >= 0
 
 
 def test_seed_zero_is_a_seed():
