@@ -252,6 +252,65 @@ def test_only_an_added_methods_entries_are_set_apart(tmp_path):
     assert result.arrays["trials.npz:test_masses"]["n_differ"] == 2
 
 
+def test_an_added_methods_entries_are_named_by_its_name_alone_or_in_a_pair(tmp_path):
+    """The added method's entries are set apart wherever its name stands: alone
+    (``returns.d``) or in a pair (``hipmdp - d``). Its entries make the runs
+    identical only where both have results; so do its rows of trials.npz.
+    What the run lacks apart from them is a difference: a metric under no
+    method's name, or one of a method both runs added."""
+    added = {"seed": 0, "progress": True, "methods": ["d=mine:D"]}
+    base = {"returns": {"a": [1.0]}, "paired_difference": {"hipmdp - a": 0.5}}
+    a = _run(tmp_path / "a", metrics=base)
+    more = {
+        "returns": {"a": [1.0], "d": [3.0]},
+        "paired_difference": {"hipmdp - a": 0.5, "hipmdp - d": 0.1},
+    }
+    b = _run(tmp_path / "b", metrics=more, config=added)  # trials.npz as a's
+    result = main(a, b)
+    assert result.metrics == {} and result.arrays["trials.npz:returns"] == "identical"
+    assert result.extra == {
+        str(a): [], str(b): ["paired_difference.hipmdp - d", "returns.d.0"]
+    }  # fmt: skip
+    assert result.shared_identical and not result.identical
+    assert "verdict: identical where both runs have results" in report(result)
+    # its rows of trials.npz alone (no metric of it) are also more, not the same
+    c = _run(tmp_path / "c", metrics=base, config=added)
+    returns = np.r_[np.arange(12.0).reshape(3, 4), np.full((1, 4), 7.0)]
+    np.savez(c / "trials.npz", returns=returns, methods=np.array(["a", "b", "c", "d"]))
+    result = main(a, c)
+    assert result.metrics == {} and not any(result.extra.values())
+    assert result.shared_identical and not result.identical
+    # a metric under no method's name
+    d = _run(tmp_path / "d", metrics=more | {"floor": 1.0}, config=added)
+    assert main(a, d).metrics == {"floor": [None, 1.0]}
+    # the added method's entry that only one of two runs adding it has
+    fewer = more | {"paired_difference": base["paired_difference"]}
+    e = _run(tmp_path / "e", metrics=fewer, config=added)
+    result = main(b, e)
+    assert result.metrics == {"paired_difference.hipmdp - d": [0.1, None]}
+    assert not result.shared_identical
+
+
+def test_a_metric_null_in_one_run_and_missing_in_the_other_is_a_difference(tmp_path):
+    """A metric written as null (no value: an interval of one sample, a target
+    never reached) is not the same as no metric at all."""
+    base = {"n": [1, 2]}
+    a = _run(tmp_path / "a", metrics=base | {"episodes_to_within": None})
+    b = _run(tmp_path / "b", metrics=base)
+    result = main(a, b)
+    assert list(result.metrics) == ["episodes_to_within"] and not result.identical
+
+
+def test_a_folder_without_metrics_is_not_a_run(tmp_path):
+    """Only a refit folder (``refit`` in its config) has no metrics.json: any
+    other folder without one is refused, not compared as a run with no
+    metrics."""
+    a, b = _run(tmp_path / "a"), _run(tmp_path / "b")
+    (b / "metrics.json").unlink()
+    with pytest.raises(FileNotFoundError, match="no metrics.json; expected a fin"):
+        main(a, b)
+
+
 def test_the_order_blas_libraries_were_loaded_in_is_no_difference(tmp_path):
     """threadpoolctl lists numpy's and scipy's BLAS in load order, which varies
     from process to process: two runs in one environment read as differing."""
@@ -349,6 +408,15 @@ def test_compare_arrays_nan_shapes_dtypes_and_strings():
     assert compare_arrays(np.zeros(2), np.array(["a", "b"])) == {
         "dtypes": ["float64", "<U1"]
     }  # fmt: skip
+    # complex entries by their modulus of difference, not their real parts
+    assert compare_arrays(np.array([1 + 1j]), np.array([1 + 3j])) == {
+        "max_abs_diff": 2.0, "n_differ": 1, "size": 1
+    }  # fmt: skip
+    # booleans are numbers: 0 and 1, as integers are
+    assert compare_arrays(np.array([True, False]), np.array([1, 0])) == "identical"
+    assert compare_arrays(np.array([True, False]), np.array([True, True])) == {
+        "max_abs_diff": 1.0, "n_differ": 1, "size": 2
+    }  # fmt: skip
     assert flatten({"a": [1, {"b": 2}]}) == {"a.0": 1, "a.1.b": 2}
     assert flatten({"a": []}) != flatten({})
 
@@ -368,3 +436,16 @@ def test_cli_reports_and_rejects_a_folder_that_is_not_a_run(tmp_path, capsys):
         cli(["no_run", "no_run_either", "--out", str(out / "sub")])
     assert exit_info.value.code == 2
     assert f"out: {out} is not a folder, so" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:  # no rows at all
+        cli([str(a), str(tmp_path / "b"), "--show", "0"])
+    assert exit_info.value.code == 2
+    assert "--show: expected >= 1, got 0" in capsys.readouterr().err
+
+
+def test_the_report_says_how_many_more_rows_only_when_there_are_more(tmp_path):
+    a = _run(tmp_path / "a")
+    b = _run(tmp_path / "b", config={"seed": 1, "split": "time", "progress": True})
+    result = main(a, b)
+    assert len(result.config) == 2
+    assert "more (--show N" not in report(result, limit=2)
+    assert "  … and 1 more (--show N, or --out FILE)" in report(result, limit=1)
