@@ -347,6 +347,12 @@ def _on_shared(a: np.ndarray, b: np.ndarray, key: str, rows) -> tuple:
     one row per method (``PER_METHOD``); else as they are."""
     if rows is None or key not in PER_METHOD:
         return a, b
+    for x, r in ((a, rows[0]), (b, rows[1])):
+        if x.ndim == 0 or x.shape[0] <= max(r):  # a damaged file
+            raise ValueError(
+                f"{key}: expected a row per entry of its file's methods, got shape "
+                f"{x.shape}"
+            )
     return a[rows[0]], b[rows[1]]
 
 

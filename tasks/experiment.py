@@ -397,6 +397,8 @@ def mean_ci(x: Sequence[float] | Array, axis: int = 0, level: float = 0.95) -> d
     (null in JSON; :func:`fmt_ci` says so), not the point itself, which would read
     as certainty.
     """
+    if not 0 < level < 1:
+        raise ValueError(f"level: expected a number in (0, 1), got {level!r}")
     x = np.asarray(x, dtype=float)
     n = x.shape[axis]
     mean = x.mean(axis=axis)
@@ -437,6 +439,7 @@ def margin_to_target(
             f"returns, reference: expected (trials, episodes) with the same trials, "
             f"got {returns.shape} and {reference.shape}"
         )
+    check_integer("window", window, 1)  # [:, -0:] would be every episode
     final = reference[:, -window:].mean(axis=1)
     threshold = final - margin * np.abs(final)
     return mean_ci(returns - threshold[:, None], axis=0)

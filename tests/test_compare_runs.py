@@ -374,6 +374,27 @@ def test_a_damaged_array_is_named_unreadable(tmp_path):
     assert result.arrays["trials.npz:returns"] == "identical"
 
 
+def test_a_trials_file_with_fewer_rows_than_methods_is_unreadable(tmp_path):
+    """A trials.npz whose ``returns`` has fewer rows than its ``methods`` names
+    (a damaged or hand-edited file), against a run that shares some methods:
+    lining up the shared rows raised an IndexError that stopped the comparison."""
+    from hipmdp.data import npz_bytes
+
+    a, b = _run(tmp_path / "a"), _run(tmp_path / "b")
+    (a / "trials.npz").write_bytes(npz_bytes({
+        "returns": np.zeros((3, 2)), "methods": np.array(["true", "mine", "hipmdp"])
+    }))  # fmt: skip
+    (b / "trials.npz").write_bytes(npz_bytes({
+        "returns": np.zeros((2, 2)), "methods": np.array(["x", "true", "hipmdp"])
+    }))  # fmt: skip
+    result = main(a, b)
+    assert result.arrays["trials.npz:returns"] == {
+        "unreadable": "returns: expected a row per entry of its file's methods, "
+        "got shape (2, 2)"
+    }
+    assert not result.identical
+
+
 def test_compare_arrays_nan_shapes_dtypes_and_strings():
     nan = np.array([1.0, np.nan, 3.0])
     assert compare_arrays(nan, nan.copy()) == "identical"

@@ -103,6 +103,13 @@ def test_mean_ci_of_one_sample_has_no_interval():
     assert fmt_ci(ci, signed=True) == "+2.5 [no interval: one sample]"
     rows = mean_ci(np.array([[1.0, 2.0]]), axis=0)  # per column, one sample each
     assert rows["low"].shape == (2,) and np.isnan(rows["high"]).all()
+
+
+@pytest.mark.parametrize("level", [0.0, 1.0, 95])
+def test_mean_ci_refuses_a_level_outside_0_1(level):
+    # 95 for 0.95 gave a NaN interval (the t quantile of 48): no error, no interval
+    with pytest.raises(ValueError, match="level: expected a number in \\(0, 1\\)"):
+        mean_ci([1.0, 2.0, 3.0], level=level)
     assert fmt_ci({"mean": 1.0, "low": None, "high": None}) == (
         "1 [no interval: one sample]"
     )  # as a metrics.json read back holds it
@@ -195,6 +202,9 @@ def test_margin_to_target_is_the_curve_above_the_threshold_with_an_interval():
     )
     with pytest.raises(ValueError, match="same trials"):
         margin_to_target(other[:5], true, window=3)
+    # [:, -0:] is every episode: a window of 0 was the mean over all of them
+    with pytest.raises(ValueError, match="window: expected >= 1, got 0"):
+        margin_to_target(other, true, window=0)
 
 
 def test_paired_difference_rejects_unpaired_shapes():
