@@ -8,6 +8,7 @@ import dataclasses
 from typing import NamedTuple
 
 import numpy as np
+import pytest
 
 from hipmdp.data import Transitions
 from tasks import acrobot, methods, transfer
@@ -116,7 +117,8 @@ class Belief(NamedTuple):
 
 class CountingHipMDP:
     """A stand-in HiP-MDP whose belief counts the transitions it has filtered
-    (mean (n,)) and whose prediction is Δs = 0.001 n in every dimension."""
+    (mean (n,), variance 1 / (1 + n)) and whose prediction is Δs = 0.001 n in
+    every dimension."""
 
     def prior(self):
         return Belief(np.zeros(1), np.eye(1))
@@ -133,7 +135,8 @@ class CountingHipMDP:
 def test_a_recorded_episode_shows_the_belief_and_prediction_of_each_step():
     """Step t's recorded prediction is the model's with the belief filtered on
     the t transitions before it (the episode's and all earlier ones), and the
-    recorded belief after t transitions is that belief."""
+    recorded belief after t transitions is that belief: its mean and its
+    standard deviation (the recording draws ±2σ), not its variance."""
     set_models(ACROBOT, TINY, CountingHipMDP(), None)
     result = run_trial(TrialJob("hipmdp", 0, 0, PARAMS, (5, (0, 0)), True))
     before = 0
@@ -141,6 +144,7 @@ def test_a_recorded_episode_shows_the_belief_and_prediction_of_each_step():
         steps = len(trace.predicted)
         counts = before + np.arange(steps + 1)
         np.testing.assert_array_equal(trace.belief_mean[:, 0], counts)
+        np.testing.assert_allclose(trace.belief_std[:, 0], 1 / np.sqrt(1 + counts))
         velocities = trace.predicted[:, 2:] - trace.states[:-1, 2:]
         expected = np.repeat(1e-3 * counts[:-1, None], 2, axis=1)
         np.testing.assert_allclose(velocities, expected, atol=1e-12)
@@ -176,3 +180,25 @@ def test_a_policy_sees_each_state_as_it_acts_and_each_transition_it_made():
         np.testing.assert_array_equal(s, states[t])
         np.testing.assert_array_equal(s_obs, states[t])
         np.testing.assert_array_equal(s_next, states[t + 1])
+
+
+@pytest.mark.parametrize(
+    "field", ["n_episodes", "n_start_states", "max_steps", "planning_max_steps"]
+)
+def test_a_size_of_zero_is_refused_on_construction(field):
+    """Each of these must be at least 1 (no start states leaves planning
+    nowhere to begin; no steps, no episode): refused as the config is made,
+    naming the field, not minutes into a run."""
+    with pytest.raises(ValueError, match=f"^{field}: expected >= 1"):
+        dataclasses.replace(TINY, **{field: 0})
+
+
+def test_only_the_hipmdp_has_weight_means():
+    """A trial's weight_means is the HiP-MDP's belief mean before and after each
+    real episode, shape (E + 1, K); the other methods have no belief: None, not
+    an empty array."""
+    set_models(ACROBOT, dataclasses.replace(TINY, n_episodes=1), CountingHipMDP(), None)
+    true = run_trial(TrialJob("true", 0, 0, PARAMS, (5, (0, 0)), False))
+    hip = run_trial(TrialJob("hipmdp", 0, 0, PARAMS, (5, (0, 0)), False))
+    assert true.weight_means is None
+    assert hip.weight_means.shape == (2, 1)
