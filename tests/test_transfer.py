@@ -202,3 +202,10 @@ def test_only_the_hipmdp_has_weight_means():
     hip = run_trial(TrialJob("hipmdp", 0, 0, PARAMS, (5, (0, 0)), False))
     assert true.weight_means is None
     assert hip.weight_means.shape == (2, 1)
+
+
+def test_an_unknown_method_is_refused_naming_the_known_ones():
+    """A misspelt method must not run as some other method's trial."""
+    set_models(ACROBOT, TINY, CountingHipMDP(), None)
+    with pytest.raises(ValueError, match=r"^method: expected one of \('true', "):
+        run_trial(TrialJob("HiP-MDP", 0, 0, PARAMS, (5, (0, 0)), False))
