@@ -544,3 +544,187 @@ def test_seed_spread_reads_the_run(run, tmp_path):
     result = assert_reads_the_run(run.out, tmp_path, "acrobot_swingup")
     labels = [n["label"] for n in result["numbers"]]
     assert "HiP-MDP margin to the 10% target, episode 2" in labels
+
+
+def _trials(returns: dict, setting: int = 0, n_weights: int = 1) -> list:
+    """TrialResults of one setting from ``{method: (trials, episodes) returns}``,
+    steps = -returns (the acrobot's -1 per step)."""
+    return [
+        TrialResult(m, setting, i, r[i], (-r[i]).astype(int),
+                    np.zeros((r.shape[1] + 1, n_weights)), None)
+        for m, r in returns.items() for i in range(len(r))
+    ]  # fmt: skip
+
+
+def test_near_optimal_is_10_percent_of_the_true_models_last_episodes():
+    """3 trials x 4 episodes, final_window 2. The true model's mean curve is
+    [-40, -30, -32.67, -27.33]: the target is the mean of its last two, -30, and
+    within 10% is >= -33; its median curve is [-40, -30, -24, -16], target -20,
+    within 10% >= -22. The HiP-MDP's curve [-35, -23, -21, -21] is within 20%
+    of either target an episode earlier than within 10%, and within 10% of the
+    first episodes' target (-35) from episode 1. Episodes of 50 steps ran to the
+    50-step limit."""
+    true = np.array(
+        [[-40, -30, -24, -16], [-40, -30, -24, -16], [-40, -30, -50, -50]], float
+    )
+    hip = np.tile([-35.0, -23.0, -21.0, -21.0], (3, 1))
+    average = np.full((3, 4), -45.0)
+    config = dataclasses.replace(
+        TINY,
+        n_trials=3,
+        final_window=2,
+        transfer=dataclasses.replace(TINY.transfer, n_episodes=4, max_steps=50),
+    )
+    m = transfer_metrics(
+        config, _trials({"true": true, "average": average, "hipmdp": hip})
+    )
+    assert m["near_optimal_target"]["true_model_final_mean_return"] == -30.0
+    assert m["near_optimal_target"]["final_window"] == 2
+    assert m["true_model_final_median_return"] == -20.0
+    assert m["episodes_to_near_optimal"] == {"true": 2, "average": None, "hipmdp": 2}
+    assert m["episodes_to_near_optimal_median"]["hipmdp"] == 3
+    # per trial, the threshold is 10% below that trial's true mean over the last
+    # 2 episodes: -22, -22, -55; episode 1's margins -13, -13, +20
+    assert m["margin_to_target"]["hipmdp"]["mean"][0] == pytest.approx(-2.0)
+    np.testing.assert_allclose(m["step_limit_rate"]["true"], [0, 0, 1 / 3, 1 / 3])
+    np.testing.assert_array_equal(m["step_limit_rate"]["hipmdp"], 0.0)
+
+
+def test_test_belief_means_average_each_settings_final_beliefs():
+    """weights.png places each test setting at the mean, over its trials, of the
+    HiP-MDP's belief after the last episode (not the prior it started from)."""
+    returns = {m: np.full((2, 2), -30.0) for m in METHODS}
+    trials = _trials(returns, 0, 2) + _trials(returns, 1, 2)
+    final = {(0, 0): [1, 2], (0, 1): [3, 4], (1, 0): [10, 20], (1, 1): [30, 40]}
+    for r in trials:
+        if r.method == "hipmdp":
+            r.weight_means[-1] = final[r.setting, r.trial]
+    config = dataclasses.replace(TINY, n_trials=2, test_masses=((0.7, 0.9), (1.3, 1.1)))
+    got = transfer_metrics(config, trials)["test_belief_means"]
+    assert got == {"0": [2.0, 3.0], "1": [20.0, 30.0]}
+
+
+def test_trial_arrays_put_each_trial_at_its_method_setting_and_trial():
+    """trials.npz's returns[method, setting, trial] is that trial's; a missing
+    trial is refused rather than left as NaN."""
+    config = dataclasses.replace(TINY, n_trials=3, test_masses=((0.7, 0.9), (1.3, 1.1)))
+    trials = [
+        TrialResult(m, s, t, np.array([-(100 * i + 10 * s + t + 1.0)] * 2),
+                    np.array([100 * i + 10 * s + t + 1] * 2), None, None)
+        for i, m in enumerate(METHODS) for s in range(2) for t in range(3)
+    ]  # fmt: skip
+    arrays = swingup.trial_arrays(config, trials[::-1])
+    assert arrays["returns"].shape == (3, 2, 3, 2)
+    assert arrays["returns"][2, 1, 0, 1] == -211.0  # hipmdp, setting 1, trial 0
+    np.testing.assert_array_equal(arrays["steps"], -arrays["returns"])
+    with pytest.raises(ValueError, match="one result per"):
+        swingup.trial_arrays(config, trials[1:])
+
+
+def _table(report: str, after: str) -> list[list[str]]:
+    """The cells of the first Markdown table after the text ``after``, header
+    row first."""
+    lines = report[report.index(after) :].splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("|"))
+    rows = []
+    for line in lines[start:]:
+        if not line.startswith("|"):
+            break
+        rows.append([c.strip() for c in line.strip("|").split("|")])
+    return [rows[0], *rows[2:]]  # without the |---| line
+
+
+def _nan_bounds(x):
+    """metrics.json's intervals as main holds them: NaN bounds where JSON has
+    null (one sample)."""
+    if isinstance(x, dict):
+        return {
+            k: np.nan if k in ("low", "high") and v is None else _nan_bounds(v)
+            for k, v in x.items()
+        }
+    return [_nan_bounds(v) for v in x] if isinstance(x, list) else x
+
+
+def test_report_tables_show_the_episodes_they_name(run, tmp_path):
+    """10 episodes, one setting, 3 trials. The returns table shows episodes 1,
+    2, 5 and 10; every cell is that episode's number. By hand, with d = (-3, 0,
+    3) per trial: true -20 everywhere (target -20, within 10%: >= -22); average
+    -30 + d; HiP-MDP -(40 - 2e) + d at 0-based episode e, except -60 (the
+    60-step limit) on trial 0 of episodes 1 and 9, and -21 on trial 1 of
+    episode 9. HiP-MDP means: episode 1 -45.67, 2 -38, 5 -32, 9 -34, 10 -22
+    (within 10% first at 10); medians: episode 1 -40, 9 -21 (within at 9)."""
+    d = np.array([-3.0, 0.0, 3.0])[:, None]
+    e = np.arange(10)
+    hip = -(40.0 - 2 * e) + d
+    hip[0, 0] = hip[0, 8] = -60.0
+    hip[1, 8] = -21.0
+    returns = {
+        "true": np.full((3, 10), -20.0), "average": -30.0 + d + 0 * e, "hipmdp": hip
+    }  # fmt: skip
+    config = dataclasses.replace(
+        TINY,
+        n_trials=3,
+        final_window=1,
+        transfer=dataclasses.replace(
+            TINY.transfer, n_episodes=10, planning_max_steps=30
+        ),
+    )
+    metrics = _nan_bounds(json.loads((run.out / "metrics.json").read_text()))
+    metrics |= transfer_metrics(config, _trials(returns))
+    swingup_report.write_report(tmp_path, config, metrics)
+    report = (tmp_path / "report.md").read_text()
+
+    def means(cells):  # "mean [low, high]" cells to their means
+        return [float(c.split(" [")[0]) for c in cells]
+
+    header, *rows = _table(report, "## Returns per real episode")
+    assert header[1:5] == ["episode 1", "episode 2", "episode 5", "episode 10"]
+    row = {r[0]: r for r in rows}
+    assert list(row) == ["true model", "average model", "HiP-MDP"]
+    assert means(row["HiP-MDP"][1:5]) == [-45.67, -38.0, -32.0, -22.0]
+    assert row["HiP-MDP"][5] == "10" and row["average model"][5] == "not within 10"
+    assert "true model's final mean return (-20.0)" in report
+
+    # margin per trial: the return minus -22 (10% below the true model's -20)
+    header, *rows = _table(report, "Per trial, each method's return")
+    assert header == ["method", "episode 1", "episode 2"]
+    assert means({r[0]: r for r in rows}["hipmdp"][1:]) == [-23.67, -16.0]
+
+    # HiP-MDP minus average, per trial over the episodes: -6, -0.7, -1 (trial 0:
+    # -310 - 30 - 17 - 33 over 10 episodes = -39 against -33); one setting,
+    # so "setting as unit" has no interval; episode 2: -8 on every trial
+    header, *rows = _table(report, "## Paired differences")
+    row = {r[0]: r for r in rows}["hipmdp - average"]
+    assert means(row[1:]) == [-2.567, -2.567, -15.67, -8.0]
+    assert row[1] != row[2] == "-2.567 [no interval: one sample]"
+    assert row[4] == "-8 [-8, -8]"
+    header, *rows = _table(report, "on each test setting alone")
+    assert [r[0] for r in rows] == ["(0.9, 1.1)"]
+
+    assert "(each such episode has a return of −60)" in report
+    header, *rows = _table(report, "-step limit\n")
+    assert header[1:] == [f"episode {i}" for i in range(1, 11)]
+    hip_rate = {r[0]: r for r in rows}["HiP-MDP"][1:]
+    assert hip_rate == ["33%"] + ["0%"] * 7 + ["33%", "0%"]
+    # gap -2.567; below the limit: the HiP-MDP's 28 other episodes sum to
+    # -977 + 120, a mean of -30.61, against the average's -30
+    header, *rows = _table(report, "How much of each gap")
+    assert {r[0]: r for r in rows}["hipmdp - average"][1:] == ["-2.6", "-0.6", "-2.0"]
+
+    header, *rows = _table(report, "The same on per-episode medians")
+    assert header[1:5] == ["episode 1", "episode 2", "episode 5", "episode 10"]
+    row = {r[0]: r for r in rows}["HiP-MDP"]
+    assert [float(c) for c in row[1:5]] == [-40.0, -38.0, -32.0, -22.0]
+    assert row[5] == "9"
+    header, *rows = _table(report, "Test log-likelihood")
+    assert [r[0] for r in rows] == list(metrics["loglik_difference"])
+
+
+def test_each_added_method_has_a_colour_of_its_own():
+    """In learning_curves.png and the recording, methods added with --method
+    take ADDED_COLORS in turn: each differs from the others and from the three
+    built-in methods', whatever its name."""
+    methods = [*METHODS, "zeta", "alpha", "mid"]
+    colours = [swingup_report.color(m, methods) for m in methods]
+    assert len(set(colours)) == len(methods)
+    assert colours[3:] == list(swingup_report.ADDED_COLORS[:3])
