@@ -239,6 +239,7 @@ def test_recording_timelines_play_the_episodes_in_turn(run):
     if metrics["n_latent_features"] > 0:
         belief = rrd_times(file, "/belief/w1/mean")
         np.testing.assert_array_equal(belief["step"], real["step"])
+        np.testing.assert_array_equal(belief["episode"], real["episode"])
 
 
 def test_one_episode_under_rerun_off(tmp_path, monkeypatch):
