@@ -194,7 +194,10 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
     margins = metrics["margin_to_target"]
     margin_table = markdown_table(
         ["method"] + [f"episode {e + 1}" for e in range(n_show)],
-        [[m] + [at_episode(margins[m], e) for e in range(n_show)] for m in margins],
+        [
+            [label(m)] + [at_episode(margins[m], e) for e in range(n_show)]
+            for m in margins
+        ],
     )
     paired = metrics["paired_difference"]
     paired_table = markdown_table(

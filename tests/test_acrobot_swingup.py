@@ -689,7 +689,7 @@ def test_report_tables_show_the_episodes_they_name(run, tmp_path):
     # margin per trial: the return minus -22 (10% below the true model's -20)
     header, *rows = _table(report, "Per trial, each method's return")
     assert header == ["method", "episode 1", "episode 2"]
-    assert means({r[0]: r for r in rows}["hipmdp"][1:]) == [-23.67, -16.0]
+    assert means({r[0]: r for r in rows}["HiP-MDP"][1:]) == [-23.67, -16.0]
 
     # HiP-MDP minus average, per trial over the episodes: -6, -0.7, -1 (trial 0:
     # -310 - 30 - 17 - 33 over 10 episodes = -39 against -33); one setting,
