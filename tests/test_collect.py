@@ -144,7 +144,9 @@ def test_non_finite_state_is_dropped_and_reported(monkeypatch):
         (dict(instances=[]), "at least one"),
         (dict(instances=[CartpoleParams()]), "instances must be AcrobotParams"),
         (dict(instance_ids=[0, 0]), "instance_ids must be 2 distinct"),
+        (dict(instance_ids=[0]), "instance_ids must be 2 distinct"),
         (dict(episodes_per_instance=0), "episodes_per_instance must be"),
+        (dict(episodes_per_instance=True), "episodes_per_instance must be"),
         (dict(max_steps=-1), "max_steps must be"),
         (dict(rng=0), "rng: expected a numpy Generator or a sequence of 2"),
         (dict(rng=[np.random.default_rng(0)]), "rng: expected .* a sequence of 2"),
@@ -168,6 +170,14 @@ def test_bad_arguments_raise_clear_errors(kwargs, message):
         collect.collect(
             arguments.pop("domain"), arguments.pop("instances"), **arguments
         )
+
+
+@pytest.mark.parametrize("n_actions", [0, -2, True, 2.0])
+def test_the_random_policy_refuses_a_bad_action_count_when_made(n_actions):
+    """Not at its first draw inside an episode (0 actions), and not silently as
+    one action (True) or a float count."""
+    with pytest.raises(ValueError, match="n_actions must be a positive int"):
+        collect.random_policy(n_actions, rng=np.random.default_rng(0))
 
 
 def test_the_random_policy_is_uniform_and_draws_from_its_own_stream():
@@ -198,9 +208,10 @@ def test_the_random_policy_is_uniform_and_draws_from_its_own_stream():
 
 
 def test_sarsa_gathering_keeps_the_step_limit_and_the_environments_stream():
-    """collect_sarsa's max_steps is every episode's limit, and instance i's
-    episodes start where an environment seeded with the first of the two
-    streams its own spawns starts (the second is the agent's)."""
+    """collect_sarsa's max_steps is every episode's limit, the transitions carry
+    the domain's seconds per action, and instance i's episodes start where an
+    environment seeded with the first of the two streams its own spawns starts
+    (the second is the agent's)."""
     result = collect.collect_sarsa(
         "acrobot", ACROBOTS, episodes_per_instance=2, max_steps=6,
         rng=[np.random.default_rng(s) for s in (7, 8)],
@@ -208,6 +219,8 @@ def test_sarsa_gathering_keeps_the_step_limit_and_the_environments_stream():
     t = result.transitions
     assert len(t) == 2 * 2 * 6 and result.n_episodes == 4
     np.testing.assert_array_equal(np.flatnonzero(t.dones), [5, 11, 17, 23])
+    # the seconds per action that unwrap fast angle changes: the acrobot's 0.2 s
+    assert t.dt == acrobot.CONTROL_TIMESTEP and t.angle_dims == acrobot.ANGLE_DIMS
     for i, seed in enumerate((7, 8)):
         env_stream, _ = np.random.default_rng(seed).spawn(2)
         env = acrobot.swingup(ACROBOTS[i], seed=env_stream, max_steps=6)
@@ -236,3 +249,27 @@ def test_a_diverging_sarsa_instance_is_dropped_whole_and_reported(monkeypatch):
     assert divergence[:3] == (4, -1, -1) and "BADQVEL" in divergence.reason
     assert result.n_episodes == 4 and len(result.transitions) == 2 * 6
     np.testing.assert_array_equal(np.unique(result.transitions.instances), [9])
+
+
+def test_sarsa_gathering_where_every_instance_diverges_is_empty_not_an_error(
+    monkeypatch,
+):
+    """Every instance's first step blows up: the collection still comes back, with
+    no transitions (of the domain's state dimension and angles) and one
+    Divergence per instance, so a caller can see what was dropped."""
+    original = acrobot.SwingUp.before_step
+
+    def before_step(self, action, physics):
+        original(self, action, physics)
+        physics.data.qvel[0] = 1e12
+
+    monkeypatch.setattr(acrobot.SwingUp, "before_step", before_step)
+    result = collect.collect_sarsa(
+        "acrobot", ACROBOTS, episodes_per_instance=2, max_steps=6,
+        rng=np.random.default_rng(0), instance_ids=[4, 9],
+    )  # fmt: skip
+    t = result.transitions
+    assert len(t) == 0 and t.state_dim == acrobot.STATE_DIM
+    assert t.angle_dims == acrobot.ANGLE_DIMS and t.dt == acrobot.CONTROL_TIMESTEP
+    assert [d[:3] for d in result.diverged] == [(4, -1, -1), (9, -1, -1)]
+    assert result.n_episodes == 4
