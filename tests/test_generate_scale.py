@@ -530,6 +530,15 @@ def test_a_finished_run_made_by_other_software_is_left_as_it_is(reference, tmp_p
         (dict(actions=np.full((2, 6), 3)), r"actions must be indices in \[0, 3\)"),
         (dict(actions=np.full((2, 6), -1)), r"actions must be indices in \[0, 3\)"),
         (dict(chunk=0), "chunk must be a positive int"),
+        (dict(actions=np.ones((2, 0), int)), r"actions must have shape \(E, T\)"),
+        (
+            dict(
+                actions=np.ones((0, 6), int),
+                initial_states=np.zeros((0, 4)),
+                episode_instance=np.zeros(0, int),
+            ),
+            r"actions must have shape \(E, T\)",
+        ),
     ],
 )
 def test_bad_open_loop_arguments_are_refused_naming_them(change, message):
@@ -541,6 +550,42 @@ def test_bad_open_loop_arguments_are_refused_naming_them(change, message):
     arguments.update(change)
     with pytest.raises(ValueError, match=message):
         rollout.rollout_episodes("acrobot", ACROBOTS, **arguments)
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (dict(instances=[]), "at least one parameter set"),
+        (dict(instance_ids=[3, 3]), "instance_ids must be 2 distinct ints"),
+        (dict(instance_ids=[3]), "instance_ids must be 2 distinct ints"),
+        (dict(instance_ids=[3, 4, 5]), "instance_ids must be 2 distinct ints"),
+        (dict(episodes_per_instance=0), "episodes_per_instance must be a positive"),
+        (dict(max_steps=0), "max_steps must be a positive int"),
+        (dict(rng=[np.random.default_rng(0)]), "rng: expected .* a sequence of 2"),
+    ],
+)
+def test_bad_open_loop_gathering_arguments_are_refused_naming_them(change, message):
+    """As `tasks.collect.collect` refuses them, not as a failure further in."""
+    arguments = dict(
+        instances=ACROBOTS, episodes_per_instance=1, max_steps=3,
+        rng=np.random.default_rng(0),
+    )  # fmt: skip
+    arguments.update(change)
+    with pytest.raises(ValueError, match=message):
+        rollout.collect_open_loop("acrobot", arguments.pop("instances"), **arguments)
+
+
+def test_open_loop_episodes_run_to_the_tasks_own_step_limit_by_default():
+    """With no max_steps, an episode that neither reaches the goal nor diverges
+    ends at the limit the environment (and so `tasks.collect.collect`) uses."""
+    result = rollout.collect_open_loop(
+        "acrobot", ACROBOTS[:1], episodes_per_instance=2,
+        rng=np.random.default_rng(0),
+    )  # fmt: skip
+    t = result.transitions
+    limit = acrobot.swingup(seed=0).task.max_steps
+    assert not result.diverged and not acrobot.goal_reached(t.next_states).any()
+    np.testing.assert_array_equal(np.flatnonzero(t.dones), [limit - 1, 2 * limit - 1])
 
 
 def test_a_non_finite_state_is_a_divergence_even_at_a_terminal_step(monkeypatch):
