@@ -4,6 +4,7 @@ model steps exactly as the environment, and planning on it helps a fresh agent."
 from __future__ import annotations
 
 import dataclasses
+import inspect
 
 import numpy as np
 import pytest
@@ -16,6 +17,7 @@ from tasks import acrobot, cartpole
 from tasks.agents import (
     ACROBOT,
     CARTPOLE,
+    EnergyConserving,
     SimulatorModel,
     learn,
     run_episode,
@@ -329,6 +331,72 @@ def test_learn_takes_its_config_and_starting_agent():
     np.testing.assert_array_equal(result.state.weights, state.weights)
 
 
+def test_the_energy_conserving_model_predicts_the_given_actions():
+    """It rescales the wrapped model's prediction for the same states and
+    actions. (The energy check in test_acrobot_energy cannot tell: a prediction
+    for any action can be rescaled to the given torque's work.)"""
+    inner = Recording(SimulatorModel(ACROBOT))
+    states = np.random.default_rng(0).uniform(-1, 1, (4, 4))
+    actions = np.array([0, 1, 2, 2])
+    EnergyConserving(inner, acrobot.AcrobotParams()).predict(states, actions)
+    ((seen_states, seen_actions, _),) = inner.calls
+    np.testing.assert_array_equal(seen_states, states)
+    np.testing.assert_array_equal(seen_actions, actions)
+
+
 def test_the_simulator_model_refuses_states_of_another_dimension():
     with pytest.raises(ValueError, match=r"states: expected shape \(N, 4\), got"):
         SimulatorModel(ACROBOT).predict(np.zeros((2, 3)), np.zeros(2, int))
+
+
+@pytest.mark.parametrize("actions", [np.zeros(3, int), np.zeros((2, 1), int)])
+def test_the_simulator_model_refuses_actions_not_one_per_state(actions):
+    """Three actions for two states would step the first two and ignore the
+    third; a column of actions would be read row by row."""
+    with pytest.raises(ValueError, match=r"actions: expected shape \(2,\), got"):
+        SimulatorModel(ACROBOT).predict(np.zeros((2, 4)), actions)
+
+
+def test_a_greedy_agent_acts_on_the_state_it_is_in():
+    """ε = 0 and fixed weights: every action is ``argmax_a θ φ(s_t)`` of the state
+    it is taken in, not of the one before. Consecutive states are close, so a
+    one-step lag only shows where the greedy action switches: these random
+    weights (on the cart-pole) make it switch often."""
+    basis = CARTPOLE.basis()
+    config = dataclasses.replace(CARTPOLE.sarsa, epsilon=0.0)
+    weights = np.random.default_rng(3).normal(size=(2, basis.n_features))
+    out = run_episode(
+        CARTPOLE.make_env(None, seed=2), basis, config,
+        SarsaState(weights, np.zeros_like(weights)), rng=np.random.default_rng(1),
+        learn=False,
+    )  # fmt: skip
+    greedy = [int(np.argmax(weights @ basis(s))) for s in out.states[:-1]]
+    np.testing.assert_array_equal(out.actions, greedy)
+    assert np.count_nonzero(np.diff(greedy)) > 10  # the policy does switch
+
+
+def test_an_episode_starts_with_no_eligibility_traces():
+    """Traces belong to one episode (Sutton & Barto §7.5): an agent handed over
+    with traces left from an earlier episode learns exactly as one without."""
+    basis = CARTPOLE.basis()
+    config = dataclasses.replace(CARTPOLE.sarsa, epsilon=0.5)
+    rng = np.random.default_rng(0)
+    weights = rng.normal(size=(2, basis.n_features))
+    stale = rng.normal(size=weights.shape)
+    out = {}
+    for name, traces in (("stale", stale), ("none", np.zeros_like(weights))):
+        out[name] = run_episode(
+            CARTPOLE.make_env(None, seed=4, max_steps=5), basis, config,
+            SarsaState(weights, traces), rng=np.random.default_rng(5),
+        ).state.weights  # fmt: skip
+    assert not np.array_equal(out["none"], weights)  # it did learn
+    np.testing.assert_array_equal(out["stale"], out["none"])
+
+
+@pytest.mark.parametrize("domain", [CARTPOLE, ACROBOT], ids=lambda d: d.name)
+def test_the_domains_step_limit_is_its_tasks(domain):
+    """collect_sarsa's default limit is ``domain.max_steps``, collect's the
+    environment's own: the two gatherers must stop episodes at the same step."""
+    default = inspect.signature(domain.make_env).parameters["max_steps"].default
+    assert domain.max_steps == default
+    assert domain.make_env(None, seed=0).task.max_steps == default
