@@ -5,6 +5,7 @@ is refused untouched."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import signal
@@ -88,6 +89,8 @@ def test_open_loop_equals_stepping_the_environment(domain, instances):
         np.testing.assert_array_equal(getattr(t, key), np.array(values), err_msg=key)
     assert got.n_episodes == 6 and not got.diverged
     np.testing.assert_array_equal(np.unique(t.instances), [4, 7])
+    for b, params in zip([4, 7], instances, strict=True):  # each id's own row
+        assert got.parameters.row(b) == dataclasses.asdict(params)
     if domain == "cartpole":  # random forces topple the pole: early ends are tested
         assert np.count_nonzero(t.dones) == 6 and len(t) < 6 * steps
 
