@@ -34,7 +34,7 @@ from dm_control.rl import control
 from numpy.typing import NDArray
 from tqdm.auto import tqdm
 
-from hipmdp.data import Transitions
+from hipmdp.data import Transitions, check_integer
 from hipmdp.fourier import FourierBasis
 from hipmdp.planning import PlanningTask
 from hipmdp.sarsa import (
@@ -329,8 +329,7 @@ def learn(
         instance: the id written into the transitions.
         rng: exploration stream; progress: show a progress bar over episodes.
     """
-    if n_episodes < 1:
-        raise ValueError(f"n_episodes: expected >= 1, got {n_episodes}")
+    check_integer("n_episodes", n_episodes, 1)
     config = domain.sarsa if config is None else config
     basis = domain.basis()
     if state is None:

@@ -120,15 +120,25 @@ def rollout_episodes(
             f"initial_states must have shape ({n_episodes}, {spec.state_dim}), "
             f"got {initial_states.shape}"
         )
-    if episode_instance.shape != (n_episodes,) or not (
-        np.all((episode_instance >= 0) & (episode_instance < len(instances)))
+    # integers: a bool array would pass the bounds and then act as a mask, a
+    # float one fail as an index deep inside
+    if (
+        episode_instance.shape != (n_episodes,)
+        or episode_instance.dtype.kind not in "iu"
+        or not np.all((episode_instance >= 0) & (episode_instance < len(instances)))
     ):
         raise ValueError(
-            f"episode_instance must be {n_episodes} indices into {len(instances)} "
-            "instances"
+            f"episode_instance must be {n_episodes} integer indices into "
+            f"{len(instances)} instances, got {episode_instance.dtype} of shape "
+            f"{episode_instance.shape}"
         )
-    if np.any((actions < 0) | (actions >= spec.n_actions)):
-        raise ValueError(f"actions must be indices in [0, {spec.n_actions})")
+    if actions.dtype.kind not in "iu" or np.any(
+        (actions < 0) | (actions >= spec.n_actions)
+    ):
+        raise ValueError(
+            f"actions must be integer indices in [0, {spec.n_actions}), got "
+            f"{actions.dtype}"
+        )
     _check_positive_int("chunk", chunk)
 
     # MuJoCo steps per action: the instance's own (a fast instance takes shorter

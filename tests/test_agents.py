@@ -313,6 +313,15 @@ def test_an_episode_that_does_not_learn_leaves_the_weights_and_learn_needs_one()
     np.testing.assert_array_equal(out.state.weights, weights)
     with pytest.raises(ValueError, match="n_episodes: expected >= 1, got 0"):
         learn(CARTPOLE.make_env(None, seed=4), CARTPOLE, 0, rng=np.random.default_rng())
+    # 2.5 was a TypeError from range(), True one episode
+    for bad in (2.5, True):
+        with pytest.raises(ValueError, match="n_episodes: expected an integer"):
+            learn(
+                CARTPOLE.make_env(None, seed=4),
+                CARTPOLE,
+                bad,
+                rng=np.random.default_rng(),
+            )
 
 
 def test_learn_takes_its_config_and_starting_agent():

@@ -528,10 +528,15 @@ def test_a_finished_run_made_by_other_software_is_left_as_it_is(reference, tmp_p
     [
         (dict(actions=np.ones(6, int)), r"actions must have shape \(E, T\)"),
         (dict(initial_states=np.zeros((2, 3))), r"initial_states must have shape"),
-        (dict(episode_instance=np.array([0, 2])), "2 indices into 2 instances"),
-        (dict(episode_instance=np.array([-1, 0])), "2 indices into 2 instances"),
-        (dict(actions=np.full((2, 6), 3)), r"actions must be indices in \[0, 3\)"),
-        (dict(actions=np.full((2, 6), -1)), r"actions must be indices in \[0, 3\)"),
+        (dict(episode_instance=np.array([0, 2])), "2 integer indices into 2 inst"),
+        (dict(episode_instance=np.array([-1, 0])), "2 integer indices into 2 inst"),
+        # a bool array passed the bounds and selected by mask; a float one failed
+        # as an index deep inside
+        (dict(episode_instance=np.array([True, False])), "got bool of shape"),
+        (dict(episode_instance=np.array([0.0, 1.0])), "got float64 of shape"),
+        (dict(actions=np.full((2, 6), 3)), r"actions must be integer indices in \[0"),
+        (dict(actions=np.full((2, 6), -1)), r"actions must be integer indices in \[0"),
+        (dict(actions=np.full((2, 6), 1.5)), r"in \[0, 3\), got float64"),
         (dict(chunk=0), "chunk must be a positive int"),
         (dict(actions=np.ones((2, 0), int)), r"actions must have shape \(E, T\)"),
         (
