@@ -38,6 +38,7 @@ from tasks._common import parameter_names, parameter_values
 from tasks.collect import (
     Collection,
     Divergence,
+    _check_instances,
     _check_positive_int,
     get_domain,
     instance_streams,
@@ -250,13 +251,7 @@ def collect_open_loop(
     spec = get_domain(domain)
     module = MODULES[domain]
     instances = list(instances)
-    if not instances:
-        raise ValueError("instances must hold at least one parameter set")
-    ids = list(range(len(instances))) if instance_ids is None else list(instance_ids)
-    if len(ids) != len(instances) or len(set(ids)) != len(ids):
-        raise ValueError(
-            f"instance_ids must be {len(instances)} distinct ints, got {ids!r}"
-        )
+    ids = _check_instances(spec, instances, instance_ids)
     _check_positive_int("episodes_per_instance", episodes_per_instance)
     n_steps = module.DEFAULT_MAX_STEPS if max_steps is None else max_steps
     _check_positive_int("max_steps", n_steps)

@@ -564,6 +564,7 @@ def test_bad_open_loop_arguments_are_refused_naming_them(change, message):
     "change, message",
     [
         (dict(instances=[]), "at least one parameter set"),
+        (dict(instances=[ACROBOTS[0], CARTPOLES[0]]), "must be AcrobotParams"),
         (dict(instance_ids=[3, 3]), "instance_ids must be 2 distinct ints"),
         (dict(instance_ids=[3]), "instance_ids must be 2 distinct ints"),
         (dict(instance_ids=[3, 4, 5]), "instance_ids must be 2 distinct ints"),
