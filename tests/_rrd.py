@@ -59,3 +59,17 @@ def rrd_components(path: str | os.PathLike, entity: str) -> set[str]:
     return {
         name for columns, _ in _chunks(path, entity) for name in columns if ":" in name
     }
+
+
+def rrd_scalars(path: str | os.PathLike, entity: str) -> np.ndarray:
+    """The ``Scalars:scalars`` values of ``entity``'s rows, in the order they were
+    sent, shape (rows, values per row); the print gives each as Python's repr,
+    so they are read back exactly."""
+    values = []
+    for columns, rows in _chunks(path, entity):
+        if "Scalars:scalars" not in columns:
+            continue
+        at = columns.index("Scalars:scalars")
+        for cells in rows:
+            values.append([float(v) for v in cells[at].strip("[]").split(",")])
+    return np.array(values)

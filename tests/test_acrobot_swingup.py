@@ -27,7 +27,7 @@ from tasks.prediction import score_settings
 from tasks.recording import rrd_contents
 from tasks.transfer import METHODS, TransferConfig, TrialResult, run_trial
 from tests._prediction import assert_coverage_schema
-from tests._rrd import rrd_components, rrd_times
+from tests._rrd import rrd_components, rrd_scalars, rrd_times
 from tests._seed_spread import assert_reads_the_run
 
 TINY = SwingupConfig(
@@ -205,6 +205,12 @@ def test_recording_has_the_panels(run):
     metrics = json.loads((run.out / "metrics.json").read_text())
     for m in METHODS:
         assert rows[f"/returns/{m}"] == TINY.transfer.n_episodes
+        # the panel's curve is the mean return per episode (one trial: its
+        # interval's bounds are NaN, so a panel of a bound shows)
+        np.testing.assert_array_equal(
+            rrd_scalars(run.out / "acrobot.rrd", f"/returns/{m}")[:, 0],
+            metrics["returns"][m]["mean"],
+        )
     # every step of the traced trial: T + 1 poses per episode, + 1 static style row
     hip_steps = -np.array(metrics["returns"]["hipmdp"]["mean"])  # one trial: exact
     assert rows["/rollout/hipmdp/real"] == int(hip_steps.sum()) + len(hip_steps) + 1
