@@ -19,10 +19,10 @@ from tasks.cartpole_prediction import (
     parse_args,
     ratio_intervals,
 )
-from tasks.prediction import PREDICTION_METHODS, best_baseline, mse_table
+from tasks.prediction import PREDICTION_METHODS, best_baseline, entity, mse_table
 from tasks.recording import rrd_contents
 from tests._prediction import assert_coverage_schema
-from tests._rrd import rrd_components, rrd_times
+from tests._rrd import rrd_components, rrd_scalars, rrd_times
 from tests._seed_spread import assert_reads_the_run
 
 TINY = PredictionConfig(
@@ -103,6 +103,12 @@ def test_same_seed_same_metrics_whatever_the_callers_blas_threads(run, tmp_path)
 def test_recording(run):
     rows = rrd_contents(run.out / "cartpole.rrd")
     assert rows["/mse/3/hipmdp"] == len(TINY.test_settings)
+    # the panels' values: each setting's MSE of Δẋ (2) and Δθ̇ (3), per method
+    per_setting = json.loads((run.out / "metrics.json").read_text())["per_setting_mse"]
+    for m, mse in per_setting.items():
+        for d in (2, 3):
+            got = rrd_scalars(run.out / "cartpole.rrd", f"/mse/{d}/{entity(m)}")
+            np.testing.assert_array_equal(got[:, 0], np.asarray(mse)[:, d])
     assert rows["/belief/true/pole_mass"] == len(TINY.test_settings) * (
         TINY.n_train + 1
     )
@@ -560,8 +566,6 @@ def test_score_instance_fits_scores_and_filters_on_the_data_the_protocol_says(
 def test_entity_names_have_no_spaces_and_differ():
     """Recording paths and reserved --method names: the docstring's rule, each
     " + " and then each space to "_"."""
-    from tasks.prediction import entity
-
     assert [entity(m) for m in PREDICTION_METHODS] == [
         "hipmdp",
         "batch_only",
