@@ -492,6 +492,12 @@ def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
     return "\n".join(lines)
 
 
+def count(n: int, noun: str) -> str:
+    """``n`` and ``noun``, plural (an ``s`` added) unless ``n`` is 1: "1 trial",
+    "12 trials"."""
+    return f"{n} {noun}{'' if n == 1 else 's'}"
+
+
 def fmt_value(v: float, digits: int = 3, sign: str = "") -> str:
     """``v`` to ``digits`` significant digits, in scientific notation if small;
     large values (those ``g`` would print with an exponent) whole: 1187, not

@@ -9,6 +9,7 @@ import numpy as np
 
 from tasks import acrobot
 from tasks.experiment import (
+    count,
     describe_environment,
     fmt_ci,
     markdown_table,
@@ -259,9 +260,11 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
         if config.book_inertia
         else "Each link's moment of inertia follows its mass (I = m l²)."
     )
+    n_test = len(config.test_masses)
+    these_settings = "this setting" if n_test == 1 else f"these {n_test} settings"
     text = f"""# Acrobot swing-up transfer ({config.preset} preset, seed {config.seed})
 
-{len(config.test_masses)} test mass settings × {config.n_trials} trials per method;
+{count(n_test, "test mass setting")} × {count(config.n_trials, "trial")} per method;
 HiP-MDP fitted on {metrics["n_batch_transitions"]} batch transitions from
 {len(config.train_masses)} training settings; {metrics["n_latent_features"]} latent
 features inferred. {inertia}
@@ -281,7 +284,7 @@ the same trial (mean [95% interval] over trials; above 0: within 10%):
 Each trial's return minus the other method's on the same instance and seeds;
 "all episodes" is the difference of the two trials' mean returns over all
 {n_ep} real episodes. An interval above 0 means the first method is clearly ahead.
-Its unit is the trial, so it answers for these {len(config.test_masses)} settings;
+Its unit is the trial, so it answers for {these_settings};
 "setting as unit" is the same mean with an interval over the settings' means,
 which answers for new settings drawn like these (wider when the difference
 varies from setting to setting). Every interval is conditional on this run's one

@@ -88,6 +88,9 @@ def test_artefacts_exist(run):
     # (the MSE ratio line printed "[nan, nan]")
     assert "no interval: one sample" in report
     assert "[nan" not in report and "nan]" not in report
+    # and in the singular ("1 test mass settings × 1 trials", "these 1 settings")
+    assert "\n1 test mass setting × 1 trial per method;" in report
+    assert "so it answers for this setting;" in report
 
 
 def test_metrics_schema(run):
