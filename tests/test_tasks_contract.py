@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import json
 import os
 import subprocess
 import sys
@@ -23,6 +24,9 @@ DOMAINS = {
     "acrobot": (acrobot, acrobot.swingup, acrobot.AcrobotParams(1.3, 0.7, 1.0, 1.0)),
     "cartpole": (cartpole, cartpole.balance, cartpole.CartpoleParams(1.0, 0.3, 0.8)),
 }
+#: What the modules' docstrings state: the half-width of the start states' box
+#: and the default step limit per episode.
+DOCUMENTED = {"acrobot": (0.1, 500), "cartpole": (0.05, 300)}
 
 
 def run(factory, params, seed, actions):
@@ -104,6 +108,18 @@ def test_start_states_are_uniform_on_the_noise_box(name):
     se_var = np.sqrt((c**4 / 5 - c**4 / 9) / n)
     assert np.all(np.abs(s0.var(axis=0) - c**2 / 3) < 4 * se_var)
     assert np.all(np.abs(np.mean(s0 < 0, axis=0) - 0.5) < 4 * np.sqrt(0.25 / n))
+    # and independently: a sample correlation of independent coordinates has
+    # standard error about 1 / √n (drawing qvel equal to qpos would give 1)
+    correlation = np.corrcoef(s0, rowvar=False)[np.triu_indices(s0.shape[1], 1)]
+    assert np.all(np.abs(correlation) < 4 / np.sqrt(n))
+
+
+@pytest.mark.parametrize("name", DOMAINS)
+def test_noise_box_and_step_limit_are_the_documented_ones(name):
+    module, factory, _ = DOMAINS[name]
+    noise, max_steps = DOCUMENTED[name]
+    assert module.INITIAL_NOISE == noise
+    assert factory(None).task.max_steps == max_steps
 
 
 @pytest.mark.parametrize("name", DOMAINS)
@@ -122,8 +138,46 @@ def test_factory_rejects_bad_arguments(name):
     module, factory, _ = DOMAINS[name]
     with pytest.raises(ValueError, match="params must be"):
         factory({"pole_mass": 1.0})
-    with pytest.raises(ValueError, match="max_steps must be a positive int"):
-        factory(None, max_steps=0)
+    for max_steps in (0, True, 2.5):  # a bool is not a count; 2.5 steps is not one
+        with pytest.raises(ValueError, match="max_steps must be a positive int"):
+            factory(None, max_steps=max_steps)
+
+
+@pytest.mark.parametrize("name", DOMAINS)
+def test_each_episode_gets_the_full_step_limit(name):
+    """The step count restarts at every reset: a second episode is truncated
+    after `max_steps` steps too, not at its first."""
+    _, factory, _ = DOMAINS[name]
+    env = factory(None, seed=0, max_steps=3)
+    for _ in range(2):
+        env.reset()
+        steps = [env.step(0) for _ in range(3)]  # too few to reach goal or failure
+        assert [s.last() for s in steps] == [False, False, True]
+        assert steps[-1].discount == 1.0
+
+
+@pytest.mark.parametrize("name", DOMAINS)
+def test_parameters_are_stored_as_floats_and_refuse_bools(name):
+    """Whatever real type a value comes as (an int, a NumPy integer), the field
+    holds a Python float, so instances compare, hash and serialise to JSON as
+    the numbers they are; a bool is not a number here (True would pass as 1)."""
+    params_type = type(DOMAINS[name][2])
+    first = dataclasses.fields(params_type)[0].name  # its bounds contain 1
+    params = params_type(**{first: np.int64(1)})
+    assert type(getattr(params, first)) is float
+    assert json.loads(json.dumps(dataclasses.asdict(params)))[first] == 1.0
+    assert params == params_type(**{first: 1.0})
+    assert hash(params) == hash(params_type(**{first: 1.0}))
+    with pytest.raises(ValueError, match=rf"\.{first} .*not a real number"):
+        params_type(**{first: True})
+
+
+@pytest.mark.parametrize("name", DOMAINS)
+def test_link_points_refuse_states_of_another_width(name):
+    module = DOMAINS[name][0]
+    for width in (2, 5):
+        with pytest.raises(ValueError, match="states must have shape"):
+            module.link_points(np.zeros((3, width)))
 
 
 def test_tasks_are_headless():
