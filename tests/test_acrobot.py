@@ -142,6 +142,16 @@ def test_tip_height_is_the_tip_site_height(params):
     )
 
 
+@pytest.mark.parametrize("params", REWRITTEN, ids=str)
+def test_the_drawn_links_span_the_links(params):
+    """The capsules a rendering shows run from each joint to the next joint or
+    the tip: half-length `l_i / 2`, centred `l_i / 2` below the joint."""
+    model = acrobot.make_model(params)
+    for name, l in (("link_1", params.link_length_1), ("link_2", params.link_length_2)):
+        assert model.geom(name).size[1] == pytest.approx(l / 2, rel=1e-12)
+        np.testing.assert_allclose(model.geom(name).pos, [0, 0, -l / 2], rtol=1e-12)
+
+
 FIELDS = {f.name: f.metadata["bounds"] for f in dataclasses.fields(AcrobotParams)}
 
 
@@ -165,12 +175,37 @@ def test_invalid_parameters_name_the_field_and_bound(field, value, message):
         AcrobotParams(**{field: value})
 
 
+def test_a_parameters_message_gives_its_unit_and_none_for_a_shape():
+    """The unit follows each bound; a dimensionless field (`-` in the table) has
+    none printed."""
+    with pytest.raises(ValueError) as error:
+        AcrobotParams(link_mass_1=9.0)
+    assert str(error.value) == (
+        "AcrobotParams.link_mass_1 must be in [0.2, 5.0] kg, got 9.0 "
+        "(outside the upper bound 5.0 kg)"
+    )
+    with pytest.raises(ValueError) as error:
+        AcrobotParams(link_shape_1=2.0)
+    assert str(error.value) == (
+        "AcrobotParams.link_shape_1 must be in [0.7, 1.5], got 2.0 "
+        "(outside the upper bound 1.5)"
+    )
+
+
 def test_inertia_is_the_shape_times_m_l_squared():
     params = AcrobotParams(0.7, 1.3, 0.9, 1.2, link_shape_1=0.7, link_shape_2=1.5)
     assert params.inertias == pytest.approx((0.7 * 0.7 * 0.81, 1.5 * 1.3 * 1.44))
     assert AcrobotParams(0.7, 1.3).inertias == pytest.approx((0.7, 1.3))
     assert acrobot.book_inertia(0.7, 1.3).inertias == pytest.approx((1.0, 1.0))
     assert acrobot.book_inertia(0.9, 1.2, 1.0, 1.05).inertias == pytest.approx((1, 1))
+    assert acrobot.book_inertia(1.2, 0.9, 1.05, 1.0).inertias == pytest.approx((1, 1))
+    # with_book_inertia keeps the masses and lengths, rewrites only the shapes
+    params = AcrobotParams(0.9, 1.2, 1.1, 0.95, link_shape_1=0.8, link_shape_2=1.3)
+    booked = acrobot.with_book_inertia(params)
+    assert booked.inertias == pytest.approx((1.0, 1.0))
+    assert booked == dataclasses.replace(
+        params, link_shape_1=booked.link_shape_1, link_shape_2=booked.link_shape_2
+    )
     with pytest.raises(ValueError, match=r"AcrobotParams\.link_shape_1 .*upper"):
         acrobot.book_inertia(0.6)  # I = 1 would need k = 1.67
     # a zero mass or length: the field's bound, not a ZeroDivisionError
@@ -178,6 +213,19 @@ def test_inertia_is_the_shape_times_m_l_squared():
         acrobot.book_inertia(0.0)
     with pytest.raises(ValueError, match=r"AcrobotParams\.link_length_2 .*lower"):
         acrobot.book_inertia(1.0, 1.0, 1.0, 0.0)
+
+
+def test_book_inertia_range_is_where_a_link_can_keep_i_equal_1():
+    """`book_inertia_range()` bounds `m l²`: `book_inertia` accepts a link at
+    either end (its shape `1 / (m l²)` is then a bound of `link_shape`) and
+    refuses one 1% outside."""
+    low, high = acrobot.book_inertia_range()
+    assert low == pytest.approx(1 / 1.5) and high == pytest.approx(1 / 0.7)
+    for m_l2 in (low, high):
+        assert acrobot.book_inertia(m_l2).inertias == pytest.approx((1.0, 1.0))
+    for m_l2, bound in ((0.99 * low, "upper"), (1.01 * high, "lower")):
+        with pytest.raises(ValueError, match=rf"link_shape_1 .*{bound}"):
+            acrobot.book_inertia(m_l2)
 
 
 def accelerations(params: AcrobotParams, tau: float, states: np.ndarray) -> np.ndarray:
@@ -217,6 +265,27 @@ def test_episode_starts_near_hanging_and_ends_at_the_goal():
     assert step.last() and step.discount == 0.0 and step.reward == -1.0
 
 
+def test_reaching_the_goal_on_the_last_step_is_a_termination():
+    """A goal reached on the step the limit would truncate still ends the
+    episode at the goal: discount 0 (a learner must not bootstrap from it)."""
+    env = acrobot.swingup(seed=4, max_steps=1)
+    env.reset()
+    env.physics.data.qpos[:] = [np.pi, 0.0]  # standing straight up: above the goal
+    env.physics.data.qvel[:] = 0.0
+    step = env.step(1)
+    assert step.last() and step.discount == 0.0
+
+
+def test_the_goal_line_is_the_instances_first_link_length():
+    """The task ends at the instance's goal line, `y > l₁`: a tip 0.8 m up is
+    past it for l₁ = 0.6 m, though short of the nominal 1 m."""
+    params = REWRITTEN[2]  # l₁ = 0.6 m, l₂ = 1.8 m
+    s = np.array([0.0, np.arccos(-1.4 / 1.8), 0.0, 0.0])  # y = -0.6 + 1.4
+    assert acrobot.tip_height(s, params) == pytest.approx(0.8)
+    assert acrobot.swingup(params, seed=0).task.is_terminal(s)
+    assert not acrobot.swingup(seed=0).task.is_terminal(s)
+
+
 def test_episode_is_truncated_at_the_step_limit():
     env = acrobot.swingup(seed=5, max_steps=3)
     env.reset()
@@ -225,7 +294,7 @@ def test_episode_is_truncated_at_the_step_limit():
     assert steps[-1].discount == 1.0
 
 
-@pytest.mark.parametrize("action", [3, -1, 1.0, np.array([1]), "1"])
+@pytest.mark.parametrize("action", [3, -1, 1.0, np.array([1]), "1", True, np.True_])
 def test_invalid_action_is_rejected(action):
     env = acrobot.swingup(seed=6)
     env.reset()
@@ -342,6 +411,10 @@ def test_conserve_energy_rejects_mismatched_shapes():
         acrobot.conserve_energy(s, np.zeros(2), s)
     with pytest.raises(ValueError, match="next_states"):
         acrobot.conserve_energy(s, np.zeros(3), np.zeros((2, 4)))
+    # a batch of batches is not (N, 4), even when torques has its first length
+    s = np.zeros((3, 2, 4))
+    with pytest.raises(ValueError, match=r"\(N, 4\)"):
+        acrobot.conserve_energy(s, np.zeros(3), s)
 
 
 def test_conserve_energy_stops_a_prediction_above_the_steps_energy():
