@@ -125,13 +125,16 @@ def test_failed_marks_the_classic_thresholds():
             [2.39, 0.0, 0.0, 0.0],
             [2.41, 0.0, 0.0, 0.0],
             [-2.41, 0.0, 0.0, 0.0],
+            # on a threshold is not past it (the classic code's strict `>`)
+            [2.4, -limit, 0.0, 0.0],
+            [-2.4, limit, 0.0, 0.0],
         ]
     )
     np.testing.assert_array_equal(
-        cartpole.failed(states), [False, True, True, False, True, True]
+        cartpole.failed(states), [False, True, True, False, True, True, False, False]
     )
     np.testing.assert_array_equal(
-        cartpole.failed(states.reshape(2, 3, 4)).shape, (2, 3)
+        cartpole.failed(states.reshape(2, 4, 4)).shape, (2, 4)
     )
 
 
@@ -141,6 +144,16 @@ def test_episode_starts_near_upright_and_ends_at_failure():
     assert np.all(np.abs(first.observation["state"]) <= cartpole.INITIAL_NOISE)
     step = env.step(1)
     assert step.reward == 1.0 and step.discount == 1.0 and step.mid()
+    env.physics.data.qpos[:] = [0.0, 0.5]  # leaning far past 12 degrees
+    step = env.step(1)
+    assert step.last() and step.discount == 0.0 and step.reward == 0.0
+
+
+def test_failing_on_the_last_step_is_a_termination():
+    """A failure on the step the limit would truncate still ends the episode as
+    a failure: reward 0 and discount 0 (a learner must not bootstrap from it)."""
+    env = cartpole.balance(seed=4, max_steps=1)
+    env.reset()
     env.physics.data.qpos[:] = [0.0, 0.5]  # leaning far past 12 degrees
     step = env.step(1)
     assert step.last() and step.discount == 0.0 and step.reward == 0.0
@@ -178,3 +191,41 @@ def test_link_points_follow_the_classic_kinematics():
     # θ > 0 leans toward +x; the tip is 2l from the pivot
     tip = np.c_[x + 1.4 * np.sin(th), 0 * x, 1.4 * np.cos(th)]
     np.testing.assert_allclose(pts[:, 2], tip, atol=1e-12)
+
+
+@pytest.mark.parametrize("params", REWRITTEN, ids=str)
+def test_pole_acceleration_is_the_largest_forces_greatest_effect(params):
+    """`pole_acceleration` (which sets the step) is the largest |θ̈| the largest
+    force adds at any pole angle: MuJoCo's θ̈ under F = 10 N minus under F = 0
+    (linear in F: (M⁻¹)₂₁ F), at rest on a 1° grid of angles, which holds the
+    upright and hanging poles where it peaks."""
+    model = cartpole.make_model(params)
+    effect = [
+        abs(
+            mujoco_accelerations(model, np.array([0.0, theta, 0.0, 0.0]), 10.0)[1]
+            - mujoco_accelerations(model, np.array([0.0, theta, 0.0, 0.0]), 0.0)[1]
+        )
+        for theta in np.linspace(-np.pi, np.pi, 361)
+    ]
+    assert cartpole.pole_acceleration(params) == pytest.approx(max(effect), rel=1e-9)
+
+
+def test_a_light_cart_poles_action_still_lasts_0_02_s():
+    """At the lightest corner the step is 10 ms / 2⁵ (`sub_steps`): the
+    environment takes that many more steps per action, so an action still
+    lasts the documented 0.02 s."""
+    env = cartpole.balance(CartpoleParams(0.1, 0.01, 0.1), seed=0)
+    env.reset()
+    env.step(0)
+    assert env.physics.data.time == pytest.approx(cartpole.CONTROL_TIMESTEP)
+    assert env.control_timestep() == pytest.approx(cartpole.CONTROL_TIMESTEP)
+
+
+@pytest.mark.parametrize("params", REWRITTEN, ids=str)
+def test_the_drawn_pole_spans_the_pole(params):
+    """The capsule a rendering shows runs from the pivot to the tip: half-length
+    `l` centred at `l` above the pivot."""
+    model = cartpole.make_model(params)
+    l = params.pole_half_length
+    assert model.geom("pole").size[1] == pytest.approx(l, rel=1e-12)
+    np.testing.assert_allclose(model.geom("pole").pos, [0.0, 0.0, l], rtol=1e-12)
