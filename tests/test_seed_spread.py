@@ -5,6 +5,7 @@ experiment's smoke test."""
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -91,11 +92,18 @@ def test_across_seeds_is_a_t_interval_over_the_seeds_values(tmp_path):
     assert [p["value"] for p in n["per_seed"]] == list(0.5 + ks)
     a = n["across_seeds"]
     half = stats.t.ppf(0.975, 2) * np.std(0.5 + ks, ddof=1) / np.sqrt(3)
-    assert a["mean"] == pytest.approx(0.5 + ks.mean())
+    assert a["mean"] == pytest.approx(0.5 + ks.mean()) and a["n"] == 3
     assert (a["low"], a["high"]) == pytest.approx((a["mean"] - half, a["mean"] + half))
     # the runs' own SE: half-width 4 over t(479); the seeds' sd over it
     se = 4.0 / stats.t.ppf(0.975, 479)
     assert a["sd_over_se"] == pytest.approx(np.std(ks, ddof=1) / se)
+    # the report's across-seeds cell: the mean and its interval, to 3 significant
+    # digits (within 1%)
+    (row,) = [r for r in report(result).splitlines() if r.startswith(f"| {n['label']}")]
+    cell = row.split(" | ")[-2]
+    assert [float(v) for v in re.findall(r"[-\d.]+", cell)] == pytest.approx(
+        [a["mean"], a["low"], a["high"]], rel=1e-2
+    )
     margin = _number(result, "HiP-MDP margin to the 10% target, episode 2")
     assert [p["value"] for p in margin["per_seed"]] == list(-8.0 + ks)
     assert [p["low"] for p in margin["per_seed"]] == list(-18.0 + ks)
@@ -173,6 +181,11 @@ def test_runs_of_other_experiments_are_refused(tmp_path):
     write_json(runs[1] / "metrics.json", {"rmse": 1.0})
     with pytest.raises(ValueError, match=r"seed1: another"):
         main(runs)
+    # runs of one experiment, but not one seed_spread knows
+    for run in runs:
+        write_json(run / "metrics.json", {"rmse": 1.0})
+    with pytest.raises(ValueError, match=r"expected runs of one of .*seed0: another"):
+        main(runs)
 
 
 def _edit(run, edit):
@@ -208,6 +221,10 @@ def test_runs_whose_intervals_have_no_width_have_no_sd_over_se(tmp_path):
         (lambda m: m["loglik_difference"].update({"train only": {"mean": "nine"}}),
          r"seed1: log-likelihood, HiP-MDP - train only: expected an interval of "
          r"numbers \{mean, low, high, n\}, got \{'mean': 'nine'\}"),
+        # bounds are null only for one sample (mean_ci); over 16 it is a broken file
+        (lambda m: m["loglik_difference"].update(
+            {"train only": {"mean": 1.0, "low": None, "high": None, "n": 16}}),
+         r"seed1: log-likelihood, HiP-MDP - train only: expected an interval of "),
         (lambda m: m.update(n_latent_features="nine"),
          r"seed1: latent features: expected a number, got 'nine'"),
     ],
@@ -219,8 +236,11 @@ def test_values_that_are_not_numbers_are_named(tmp_path, edit, match):
         main(runs)
 
 
-def test_a_config_without_a_seed_is_refused(tmp_path):
-    configs = {0: {"name": "s0", "fit": {"n_sweeps": 60}}}
+@pytest.mark.parametrize("seed", [{}, {"seed": True}, {"seed": 1.0}])
+def test_a_config_without_an_integer_seed_is_refused(tmp_path, seed):
+    """No seed, or a seed that is not an integer (``true`` is a bool in JSON,
+    which Python would count as the integer 1)."""
+    configs = {0: {"name": "s0", "fit": {"n_sweeps": 60}} | seed}
     with pytest.raises(ValueError, match=r"seed0: config.json: expected an integer "):
         main(_runs(tmp_path, configs=configs))
 
@@ -240,6 +260,23 @@ def test_a_run_from_an_older_version_is_named(tmp_path, which):
     with pytest.raises(
         ValueError, match=f"seed{which}: metrics.json lacks .*older hipmdp"
     ):
+        main(runs)
+
+
+@pytest.mark.parametrize(
+    "which, edit",
+    [
+        # a later run with one episode's margin: the first run's row reads episode 2
+        (2, lambda m: m["margin_to_target"].update(
+            hipmdp={"mean": [-20.0], "low": [-30.0], "high": [-10.0], "n": 480})),
+        (0, lambda m: m["margin_to_target"].update(hipmdp=None)),
+    ],
+)  # fmt: skip
+def test_a_run_with_headlines_of_another_shape_is_named(tmp_path, which, edit):
+    """Not a traceback from deep inside (IndexError, TypeError): the run named."""
+    runs = _runs(tmp_path)
+    _edit(runs[which], edit)
+    with pytest.raises(ValueError, match=f"seed{which}: metrics.json lacks "):
         main(runs)
 
 
@@ -280,3 +317,112 @@ def test_runs_made_at_different_code_are_named_in_the_report(tmp_path):
     text = report(main(runs))
     assert f"Note: the runs were made at different commits ({runs[0]}: aaa," in text
     assert f"{runs[2]}: bbb)" in text
+
+
+def _cartpole_metrics(i: int) -> dict:
+    """Cart-pole metrics of seed ``i``: the HiP-MDP's mean MSE is ``1 + i`` on dx
+    and 3 on dtheta. The first run's best baseline is batch only (2) on dx and
+    train only (5) on dtheta; the second run's batch only predicts dx exactly
+    (a ratio of means to it has no value). The log-likelihood leads are over two
+    test settings, half-width ``1 + i²``; on the unseen settings, ``10 * i``."""
+    dims = ("dx", "dtheta")
+    mse = {
+        "hipmdp": {"dx": {"mean": 1.0 + i}, "dtheta": {"mean": 3.0}},
+        "batch only": {"dx": {"mean": 0.0 if i == 1 else 2.0}, "dtheta": {"mean": 8.0}},
+        "train only": {"dx": {"mean": 4.0}, "dtheta": {"mean": 5.0}},
+    }
+    return {
+        "mse_ratio_to_best_baseline": {d: None for d in dims},  # not read
+        "mse": mse,
+        "mse_ratio_per_setting": {b: {d: None for d in dims} for b in BASELINES},
+        "loglik_difference": {"batch only": _ci(float(i), 1.0 + i * i, 2)},
+        "unseen": {"loglik_difference": {"batch only": _ci(10.0 * i, 1.0, 2)}},
+        "n_latent_features": [i, 2 * i, 6 * i],
+    }
+
+
+def _cartpole_runs(tmp_path, n=3):
+    out = []
+    for i in range(n):
+        path = tmp_path / f"seed{i}"
+        path.mkdir()
+        write_json(path / "config.json", {"name": "cp", "seed": i, "fit": {}})
+        write_json(path / "metrics.json", _cartpole_metrics(i))
+        out.append(path)
+    return out
+
+
+def test_cartpole_ratio_of_means_is_against_the_first_runs_best_baseline(tmp_path):
+    """Each dimension's row divides the HiP-MDP's mean MSE by the baseline the
+    first run found best on that dimension, on every seed; a baseline that
+    predicts a dimension exactly gives no ratio (not a division by zero). Kills
+    rows that read another dimension or baseline, and the ratio upside down."""
+    result = main(_cartpole_runs(tmp_path))
+    assert result["experiment"] == "cartpole_prediction"
+    dx = _number(result, "HiP-MDP MSE / batch only's, dx (ratio of means)")
+    assert [p["value"] for p in dx["per_seed"]] == [0.5, None, 1.5]
+    assert dx["across_seeds"]["mean"] is None
+    dtheta = _number(result, "HiP-MDP MSE / train only's, dtheta (ratio of means)")
+    assert [p["value"] for p in dtheta["per_seed"]] == [0.6, 0.6, 0.6]
+
+
+def test_cartpole_rows_read_the_unseen_settings_and_the_mean_over_fits(tmp_path):
+    """The unseen rows read the leads on the unseen settings alone, not on all
+    settings; "latent features (mean over fits)" is the mean of each run's fits
+    (9 fits' worth: 0, 3 and 6 on seeds 0, 1, 2)."""
+    result = main(_cartpole_runs(tmp_path))
+    unseen = _number(result, "log-likelihood on unseen settings, HiP-MDP - batch only")
+    assert [p["value"] for p in unseen["per_seed"]] == [0.0, 10.0, 20.0]
+    features = _number(result, "latent features (mean over fits)")
+    assert [p["value"] for p in features["per_seed"]] == [0.0, 3.0, 6.0]
+
+
+def test_sd_over_se_takes_the_median_of_runs_over_two_settings(tmp_path):
+    """A run over two test settings (as a small cart-pole run is) has a standard
+    error: half-width over t(1). The seeds' leads 0, 1, 2 have sd 1; their
+    half-widths 1, 2, 5 give SEs whose median is 2 / t(1) (their mean, 8/3 / t(1),
+    or largest would be another number)."""
+    result = main(_cartpole_runs(tmp_path))
+    a = _number(result, "log-likelihood, HiP-MDP - batch only")["across_seeds"]
+    assert a["sd"] == pytest.approx(1.0)
+    assert a["sd_over_se"] == pytest.approx(stats.t.ppf(0.975, 1) / 2.0)
+
+
+def test_an_interval_of_one_setting_reads_as_a_value_without_interval(tmp_path):
+    """A run with one test setting writes its leads as ``mean_ci`` of one sample,
+    bounds null: the value is read, with no interval and no SE."""
+    runs = _cartpole_runs(tmp_path, n=2)
+    for i, run in enumerate(runs):
+        one = {"mean": float(i), "low": None, "high": None, "n": 1}
+        _edit(run, lambda m, one=one: m.update(loglik_difference={"batch only": one}))
+    result = main(runs)
+    n = _number(result, "log-likelihood, HiP-MDP - batch only")
+    assert [(p["value"], p["low"], p["n"]) for p in n["per_seed"]] == [
+        (0.0, None, 1),
+        (1.0, None, 1),
+    ]
+    assert n["across_seeds"]["sd_over_se"] is None
+    assert "| log-likelihood, HiP-MDP - batch only | 0 | 1 |" in report(result)
+
+
+def test_a_count_never_reached_on_most_seeds_has_median_never(tmp_path):
+    """The average model reaches near-optimal on seed 0 only (k > 2 on the
+    others): its median over three seeds is "never"."""
+    result = main(_runs(tmp_path, (0.0, 3.0, 4.0)))
+    avg = _number(result, "episodes to near-optimal, average")["across_seeds"]
+    assert avg == {"median": np.inf, "min": 13.0, "max": np.inf, "never": 2}
+    assert "| 13 | never | never | median never (13-never) |" in report(result)
+
+
+def test_the_seeds_are_columns_in_the_order_the_runs_are_given(tmp_path):
+    """Runs given seed 2 first: the seeds, the columns and the values all follow
+    that order (sorted seeds would label seed 2's values "seed 0"); a count's
+    range is still smallest to largest (the HiP-MDP's: 5, 2, 3 episodes)."""
+    runs = _runs(tmp_path, (0.0, 1.0, 3.0))
+    result = main([runs[2], runs[0], runs[1]])
+    assert result["seeds"] == [2, 0, 1]
+    n = _number(result, "return, hipmdp - average (trials)")
+    assert [p["value"] for p in n["per_seed"]] == [3.5, 0.5, 1.5]
+    assert "| number | seed 2 | seed 0 | seed 1 |" in report(result)
+    hip = _number(result, "episodes to near-optimal, hipmdp")["across_seeds"]
+    assert hip == {"median": 3.0, "min": 2.0, "max": 5.0, "never": 0}
