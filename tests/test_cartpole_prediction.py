@@ -11,6 +11,7 @@ import pytest
 from threadpoolctl import threadpool_limits
 
 import hipmdp
+from hipmdp.planning import LearnedModel
 from tasks.cartpole_prediction import (
     DIM_NAMES,
     N_BOOTSTRAP,
@@ -693,3 +694,167 @@ def test_report_sections_say_what_the_metrics_hold():
         in added
     )
     assert added_text([]) == ""
+
+
+class _SpyRecording:
+    """Stands in for tasks.recording.Recording (called as the class is): keeps
+    every call in ``calls``, writes nothing."""
+
+    def __init__(self):
+        self.calls = []
+
+    def __call__(self, file, **kw):
+        return self
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return None
+
+    def __getattr__(self, name):
+        return lambda *args, **kw: self.calls.append((name, args, kw))
+
+
+def _episodes(rng, n, end, instance, dt):
+    """``n`` cart-pole transitions (the states near upright, ``dt`` seconds apart)
+    with the first episode ending after transition ``end`` and another at the
+    last."""
+    s = rng.normal(scale=0.05, size=(n, 4))
+    dones = np.zeros(n, bool)
+    dones[[end, n - 1]] = True
+    return hipmdp.Transitions(
+        s, rng.integers(0, 2, n), s + rng.normal(scale=0.01, size=(n, 4)),
+        np.full(n, instance), dones=dones, angle_dims=(1,), dt=dt,
+    )  # fmt: skip
+
+
+def test_recording_shows_each_settings_mse_belief_and_first_episode(run, monkeypatch):
+    """record() on hand-made settings, through a spy: each method's MSE of Δẋ
+    (dimension 2) and Δθ̇ (3) setting by setting; the belief filtered one train
+    transition at a time from the prior, ending at the batch posterior (the
+    conjugate update's closed form) beside the setting's true mass and length;
+    the first episode (up to its first done) posed with the setting's
+    parameters (the pole from pivot to tip is 2 half-lengths long), s_0 .. s_T,
+    and the HiP-MDP's one-step predictions from the final belief."""
+    from tasks import cartpole, prediction_report
+    from tasks.prediction import Split, entity
+
+    spy = _SpyRecording()
+    monkeypatch.setattr(prediction_report, "Recording", spy)
+    hip = hipmdp.load(run.out / "hipmdp_run0.npz")
+    rng = np.random.default_rng(6)
+    settings = ((0.15, 0.45), (0.25, 0.7))
+    ends = (4, 6)  # the first episodes' last transitions
+
+    def gathered(n, end, e):  # timed as the fit's batch was
+        return _episodes(rng, n, end, e, hip.info["dt"])
+
+    splits = [
+        Split(gathered(5, 2, e), None, gathered(12, ends[e], e)) for e in range(2)
+    ]
+    config = SimpleNamespace(test_settings=settings)
+    per_setting = {m: np.arange(8.0).reshape(2, 4) + 10 * i
+                   for i, m in enumerate(PREDICTION_METHODS)}  # fmt: skip
+    prediction_report.record("x.rrd", config, {"per_setting_mse": per_setting},
+                             hip, splits)  # fmt: skip
+    calls = spy.calls
+    for m, mse in per_setting.items():
+        for d in (2, 3):
+            name = f"/mse/{d}/{entity(m)}"
+            ((values, kw),) = [
+                (a[1], kw) for f, a, kw in calls if f == "scalars" and a[0] == name
+            ]
+            np.testing.assert_array_equal(values, mse[:, d])
+            np.testing.assert_array_equal(kw["episode"], [0, 1])  # setting indices
+    beliefs = [a for f, a, _ in calls if f == "belief"]
+    for e, (means, sds, truth) in enumerate(beliefs):
+        train = splits[e].train
+        assert len(means) == len(sds) == len(train) + 1
+        np.testing.assert_allclose(means[0], hip.prior().mean)
+        posterior = hip.update(hip.prior(), train)
+        # one transition at a time or all at once: the same conjugate posterior,
+        # up to rounding (~1e-7 relative here, the weights being large); filtering
+        # fewer or other transitions moves it by orders more
+        np.testing.assert_allclose(means[-1], posterior.mean, rtol=1e-6)
+        np.testing.assert_allclose(sds[-1], np.sqrt(np.diag(posterior.cov)), rtol=1e-6)
+        assert truth == {
+            "pole_mass": settings[e][0],
+            "pole_half_length": settings[e][1],
+        }
+    poses = [a[1] for f, a, _ in calls if f == "capsules"]
+    carts = [a[1] for f, a, _ in calls if f == "boxes"]
+    predicted = [a[1] for f, a, _ in calls if f == "strips"]
+    assert len(beliefs) == len(poses) == len(carts) == len(predicted) == 2
+    for e, (mass, half) in enumerate(settings):
+        episodes, n = splits[e].episodes, ends[e] + 1
+        params = cartpole.CartpoleParams(
+            cart_mass=1.0, pole_mass=mass, pole_half_length=half
+        )
+        states = np.concatenate([episodes.states[:n], episodes.next_states[n - 1 : n]])
+        points = cartpole.link_points(states, params)
+        np.testing.assert_allclose(poses[e], points[:, 1:])
+        np.testing.assert_allclose(carts[e], points[:, 0])
+        lengths = np.linalg.norm(poses[e][:, 1] - poses[e][:, 0], axis=-1)
+        np.testing.assert_allclose(lengths, 2 * half)
+        # positions in metres, to a micrometre: the belief's rounding (above)
+        belief = hip.update(hip.prior(), splits[e].train)
+        want = LearnedModel(hip, belief, (1,)).predict(
+            episodes.states[:n], episodes.actions[:n]
+        )
+        np.testing.assert_allclose(
+            predicted[e], cartpole.link_points(want, params), atol=1e-6
+        )
+
+
+def test_report_puts_the_numbers_in_their_places(run, tmp_path):
+    """report.md of the run's metrics under a config with distinct counts: the
+    counts in their sentence, and each ratio with its interval low first (a
+    dimension without a ratio as a dash)."""
+    import dataclasses
+
+    from tasks.prediction_report import write_report
+
+    metrics = json.loads((run.out / "metrics.json").read_text())
+    metrics["mse_ratio_to_best_baseline"] = {
+        "dx": 0.25,
+        "dtheta": None,
+        "dx_dot": 0.5,
+        "dtheta_dot": 2.0,
+    }
+    metrics["mse_ratio_to_best_baseline_interval"] = {
+        "dx": {"low": 0.15, "high": 0.35}, "dtheta": None,
+        "dx_dot": {"low": 0.45, "high": 0.55}, "dtheta_dot": None,
+    }  # fmt: skip
+    config = dataclasses.replace(TINY, n_train=7, n_test=9, record=False)
+    write_report(tmp_path, config, metrics)
+    text = (tmp_path / "report.md").read_text()
+    assert "× 7 train / 9\ntest transitions" in text
+    assert "| 0.25 [0.15, 0.35] | — | 0.5 [0.45, 0.55] | 2 |" in text
+    assert f"Latent features per run: {metrics['n_latent_features']}" in text
+
+
+def test_weights_figure_plots_each_settings_own_weights(monkeypatch):
+    """weights.png is given the training weights without row 0 (the mean
+    dynamics, not a latent weight) and, per test setting, that setting's
+    filtered belief means: hand-made weights, 3 settings of 2 weights each."""
+    from tasks import prediction_report
+
+    given = {}
+    monkeypatch.setattr(
+        prediction_report, "weights_figure", lambda *args: given.update(args=args)
+    )
+    config = SimpleNamespace(
+        train_settings=((0.1, 0.4), (0.3, 0.6)),
+        test_settings=((0.15, 0.45), (0.25, 0.55), (0.2, 0.5)),
+    )
+    metrics = {
+        "training_weights": [[[0.0, 0.0], [1.0, 2.0], [3.0, 4.0]]],
+        "test_belief_means": [[10.0, 11.0], [20.0, 21.0], [30.0, 31.0]],
+    }
+    prediction_report._weights_figure("w.png", config, metrics)
+    _, train_p, train_w, test_p, test_w, *_ = given["args"]
+    np.testing.assert_array_equal(train_w, [[1.0, 2.0], [3.0, 4.0]])
+    np.testing.assert_array_equal(test_w, [[10, 11], [20, 21], [30, 31]])
+    np.testing.assert_array_equal(train_p, config.train_settings)
+    np.testing.assert_array_equal(test_p, config.test_settings)
