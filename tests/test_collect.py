@@ -228,23 +228,30 @@ def test_sarsa_gathering_keeps_the_step_limit_and_the_environments_stream():
         np.testing.assert_array_equal(t.states[t.instances == i][0], first)
 
 
-def test_a_diverging_sarsa_instance_is_dropped_whole_and_reported(monkeypatch):
-    """Learning cannot go on past a diverged step: all the instance's episodes
-    are dropped, reported as one Divergence with episode and step -1."""
+def _sarsa_diverging_at(monkeypatch, steps) -> collect.Collection:
+    """``collect_sarsa`` on ``ACROBOTS`` (ids 4 and 9, 2 episodes of 6 steps
+    each) with the velocity blown up after every step numbered in ``steps``
+    (counted from 1 over the whole run)."""
     original = acrobot.SwingUp.before_step
     calls = []
 
     def before_step(self, action, physics):
         original(self, action, physics)
         calls.append(action)
-        if len(calls) == 8:  # step 2 of instance 0's second episode
+        if len(calls) in steps:
             physics.data.qvel[0] = 1e12
 
     monkeypatch.setattr(acrobot.SwingUp, "before_step", before_step)
-    result = collect.collect_sarsa(
+    return collect.collect_sarsa(
         "acrobot", ACROBOTS, episodes_per_instance=2, max_steps=6,
         rng=np.random.default_rng(0), instance_ids=[4, 9],
     )  # fmt: skip
+
+
+def test_a_diverging_sarsa_instance_is_dropped_whole_and_reported(monkeypatch):
+    """Learning cannot go on past a diverged step: all the instance's episodes
+    are dropped, reported as one Divergence with episode and step -1."""
+    result = _sarsa_diverging_at(monkeypatch, {8})  # instance 0's 2nd episode
     (divergence,) = result.diverged
     assert divergence[:3] == (4, -1, -1) and "BADQVEL" in divergence.reason
     assert result.n_episodes == 4 and len(result.transitions) == 2 * 6
@@ -257,17 +264,7 @@ def test_sarsa_gathering_where_every_instance_diverges_is_empty_not_an_error(
     """Every instance's first step blows up: the collection still comes back, with
     no transitions (of the domain's state dimension and angles) and one
     Divergence per instance, so a caller can see what was dropped."""
-    original = acrobot.SwingUp.before_step
-
-    def before_step(self, action, physics):
-        original(self, action, physics)
-        physics.data.qvel[0] = 1e12
-
-    monkeypatch.setattr(acrobot.SwingUp, "before_step", before_step)
-    result = collect.collect_sarsa(
-        "acrobot", ACROBOTS, episodes_per_instance=2, max_steps=6,
-        rng=np.random.default_rng(0), instance_ids=[4, 9],
-    )  # fmt: skip
+    result = _sarsa_diverging_at(monkeypatch, range(1, 100))  # every step
     t = result.transitions
     assert len(t) == 0 and t.state_dim == acrobot.STATE_DIM
     assert t.angle_dims == acrobot.ANGLE_DIMS and t.dt == acrobot.CONTROL_TIMESTEP
