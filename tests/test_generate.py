@@ -301,6 +301,10 @@ def test_bad_options_stop_with_a_message_and_write_nothing(
         ("max_steps", 0, r"max_steps \(--max-steps\): expected >= 1"),
         ("scheduler", 5, r"scheduler \(--scheduler\): expected an address"),
         ("resume", "yes", "resume: expected True or False"),
+        # a truthy string is not True: the manifest would record "yes"
+        ("book_inertia", "yes", "book_inertia: expected True or False"),
+        ("mixed_software", "no", "mixed_software: expected True or False"),
+        ("progress", 1, "progress: expected True or False"),
         ("domain", "pendulum", "domain must be one of"),
         ("distribution", {"link_mass_1": (1, 2)}, "distribution: expected a tasks"),
     ],
@@ -410,3 +414,168 @@ def test_the_software_digest_covers_hipmdp_tasks_and_the_models(monkeypatch):
 
         monkeypatch.setattr(Path, "read_bytes", edited)
         assert generate.software()["source_sha256"] != before, folder
+
+
+def test_defaults_are_the_documented_ones():
+    """The defaults the module docstring and `--help` state: 4 instances, 2
+    episodes each, seed 0, shards of 16, the random policy, and the paper's
+    varied parameters (acrobot link masses in [0.7, 1.3]; cart-pole pole mass
+    in [0.05, 0.5] kg and half-length in [0.25, 1.0] m), drawn uniformly."""
+    acrobot = generate.parse_config(["--domain", "acrobot"])
+    assert acrobot.instances == 4 and acrobot.episodes_per_instance == 2
+    assert acrobot.seed == 0 and acrobot.shard_size == 16
+    assert acrobot.policy == "random" and acrobot.workers == 1
+    assert acrobot.distribution.kind == "uniform"
+    assert acrobot.distribution.vary == {
+        "link_mass_1": (0.7, 1.3),
+        "link_mass_2": (0.7, 1.3),
+    }
+    cartpole = generate.parse_config(["--domain", "cartpole"])
+    assert cartpole.distribution.vary == {
+        "pole_mass": (0.05, 0.5),
+        "pole_half_length": (0.25, 1.0),
+    }
+
+
+def test_sigma_and_inner_fraction_reach_the_distribution():
+    """`--sigma` and `--inner-fraction` are used, not replaced by the defaults
+    (0.1 and 0.5; the values here differ from both)."""
+    normal = generate.parse_config(
+        ["--domain", "acrobot", "--distribution", "relative-normal", "--sigma", "0.3"]
+    )
+    assert normal.distribution.sigma == 0.3
+    train = generate.parse_config(
+        ["--domain", "acrobot", "--split", "train", "--inner-fraction", "0.25"]
+    )
+    assert train.distribution.inner_fraction == 0.25
+
+
+def test_instances_are_accepted_up_to_the_limit(tmp_path):
+    """`instances` may be exactly MAX_GRID_POINTS (the message says "at most");
+    one more is refused. Building the Config draws nothing, so this is fast."""
+    from tasks.distributions import MAX_GRID_POINTS
+
+    config = generate.parse_config(["--domain", "acrobot", "--out", str(tmp_path)])
+    assert dataclasses.replace(config, instances=MAX_GRID_POINTS).instances == (
+        MAX_GRID_POINTS
+    )
+    with pytest.raises(ValueError, match="expected at most"):
+        dataclasses.replace(config, instances=MAX_GRID_POINTS + 1)
+
+
+def test_a_scheduler_without_dask_installed_stops_before_anything(
+    tmp_path, capsys, monkeypatch
+):
+    """Without `distributed`, `--scheduler` is refused while parsing (exit 2), not
+    after the manifest is written."""
+    real = generate.importlib.util.find_spec
+    monkeypatch.setattr(
+        generate.importlib.util,
+        "find_spec",
+        lambda name, *a: None if name == "distributed" else real(name, *a),
+    )
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as stopped:
+        generate.main(
+            ["--domain", "acrobot", "--scheduler", "tcp://x:1", "--out", str(out)]
+        )
+    assert stopped.value.code == 2
+    assert "--scheduler needs Dask" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_progress_bar_shows_unless_no_progress(tmp_path, capsys):
+    """The bar (on stderr) names the domain's shards; `--no-progress` hides it."""
+    argv = ["--domain", "acrobot", *TINY, "--shard-size", "2"]
+    generate.main([*argv, "--out", str(tmp_path / "quiet"), "--no-progress"])
+    assert capsys.readouterr().err == ""
+    generate.main([*argv, "--out", str(tmp_path / "shown")])
+    assert "acrobot shards" in capsys.readouterr().err
+
+
+def test_a_relative_normal_far_from_its_box_is_warned_about(tmp_path, capsys):
+    """A nominal mass of 1 with σ = 0.05 · 1 lies 20σ below the range [2, 3]
+    (far beyond `far_from_nominal`'s 2σ): the run goes on, with a warning."""
+    argv = ["--domain", "acrobot", "--distribution", "relative-normal"]
+    argv += ["--sigma", "0.05", "--vary", "link_mass_1=2:3", "--out", str(tmp_path)]
+    generate.main([*argv, *TINY, *QUIET])
+    err = capsys.readouterr().err
+    assert "warning: link_mass_1: the nominal 1 lies 20.0σ outside" in err
+    assert shards.Dataset(tmp_path).complete
+
+
+def test_diverged_episodes_are_counted_and_named_in_the_manifest(tmp_path, monkeypatch):
+    """An episode that diverges (instance 1's second episode, started at a
+    velocity of 1e150) is dropped from its shard and recorded in the manifest:
+    the count and the instance, episode and step."""
+    from tasks import rollout
+
+    real = rollout.rollout_episodes
+
+    def blown_up(domain, instances, episode_instance, initial_states, actions, **kw):
+        initial_states = initial_states.copy()
+        if len(instances) == 2:  # the shard of instances 0, 1
+            initial_states[3, 2] = 1e150  # episodes are instance-major: 1's second
+        return real(domain, instances, episode_instance, initial_states, actions, **kw)
+
+    monkeypatch.setattr(rollout, "rollout_episodes", blown_up)
+    generate.main(
+        ["--domain", "acrobot", "--policy", "open-loop", "--out", str(tmp_path)]
+        + TINY
+        + QUIET
+    )
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    first, second = manifest["shards"]
+    assert first["counts"] == {
+        "episodes": 4,
+        "transitions": 3 * 10,
+        "diverged_episodes": 1,
+    }
+    assert [d["instance"] for d in first["diverged"]] == [1]
+    assert [(d["episode"], d["step"]) for d in first["diverged"]] == [(1, 0)]
+    assert second["counts"]["diverged_episodes"] == 0 and not second["diverged"]
+    assert len(Transitions.load(tmp_path / "shard-00000.npz")) == 3 * 10
+
+
+def test_workers_choose_in_process_or_a_process_pool():
+    """`--workers 1` runs in the calling process; more, in a process pool (the
+    bytes are the same, tests/test_generate_scale.py: only where they run)."""
+    import concurrent.futures as cf
+
+    with generate.executor_for(1, None) as inline:
+        assert isinstance(inline, generate.InlineExecutor)
+    with generate.executor_for(2, None) as pool:
+        assert isinstance(pool, cf.ProcessPoolExecutor)
+
+
+def test_the_software_digest_does_not_depend_on_the_listing_order(monkeypatch):
+    """Two machines list a folder's files in different orders: the digest must
+    not change with it, or a run resumed elsewhere is refused as made by other
+    software."""
+    from pathlib import Path
+
+    before = generate.software()["source_sha256"]
+    real_glob, real_iterdir = Path.glob, Path.iterdir
+    monkeypatch.setattr(
+        Path, "glob", lambda self, p: reversed(list(real_glob(self, p)))
+    )
+    monkeypatch.setattr(
+        Path, "iterdir", lambda self: reversed(list(real_iterdir(self)))
+    )
+    assert generate.software()["source_sha256"] == before
+
+
+def test_book_inertia_takes_a_box_that_reaches_the_shape_bounds_exactly(tmp_path):
+    """The corners of the box may sit on the range `book_inertia_range` allows
+    (inclusive, as the link-shape bounds are): masses 1/1.5 and 1/0.7 kg at
+    l = 1 m keep I = 1 kg m^2 with link_shape_1 at its bounds 1.5 and 0.7."""
+    from tasks.acrobot import book_inertia_range
+
+    low, high = book_inertia_range()
+    config = generate.parse_config(
+        ["--domain", "acrobot", "--book-inertia", "--grid", "2",
+         "--vary", f"link_mass_1={low!r}:{high!r}", "--out", str(tmp_path)]
+    )  # fmt: skip
+    rows = [row for e in generate.plan(config)["shards"] for row in e["parameters"]]
+    shapes = sorted(AcrobotParams(*row).link_shape_1 for row in rows)
+    np.testing.assert_allclose(shapes, [0.7, 1.5], rtol=1e-12)
