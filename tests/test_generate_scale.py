@@ -291,6 +291,10 @@ def test_a_progress_log_without_a_manifest_is_refused_untouched(tmp_path, capsys
         (["--seed", "12"], False, "holds a different run (seed: 11 -> 12)"),
         (["--policy", "random", "--resume"], False, "policy: 'open-loop' -> 'random'"),
         ([], True, "unfinished; pass --resume to continue"),
+        # every option that changes the data is part of the run
+        (["--episodes-per-instance", "2"], False, "episodes_per_instance: 3 -> 2"),
+        (["--max-steps", "50", "--resume"], False, "max_steps: None -> 50"),
+        (["--shard-size", "3", "--resume"], False, "shard_size: 2 -> 3"),
     ],
 )
 def test_another_or_unfinished_run_is_refused_untouched(
@@ -308,6 +312,26 @@ def test_another_or_unfinished_run_is_refused_untouched(
     assert after == before
 
 
+def test_a_run_of_this_config_with_other_instances_is_refused_untouched(
+    reference, tmp_path, capsys
+):
+    """Same config, other instance parameters (drawn by another version of the
+    code): resuming would add shards of the new draws to those of the old."""
+    run = tmp_path / "run"
+    shutil.copytree(reference, run)
+    manifest = json.loads((run / "manifest.json").read_text())
+    manifest["shards"][0]["parameters"][0][1] += 0.01  # the first pole's mass
+    manifest["complete"] = False
+    (run / "manifest.json").write_text(json.dumps(manifest))
+    (run / "shard-00001.npz").unlink()
+    before = files(run)
+    with pytest.raises(SystemExit) as stopped:
+        generate.main([*RUN, "--out", str(run), "--resume"])
+    assert stopped.value.code == 2
+    assert "holds this configuration but other instances" in capsys.readouterr().err
+    assert files(run) == before
+
+
 def test_a_log_left_by_a_kill_after_the_final_manifest_is_cleared(reference, tmp_path):
     """Killed between writing the complete manifest and deleting the progress
     log: the next command finds the run finished and clears the log, so the
@@ -318,6 +342,22 @@ def test_a_log_left_by_a_kill_after_the_final_manifest_is_cleared(reference, tmp
         shards.append_progress(run, entry)
     again = generate.main([*RUN, "--out", str(run), "--resume"])
     assert again.redone == ()
+    assert files(run) == files(reference)
+
+
+def test_temporary_files_a_kill_left_are_removed_on_resume(reference, tmp_path):
+    """A kill inside an atomic write leaves `.NAME.*.tmp` beside the manifest or
+    a shard: the resumed run deletes them, so the folder ends as an
+    uninterrupted run's."""
+    run = tmp_path / "run"
+    shutil.copytree(reference, run)
+    manifest = json.loads((run / "manifest.json").read_text())
+    manifest["complete"] = False
+    (run / "manifest.json").write_text(json.dumps(manifest))
+    (run / "shard-00001.npz").unlink()
+    (run / ".shard-00001.npz.k1ll3d.tmp").write_bytes(b"half a shard")
+    (run / ".manifest.json.k1ll3d.tmp").write_text("{")
+    assert generate.main([*RUN, "--out", str(run), "--resume"]).redone == (1,)
     assert files(run) == files(reference)
 
 
@@ -336,6 +376,30 @@ def test_a_stale_record_of_a_corrupt_shard_is_redone(reference, tmp_path):
     assert files(run) == files(reference)
 
 
+class Dies(generate.InlineExecutor):
+    """An executor killed before it runs any shard."""
+
+    def submit(self, fn, /, *args, **kwargs):
+        raise RuntimeError("killed")
+
+
+def test_a_stale_record_is_cleared_before_its_shard_is_redone(reference, tmp_path):
+    """The resumed run takes the progress log into its manifest and deletes it
+    before any shard: killed then, the log's stale line for the damaged shard
+    must not make it look finished again."""
+    from tests.test_shards import unfinished_copy
+
+    run = tmp_path / "run"
+    whole = unfinished_copy(reference, run)
+    shards.append_progress(run, whole["shards"][1])
+    (run / "shard-00001.npz").write_bytes(b"damaged")
+    config = generate.parse_config([*RUN, "--out", str(run), "--resume"])
+    with pytest.raises(RuntimeError, match="killed"):
+        generate.generate(config, executor=Dies())
+    assert not (run / shards.PROGRESS).exists()
+    assert shards.read_manifest(run)["shards"][1]["sha256"] is None
+
+
 def test_a_finished_run_is_left_as_it_is(reference, tmp_path):
     run = tmp_path / "run"
     shutil.copytree(reference, run)
@@ -351,11 +415,6 @@ def test_a_finished_run_redoing_a_damaged_shard_is_unfinished_until_it_is_done(
 ):
     """Resuming a finished run whose shard was damaged, killed before the redo:
     the manifest must not say complete (it did, and readers trusted it)."""
-
-    class Dies(generate.InlineExecutor):
-        def submit(self, fn, /, *args, **kwargs):
-            raise RuntimeError("killed")
-
     run = tmp_path / "run"
     shutil.copytree(reference, run)
     (run / "shard-00001.npz").write_bytes(b"damaged")
@@ -400,6 +459,9 @@ def test_a_run_from_before_the_finer_steps_resumes_only_if_they_do_not_apply(
         assert (tmp_path / "shard-00001.npz").read_bytes() == b"damaged"
     else:
         assert generate.main([*args, "--resume"]).redone == (1,)
+        # the manifest names the steps again, as a run of this version writes it
+        manifest = json.loads((tmp_path / "manifest.json").read_text())
+        assert [e["sub_steps"] for e in manifest["shards"]] == [[20], [20]]
 
 
 @pytest.mark.parametrize(
@@ -474,6 +536,14 @@ def test_mixed_software_continues_and_records_which_shards_each_made(
         {"software": second, "shards": [1]},
     ]
     assert manifest["software"] == fresh
+    # this version redoes the last shards the earlier ones made: none is left to
+    # name, and the run is the reference's, manifest and all
+    manifest["complete"] = False
+    (run / "manifest.json").write_text(json.dumps(manifest))
+    for k in (1, 2):
+        (run / f"shard-0000{k}.npz").unlink()
+    assert generate.main(resume).redone == (1, 2)
+    assert files(run) == files(reference)
 
 
 @pytest.mark.parametrize("policy", ["random", "sarsa", "open-loop"])
