@@ -466,19 +466,26 @@ def software() -> dict[str, Any]:
 
     digest = hashlib.sha256()
     sources = [
-        (name, list(Path(package.__file__).parent.glob("*.py")))
+        (name, source_files(Path(package.__file__).parent))
         for name, package in (("hipmdp", hipmdp), ("tasks", tasks))
     ]
     models = importlib.resources.files("tasks.mjcf")  # as the models are read
-    sources.append(("mjcf", [f for f in models.iterdir() if f.name.endswith(".xml")]))
+    xml = sorted((f.name, f) for f in models.iterdir() if f.name.endswith(".xml"))
+    sources.append(("mjcf", xml))
     for name, files in sources:
-        for file in sorted(files, key=lambda f: f.name):
-            digest.update(f"{name}/{file.name}".encode() + b"\0")
+        for path, file in files:
+            digest.update(f"{name}/{path}".encode() + b"\0")
             digest.update(file.read_bytes() + b"\0")
     return {
         "packages": package_versions(DATA_PACKAGES),
         "source_sha256": digest.hexdigest(),
     }
+
+
+def source_files(root: Path) -> list[tuple[str, Path]]:
+    """Every ``.py`` file under ``root``, subpackages' too, as ``(path relative to
+    root, file)`` in the order of those paths (the same on every machine)."""
+    return sorted((f.relative_to(root).as_posix(), f) for f in root.rglob("*.py"))
 
 
 def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:

@@ -555,14 +555,27 @@ def test_the_software_digest_does_not_depend_on_the_listing_order(monkeypatch):
     from pathlib import Path
 
     before = generate.software()["source_sha256"]
-    real_glob, real_iterdir = Path.glob, Path.iterdir
+    real_rglob, real_iterdir = Path.rglob, Path.iterdir
     monkeypatch.setattr(
-        Path, "glob", lambda self, p: reversed(list(real_glob(self, p)))
+        Path, "rglob", lambda self, p: reversed(list(real_rglob(self, p)))
     )
     monkeypatch.setattr(
         Path, "iterdir", lambda self: reversed(list(real_iterdir(self)))
     )
     assert generate.software()["source_sha256"] == before
+
+
+def test_the_software_digest_reads_subpackages_too(tmp_path):
+    """The digest read the packages' top-level files only: an edit in a
+    subpackage (``hipmdp/sub/x.py``) would have left it unchanged, and a resumed
+    run would mix shards of two codes. Files are named by their path under the
+    package, so a file moved into a subpackage changes it too."""
+    for name in ("b.py", "a/z.py", "a/b/c.py", "a/notes.txt", "a/__pycache__/z.pyc"):
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text(name)
+    files = generate.source_files(tmp_path)
+    assert [path for path, _ in files] == ["a/b/c.py", "a/z.py", "b.py"]
+    assert all(file == tmp_path / path for path, file in files)
 
 
 def test_book_inertia_takes_a_box_that_reaches_the_shape_bounds_exactly(tmp_path):
