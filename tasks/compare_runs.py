@@ -324,10 +324,11 @@ def _compare_files(fa: Path, fb: Path) -> dict[str, Any]:
 PER_METHOD = ("returns", "steps")
 
 
-def _shared_methods(za, zb) -> tuple[list[int], list[int]] | None:
-    """Row indexes of the methods two files both name (``methods``, 1-D strings),
-    in the first file's order; None if either names none, they name the same,
-    or they share none (then the files simply differ)."""
+def _shared_methods(za, zb) -> tuple[tuple[list[int], int], ...] | None:
+    """Per file, the row indexes of the methods both files name (``methods``, 1-D
+    strings), in the first file's order, and how many methods the file names;
+    None if either names none, they name the same, or they share none (then the
+    files simply differ)."""
     if "methods" not in za.files or "methods" not in zb.files:
         return None
     ma, mb = za["methods"], zb["methods"]
@@ -339,7 +340,10 @@ def _shared_methods(za, zb) -> tuple[list[int], list[int]] | None:
     shared = [m for m in names_a if m in names_b]
     if not shared:
         return None
-    return [names_a.index(m) for m in shared], [names_b.index(m) for m in shared]
+    return (
+        ([names_a.index(m) for m in shared], len(names_a)),
+        ([names_b.index(m) for m in shared], len(names_b)),
+    )
 
 
 def _on_shared(a: np.ndarray, b: np.ndarray, key: str, rows) -> tuple:
@@ -347,13 +351,13 @@ def _on_shared(a: np.ndarray, b: np.ndarray, key: str, rows) -> tuple:
     one row per method (``PER_METHOD``); else as they are."""
     if rows is None or key not in PER_METHOD:
         return a, b
-    for x, r in ((a, rows[0]), (b, rows[1])):
-        if x.ndim == 0 or x.shape[0] <= max(r):  # a damaged file
+    for x, (_, n_methods) in zip((a, b), rows, strict=True):
+        if x.ndim == 0 or x.shape[0] != n_methods:  # a damaged file
             raise ValueError(
-                f"{key}: expected a row per entry of its file's methods, got shape "
-                f"{x.shape}"
+                f"{key}: expected a row per entry of its file's methods "
+                f"({n_methods}), got shape {x.shape}"
             )
-    return a[rows[0]], b[rows[1]]
+    return a[rows[0][0]], b[rows[1][0]]
 
 
 def main(run_a: str | Path, run_b: str | Path, out: str | Path | None = None):

@@ -389,10 +389,20 @@ def test_a_trials_file_with_fewer_rows_than_methods_is_unreadable(tmp_path):
     }))  # fmt: skip
     result = main(a, b)
     assert result.arrays["trials.npz:returns"] == {
-        "unreadable": "returns: expected a row per entry of its file's methods, "
-        "got shape (2, 2)"
+        "unreadable": "returns: expected a row per entry of its file's methods "
+        "(3), got shape (2, 2)"
     }
     assert not result.identical
+    # the row missing is of a method the other run lacks: the shared rows exist,
+    # and were compared as if the file were whole
+    (a / "trials.npz").write_bytes(npz_bytes({
+        "returns": np.zeros((2, 2)), "methods": np.array(["true", "hipmdp", "mine"])
+    }))  # fmt: skip
+    (b / "trials.npz").write_bytes(npz_bytes({
+        "returns": np.zeros((2, 2)), "methods": np.array(["true", "hipmdp"])
+    }))  # fmt: skip
+    unreadable = main(a, b).arrays["trials.npz:returns"]["unreadable"]
+    assert unreadable.endswith("methods (3), got shape (2, 2)")
 
 
 def test_compare_arrays_nan_shapes_dtypes_and_strings():

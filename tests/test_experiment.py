@@ -103,6 +103,10 @@ def test_mean_ci_of_one_sample_has_no_interval():
     assert fmt_ci(ci, signed=True) == "+2.5 [no interval: one sample]"
     rows = mean_ci(np.array([[1.0, 2.0]]), axis=0)  # per column, one sample each
     assert rows["low"].shape == (2,) and np.isnan(rows["high"]).all()
+    assert fmt_ci({"mean": 1.0, "low": None, "high": None}) == (
+        "1 [no interval: one sample]"
+    )  # as a metrics.json read back holds it
+    assert fmt_ci(mean_ci([1.0, 3.0])) == "2 [-10.7, 14.7]"
 
 
 @pytest.mark.parametrize("level", [0.0, 1.0, 95])
@@ -110,10 +114,6 @@ def test_mean_ci_refuses_a_level_outside_0_1(level):
     # 95 for 0.95 gave a NaN interval (the t quantile of 48): no error, no interval
     with pytest.raises(ValueError, match="level: expected a number in \\(0, 1\\)"):
         mean_ci([1.0, 2.0, 3.0], level=level)
-    assert fmt_ci({"mean": 1.0, "low": None, "high": None}) == (
-        "1 [no interval: one sample]"
-    )  # as a metrics.json read back holds it
-    assert fmt_ci(mean_ci([1.0, 3.0])) == "2 [-10.7, 14.7]"
 
 
 def test_first_episode_within_uses_negative_returns():
