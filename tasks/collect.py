@@ -21,7 +21,7 @@ import numpy as np
 from dm_control.rl import control
 from tqdm import tqdm
 
-from hipmdp.data import ParameterTable, Transitions
+from hipmdp.data import ParameterTable, Transitions, is_integer
 from tasks import acrobot, agents, cartpole
 from tasks._common import STATE_OBSERVATION, parameter_names, parameter_values
 
@@ -332,11 +332,17 @@ def _check_instances(
                 f"instances must be {spec.params_type.__name__}, got {params!r}"
             )
     ids = list(range(len(instances))) if instance_ids is None else list(instance_ids)
-    if len(ids) != len(instances) or len(set(ids)) != len(ids):
+    # integers (not bools): 0.5 failed as "instances" after every episode ran,
+    # True was taken as 1
+    if (
+        len(ids) != len(instances)
+        or not all(is_integer(i) for i in ids)
+        or len(set(ids)) != len(ids)
+    ):
         raise ValueError(
             f"instance_ids must be {len(instances)} distinct ints, got {ids!r}"
         )
-    return ids
+    return [int(i) for i in ids]
 
 
 def _table(spec: Domain, ids: list[int], instances: list[Any]) -> ParameterTable:

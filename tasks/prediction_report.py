@@ -11,6 +11,7 @@ from hipmdp.data import Transitions
 from hipmdp.planning import LearnedModel
 from tasks import cartpole
 from tasks.experiment import (
+    count,
     describe_environment,
     fmt_ci,
     markdown_table,
@@ -165,10 +166,12 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
     s = metrics["seconds"]
     n_batch = metrics["n_batch_transitions"]
     title = f"Cartpole one-step prediction ({config.preset} preset, seed {config.seed})"
+    settings = count(len(config.test_settings), "test setting")
+    fits = count(config.n_runs, "time")
     text = f"""# {title}
 
-{len(config.test_settings)} test settings × {config.n_train} train / {config.n_test}
-test transitions ({config.split} split); HiP-MDP fitted {config.n_runs} times on
+{settings} × {config.n_train} train / {config.n_test}
+test transitions ({config.split} split); HiP-MDP fitted {fits} on
 {n_batch} batch transitions from {len(config.train_settings)} training settings.
 
 ## MSE of Δs (mean over test settings [95% interval])

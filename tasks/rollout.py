@@ -130,15 +130,14 @@ def rollout_episodes(
     ):
         raise ValueError(
             f"episode_instance must be {n_episodes} integer indices into "
-            f"{len(instances)} instances, got {episode_instance.dtype} of shape "
-            f"{episode_instance.shape}"
+            f"{len(instances)} instances, got {_described(episode_instance)}"
         )
     if actions.dtype.kind not in "iu" or np.any(
         (actions < 0) | (actions >= spec.n_actions)
     ):
         raise ValueError(
             f"actions must be integer indices in [0, {spec.n_actions}), got "
-            f"{actions.dtype}"
+            f"{_described(actions)}"
         )
     _check_positive_int("chunk", chunk)
 
@@ -226,6 +225,14 @@ def rollout_episodes(
         if active.size == 0:
             break
     return OpenLoop(states, lengths, rewards, diverged)
+
+
+def _described(x: Array) -> str:
+    """An index array for an error message: dtype, shape and value range."""
+    text = f"{x.dtype} of shape {x.shape}"
+    if x.size and x.dtype.kind in "iufb":
+        text += f" in [{x.min()}, {x.max()}]"
+    return text
 
 
 def collect_open_loop(

@@ -145,6 +145,8 @@ def test_non_finite_state_is_dropped_and_reported(monkeypatch):
         (dict(instances=[CartpoleParams()]), "instances must be AcrobotParams"),
         (dict(instance_ids=[0, 0]), "instance_ids must be 2 distinct"),
         (dict(instance_ids=[0]), "instance_ids must be 2 distinct"),
+        (dict(instance_ids=[0.5, 1.5]), "instance_ids must be 2 distinct ints"),
+        (dict(instance_ids=[True, 2]), "instance_ids must be 2 distinct ints"),
         (dict(episodes_per_instance=0), "episodes_per_instance must be"),
         (dict(episodes_per_instance=True), "episodes_per_instance must be"),
         (dict(max_steps=-1), "max_steps must be"),

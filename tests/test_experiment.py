@@ -27,6 +27,7 @@ from tasks.experiment import (
     check_folder_out,
     check_out_file,
     check_settings,
+    count,
     describe_environment,
     environment,
     first_episode_within,
@@ -114,6 +115,12 @@ def test_mean_ci_refuses_a_level_outside_0_1(level):
     # 95 for 0.95 gave a NaN interval (the t quantile of 48): no error, no interval
     with pytest.raises(ValueError, match="level: expected a number in \\(0, 1\\)"):
         mean_ci([1.0, 2.0, 3.0], level=level)
+
+
+def test_report_counts_are_singular_for_one():
+    assert [count(n, "test setting") for n in (0, 1, 2)] == [
+        "0 test settings", "1 test setting", "2 test settings"
+    ]  # fmt: skip
 
 
 def test_first_episode_within_uses_negative_returns():

@@ -598,14 +598,14 @@ def test_a_finished_run_made_by_other_software_is_left_as_it_is(reference, tmp_p
     [
         (dict(actions=np.ones(6, int)), r"actions must have shape \(E, T\)"),
         (dict(initial_states=np.zeros((2, 3))), r"initial_states must have shape"),
-        (dict(episode_instance=np.array([0, 2])), "2 integer indices into 2 inst"),
+        (dict(episode_instance=np.array([0, 2])), r"of shape \(2,\) in \[0, 2\]"),
         (dict(episode_instance=np.array([-1, 0])), "2 integer indices into 2 inst"),
         # a bool array passed the bounds and selected by mask; a float one failed
         # as an index deep inside
         (dict(episode_instance=np.array([True, False])), "got bool of shape"),
         (dict(episode_instance=np.array([0.0, 1.0])), "got float64 of shape"),
         (dict(actions=np.full((2, 6), 3)), r"actions must be integer indices in \[0"),
-        (dict(actions=np.full((2, 6), -1)), r"actions must be integer indices in \[0"),
+        (dict(actions=np.full((2, 6), -1)), r"3\), got int64 of shape .* \[-1, -1\]"),
         (dict(actions=np.full((2, 6), 1.5)), r"in \[0, 3\), got float64"),
         (dict(chunk=0), "chunk must be a positive int"),
         (dict(actions=np.ones((2, 0), int)), r"actions must have shape \(E, T\)"),
@@ -638,6 +638,7 @@ def test_bad_open_loop_arguments_are_refused_naming_them(change, message):
         (dict(instance_ids=[3, 3]), "instance_ids must be 2 distinct ints"),
         (dict(instance_ids=[3]), "instance_ids must be 2 distinct ints"),
         (dict(instance_ids=[3, 4, 5]), "instance_ids must be 2 distinct ints"),
+        (dict(instance_ids=[0.5, 1.5]), "instance_ids must be 2 distinct ints"),
         (dict(episodes_per_instance=0), "episodes_per_instance must be a positive"),
         (dict(max_steps=0), "max_steps must be a positive int"),
         (dict(rng=[np.random.default_rng(0)]), "rng: expected .* a sequence of 2"),
