@@ -278,12 +278,14 @@ def test_reaching_the_goal_on_the_last_step_is_a_termination():
 
 def test_the_goal_line_is_the_instances_first_link_length():
     """The task ends at the instance's goal line, `y > l₁`: a tip 0.8 m up is
-    past it for l₁ = 0.6 m, though short of the nominal 1 m."""
+    past it for l₁ = 0.6 m, and short of it for the nominal l₁ = 1 m."""
     params = REWRITTEN[2]  # l₁ = 0.6 m, l₂ = 1.8 m
     s = np.array([0.0, np.arccos(-1.4 / 1.8), 0.0, 0.0])  # y = -0.6 + 1.4
     assert acrobot.tip_height(s, params) == pytest.approx(0.8)
     assert acrobot.swingup(params, seed=0).task.is_terminal(s)
-    assert not acrobot.swingup(seed=0).task.is_terminal(s)
+    up = np.array([np.pi, np.arccos(-0.2), 0.0, 0.0])  # nominal: y = 1 - 0.2
+    assert acrobot.tip_height(up, acrobot.AcrobotParams()) == pytest.approx(0.8)
+    assert not acrobot.swingup(seed=0).task.is_terminal(up)
 
 
 def test_episode_is_truncated_at_the_step_limit():

@@ -214,7 +214,9 @@ def test_a_light_cart_poles_action_still_lasts_0_02_s():
     """At the lightest corner the step is 10 ms / 2⁵ (`sub_steps`): the
     environment takes that many more steps per action, so an action still
     lasts the documented 0.02 s."""
-    env = cartpole.balance(CartpoleParams(0.1, 0.01, 0.1), seed=0)
+    light = CartpoleParams(0.1, 0.01, 0.1)
+    assert cartpole.sub_steps(light) == 2**5 * cartpole.N_SUB_STEPS
+    env = cartpole.balance(light, seed=0)
     env.reset()
     env.step(0)
     assert env.physics.data.time == pytest.approx(cartpole.CONTROL_TIMESTEP)

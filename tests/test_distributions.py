@@ -245,9 +245,10 @@ def test_grid_size_limit_is_inclusive_and_one_point_per_parameter_is_a_grid():
 
 
 def test_extrapolation_draws_n_points_and_a_fixed_range_stays_put():
-    """Extrapolation draws in rounds of at least 64 and keeps those outside the
-    inner box: it returns exactly n. One fixed range is fine while another has a
-    width: every point is then outside the inner box along the other."""
+    """Extrapolation keeps the draws outside the inner box and returns exactly
+    n (it draws in rounds of at least 64, so more than n). One fixed range is
+    fine while another has a width: every point is then outside the inner box
+    along the other."""
     fixed = {"link_mass_1": (1.1, 1.1), "link_mass_2": (0.8, 1.2)}
     for kind in ("uniform", "relative-normal"):
         d = dist(kind=kind, vary=fixed, split="extrapolation", sigma=0.3)

@@ -98,11 +98,11 @@ def test_across_seeds_is_a_t_interval_over_the_seeds_values(tmp_path):
     se = 4.0 / stats.t.ppf(0.975, 479)
     assert a["sd_over_se"] == pytest.approx(np.std(ks, ddof=1) / se)
     # the report's across-seeds cell: the mean and its interval, to 3 significant
-    # digits (within 1%)
+    # digits (rounding moves a value by at most half a unit of the third: 0.5%)
     (row,) = [r for r in report(result).splitlines() if r.startswith(f"| {n['label']}")]
     cell = row.split(" | ")[-2]
     assert [float(v) for v in re.findall(r"[-\d.]+", cell)] == pytest.approx(
-        [a["mean"], a["low"], a["high"]], rel=1e-2
+        [a["mean"], a["low"], a["high"]], rel=5e-3
     )
     margin = _number(result, "HiP-MDP margin to the 10% target, episode 2")
     assert [p["value"] for p in margin["per_seed"]] == list(-8.0 + ks)
