@@ -797,7 +797,10 @@ def test_recording_shows_each_settings_mse_belief_and_first_episode(run, monkeyp
         np.testing.assert_allclose(carts[e], points[:, 0])
         lengths = np.linalg.norm(poses[e][:, 1] - poses[e][:, 0], axis=-1)
         np.testing.assert_allclose(lengths, 2 * half)
-        # positions in metres, to a micrometre: the belief's rounding (above)
+        # the predicted strips: a wiring check (the same predict and link_points
+        # that record calls; what is independent is the belief, here updated on
+        # the batch at once, there one transition at a time). Positions in
+        # metres, to a micrometre: the belief's rounding (above)
         belief = hip.update(hip.prior(), splits[e].train)
         want = LearnedModel(hip, belief, (1,)).predict(
             episodes.states[:n], episodes.actions[:n]

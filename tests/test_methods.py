@@ -763,15 +763,16 @@ def test_fit_all_tries_a_batch_smaller_than_its_tries():
         batch = transitions(weights(rng), n, rng, noise=0.01)
         (fitted,) = methods.fit_all([(spec, BayesianLinear())], batch, 0)
         assert isinstance(fitted.method, BayesianLinear)
+        Spy.seen = []
+        methods.fit_all([(MethodSpec("spy", "m", "A"), Spy())], batch, 0)
+        (_, train), (_, test) = Spy.seen[:2]
+        np.testing.assert_array_equal(train, batch.states[: min(n, size)])
+        np.testing.assert_array_equal(test, batch.states[size:])  # none if n < size
+        assert len(test) == max(0, n - size)
     mean, var = fitted.method.adapt(batch, rng=rng).predict(
         np.zeros((0, 2)), np.zeros(0, int)
-    )
+    )  # BayesianLinear's empty prediction, which the first try asks of it
     assert mean.shape == var.shape == (0, 2)
-    Spy.seen = []
-    methods.fit_all([(MethodSpec("spy", "m", "A"), Spy())], batch, 0)
-    (_, train), (_, test) = Spy.seen[:2]
-    np.testing.assert_array_equal(train, batch.states[:size])
-    np.testing.assert_array_equal(test, batch.states[size:])
 
 
 @pytest.mark.parametrize(
