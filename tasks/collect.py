@@ -355,5 +355,7 @@ def _table(spec: Domain, ids: list[int], instances: list[Any]) -> ParameterTable
 
 
 def _check_positive_int(name: str, value: Any) -> None:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+    """Raise ``ValueError`` naming ``name`` unless ``value`` is an integer >= 1
+    (a Python or numpy one; not a bool), as :func:`hipmdp.data.check_integer`."""
+    if not is_integer(value) or value < 1:
         raise ValueError(f"{name} must be a positive int, got {value!r}")

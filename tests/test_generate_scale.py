@@ -655,6 +655,16 @@ def test_bad_open_loop_gathering_arguments_are_refused_naming_them(change, messa
         rollout.collect_open_loop("acrobot", arguments.pop("instances"), **arguments)
 
 
+def test_open_loop_counts_may_be_numpy_integers():
+    """As `tasks.collect.collect` takes them (an np.int64 from an array of
+    counts was refused as "not a positive int")."""
+    result = rollout.collect_open_loop(
+        "acrobot", ACROBOTS, episodes_per_instance=np.int64(1),
+        rng=np.random.default_rng(0), max_steps=np.int64(3), chunk=np.int32(4),
+    )  # fmt: skip
+    assert result.n_episodes == 2 and len(result.transitions) == 2 * 3
+
+
 def test_open_loop_episodes_run_to_the_tasks_own_step_limit_by_default():
     """With no max_steps, an episode that neither reaches the goal nor diverges
     ends at the limit the environment (and so `tasks.collect.collect`) uses."""
