@@ -357,7 +357,8 @@ def _on_shared(a: np.ndarray, b: np.ndarray, key: str, rows) -> tuple:
                 f"{key}: expected a row per entry of its file's methods "
                 f"({n_methods}), got shape {x.shape}"
             )
-    return a[rows[0][0]], b[rows[1][0]]
+    (rows_a, _), (rows_b, _) = rows
+    return a[rows_a], b[rows_b]
 
 
 def main(run_a: str | Path, run_b: str | Path, out: str | Path | None = None):

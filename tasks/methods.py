@@ -141,11 +141,12 @@ def check_specs(specs: Any) -> tuple[MethodSpec, ...]:
                 f"methods: {p.name!r} is (or is recorded or reported as) a built-in "
                 "method; choose another name"
             )
-        same = sorted({n for n in names if n.lower() == p.name.lower()})
-        if sum(n.lower() == p.name.lower() for n in names) > 1:  # in any case, as
-            raise ValueError(  # the built-in names above
-                f"methods: the name {p.name!r} is given more than once"
-                + ("" if len(same) == 1 else f" ({', '.join(map(repr, same))})")
+        # in any case, as the built-in names above
+        same = [n for n in names if n.lower() == p.name.lower()]
+        if len(same) > 1:
+            spellings = ", ".join(map(repr, sorted(set(same))))
+            raise ValueError(
+                f"methods: the name {p.name!r} is given more than once ({spellings})"
             )
         twins = [n for n in names if n != p.name and _crc(n) == _crc(p.name)]
         if twins:  # their streams would coincide (method_seed)
