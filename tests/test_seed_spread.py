@@ -66,17 +66,29 @@ def _acrobot_metrics(k: float) -> dict:
     }
 
 
-def _runs(tmp_path, ks=(0.0, 1.0, 3.0), configs=None):
+def _write_runs(tmp_path, runs) -> list:
+    """A folder ``seed<i>`` per ``(config, metrics)`` of ``runs``, in order."""
     out = []
-    for i, k in enumerate(ks):
+    for i, (config, metrics) in enumerate(runs):
         path = tmp_path / f"seed{i}"
         path.mkdir()
-        # the name is a label, and workers only schedule: both may differ
-        config = {"name": f"s{i}", "seed": i, "fit": {"n_sweeps": 60}, "workers": i}
-        write_json(path / "config.json", (configs or {}).get(i, config))
-        write_json(path / "metrics.json", _acrobot_metrics(k))
+        write_json(path / "config.json", config)
+        write_json(path / "metrics.json", metrics)
         out.append(path)
     return out
+
+
+def _runs(tmp_path, ks=(0.0, 1.0, 3.0), configs=None):
+    # the name is a label, and workers only schedule: both may differ
+    return _write_runs(tmp_path, [
+        (
+            (configs or {}).get(
+                i, {"name": f"s{i}", "seed": i, "fit": {"n_sweeps": 60}, "workers": i}
+            ),
+            _acrobot_metrics(k),
+        )
+        for i, k in enumerate(ks)
+    ])  # fmt: skip
 
 
 def _number(result, label):
@@ -342,14 +354,13 @@ def _cartpole_metrics(i: int) -> dict:
 
 
 def _cartpole_runs(tmp_path, n=3):
-    out = []
-    for i in range(n):
-        path = tmp_path / f"seed{i}"
-        path.mkdir()
-        write_json(path / "config.json", {"name": "cp", "seed": i, "fit": {}})
-        write_json(path / "metrics.json", _cartpole_metrics(i))
-        out.append(path)
-    return out
+    return _write_runs(
+        tmp_path,
+        [
+            ({"name": "cp", "seed": i, "fit": {}}, _cartpole_metrics(i))
+            for i in range(n)
+        ],
+    )
 
 
 def test_cartpole_ratio_of_means_is_against_the_first_runs_best_baseline(tmp_path):
