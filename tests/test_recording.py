@@ -15,10 +15,11 @@ from tasks.recording import (
     capsule_poses,
     offset_steps,
     recording_enabled,
+    recording_line,
     resolve_record,
     rrd_contents,
 )
-from tests._rrd import rrd_components, rrd_times
+from tests._rrd import _chunks, rrd_components, rrd_times
 
 
 def _blueprint():
@@ -55,6 +56,7 @@ def test_recording_reads_back_with_entities_and_rows(tmp_path):
         path, "/rollout/links"
     )
     assert rows["/returns/hipmdp"] == 2
+    assert rows["/notes"] == 1
     assert any(e.startswith("/view/") for e in rows)  # the blueprint is in the file
     assert [p.name for p in tmp_path.iterdir()] == ["r.rrd"]  # no temp file left
 
@@ -68,10 +70,10 @@ def test_an_unknown_rerun_value_is_refused(monkeypatch, capsys, value):
         recording_enabled()
     # a Recording told not to record does not read it
     assert not Recording("r.rrd", application_id="t", enabled=False).enabled
-    for on in ("on", "1", "TRUE", "yes", ""):
+    for on in ("on", "1", "TRUE", "yes", "", " on\n"):
         monkeypatch.setenv("RERUN", on)
         assert recording_enabled()
-    for off in ("off", "0", "False", "no"):
+    for off in ("off", "0", "False", "no", " OFF "):
         monkeypatch.setenv("RERUN", off)
         assert not recording_enabled()
     # the experiments' command lines say so as a usage error, naming it
@@ -100,6 +102,8 @@ def test_rerun_off_wins_over_enabled_and_input_is_still_checked(tmp_path, monkey
         assert not rec.enabled
         with pytest.raises(ValueError, match="strips: expected shape"):
             rec.strips("/s", np.zeros((3, 2)), episode=0)
+        with pytest.raises(ValueError, match="strips: expected shape"):
+            rec.strips("/s", np.zeros((3, 2, 2)), episode=0)  # 2D points
         with pytest.raises(ValueError, match="centers: expected shape"):
             rec.boxes("/b", np.zeros((3, 2)), (1.0, 1.0, 1.0), episode=0)
         with pytest.raises(ValueError, match="points: expected shape"):
@@ -119,6 +123,19 @@ def test_resolve_record_turns_recording_off_under_rerun_off(monkeypatch):
     monkeypatch.setenv("RERUN", "off")
     assert not resolve_record(config).record
     assert resolve_record(config) == dataclasses.replace(config, record=False)
+    # a config that does not record does not read RERUN, whatever its value
+    monkeypatch.setenv("RERUN", "garbage")
+    unrecorded = dataclasses.replace(config, record=False)
+    assert resolve_record(unrecorded) is unrecorded
+
+
+def test_recording_line_says_whether_there_is_a_recording():
+    from tasks.acrobot_swingup import SwingupConfig
+
+    config = SwingupConfig()
+    assert recording_line(config, "acrobot.rrd") == "Recording: `rerun acrobot.rrd`."
+    unrecorded = dataclasses.replace(config, record=False)
+    assert recording_line(unrecorded, "acrobot.rrd").startswith("No recording")
 
 
 def test_capsules_join_consecutive_points():
@@ -151,6 +168,43 @@ def test_crash_leaves_no_file(tmp_path):
             rec.scalars("/x", [1.0], episode=0, step=np.arange(1))
             raise RuntimeError("boom")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_file_appears_only_when_closed(tmp_path):
+    """Written beside its destination (in a folder made for it) and renamed on
+    closing, so that a run killed mid-recording leaves no half-written .rrd."""
+    path = tmp_path / "run" / "r.rrd"
+    rec = Recording(path, application_id="t")
+    rec.scalars("/x", [1.0, 2.0], episode=0, step=np.arange(2))
+    assert not path.exists()
+    assert rec.close() == path
+    assert [p.name for p in path.parent.iterdir()] == ["r.rrd"]
+    assert rrd_contents(path)["/x"] == 2
+
+
+def test_rrd_contents_refuses_a_file_that_does_not_verify(tmp_path):
+    path = tmp_path / "r.rrd"
+    path.write_bytes(b"not a recording")
+    with pytest.raises(RuntimeError, match="rerun rrd verify failed"):
+        rrd_contents(path)
+
+
+def test_style_is_static_and_carries_the_color(tmp_path):
+    """The radius and color are logged once, statically (no time column), so that
+    they apply at every instant of every timeline; the color is rerun's packed
+    RGBA, 0xFF0000FF for opaque red = 255·2²⁴ + 255 = 4278190335."""
+    path = tmp_path / "r.rrd"
+    with Recording(path, application_id="t") as rec:
+        rec.strips("/s", np.zeros((2, 2, 3)), episode=0, step=np.arange(2),
+                   color=(255, 0, 0), radius=0.05)  # fmt: skip
+    (style,) = [
+        dict(zip(columns, rows[0], strict=True))
+        for columns, rows in _chunks(path, "/s")
+        if "LineStrips3D:radii" in columns
+    ]
+    assert set(style) == {"RowId", "LineStrips3D:radii", "LineStrips3D:colors"}
+    assert style["LineStrips3D:colors"] == f"[{255 * 2**24 + 255}]"
+    assert style["LineStrips3D:radii"] == "[0.05]"
 
 
 def test_bad_input(tmp_path):
@@ -202,3 +256,20 @@ def test_belief_panel_sends_mean_and_two_sigma_band_on_the_steps(tmp_path):
         np.testing.assert_array_equal(got, values, err_msg=entity)
         np.testing.assert_array_equal(times["episode"], [3, 3, 3], err_msg=entity)
         np.testing.assert_array_equal(times["step"], step, err_msg=entity)
+
+
+def test_time_columns_carry_per_row_episodes_and_the_named_timeline(tmp_path):
+    """An episode per row (the returns: one row per episode) and a step sent on
+    another timeline (the prediction experiment's ``transition``)."""
+    with Recording(tmp_path / "r.rrd", application_id="t", enabled=True) as rec:
+        sent = _capture(rec)
+        rec.scalars("/returns", [-3.0, -2.0, -1.0], episode=[0, 1, 2])
+        rec.scalars("/mse", [0.1, 0.2], episode=4, step=[5, 6], timeline="transition")
+    ((times, values),) = sent["/returns"]
+    assert set(times) == {"episode"}
+    np.testing.assert_array_equal(times["episode"], [0, 1, 2])
+    np.testing.assert_array_equal(values, [-3.0, -2.0, -1.0])
+    ((times, values),) = sent["/mse"]
+    assert set(times) == {"episode", "transition"}
+    np.testing.assert_array_equal(times["episode"], [4, 4])
+    np.testing.assert_array_equal(times["transition"], [5, 6])
