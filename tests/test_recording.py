@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+import rerun as rr
 import rerun.blueprint as rrb
 from scipy.spatial.transform import Rotation
 
@@ -19,7 +20,7 @@ from tasks.recording import (
     resolve_record,
     rrd_contents,
 )
-from tests._rrd import _chunks, rrd_components, rrd_times
+from tests._rrd import TIMELINES, _chunks, rrd_components, rrd_times
 
 
 def _blueprint():
@@ -189,22 +190,49 @@ def test_rrd_contents_refuses_a_file_that_does_not_verify(tmp_path):
         rrd_contents(path)
 
 
-def test_style_is_static_and_carries_the_color(tmp_path):
-    """The radius and color are logged once, statically (no time column), so that
-    they apply at every instant of every timeline; the color is rerun's packed
-    RGBA, 0xFF0000FF for opaque red = 255·2²⁴ + 255 = 4278190335."""
-    path = tmp_path / "r.rrd"
-    with Recording(path, application_id="t") as rec:
-        rec.strips("/s", np.zeros((2, 2, 3)), episode=0, step=np.arange(2),
-                   color=(255, 0, 0), radius=0.05)  # fmt: skip
-    (style,) = [
-        dict(zip(columns, rows[0], strict=True))
-        for columns, rows in _chunks(path, "/s")
-        if "LineStrips3D:radii" in columns
+def _static_row(path, entity: str) -> dict[str, str]:
+    """The one row of ``entity`` with no time column (logged statically), as
+    {column: printed cell}, the row id left out."""
+    (row,) = [
+        dict(zip(columns[1:], cells[1:], strict=True))
+        for columns, rows in _chunks(path, entity)
+        for cells in rows
+        if not set(columns) & set(TIMELINES) and "log_time" not in columns
     ]
-    assert set(style) == {"RowId", "LineStrips3D:radii", "LineStrips3D:colors"}
-    assert style["LineStrips3D:colors"] == f"[{255 * 2**24 + 255}]"
-    assert style["LineStrips3D:radii"] == "[0.05]"
+    return row
+
+
+def test_style_and_notes_are_static_with_the_values_given(tmp_path):
+    """Each moving entity's look (radius, half sizes, solid fill, color) and the
+    Markdown note are logged once, statically (no time column), so that they
+    apply at every instant of every timeline. A color is rerun's packed RGBA:
+    opaque red 0xFF0000FF = 255·2²⁴ + 255; a fill mode is its enum value. The
+    sizes are exact in float32, so they print back as given."""
+    path = tmp_path / "r.rrd"
+    step = np.arange(2)
+    with Recording(path, application_id="t") as rec:
+        rec.strips("/s", np.zeros((2, 2, 3)), episode=0, step=step,
+                   color=(255, 0, 0), radius=0.5)  # fmt: skip
+        rec.boxes("/b", np.zeros((2, 3)), (0.5, 0.25, 2.0), episode=0, step=step)
+        rec.capsules("/c", np.ones((2, 3, 3)), 0.125, episode=0, step=step)
+        rec.text("/notes", "what the *panels* show")
+    solid = f"[{rr.components.FillMode.Solid.value}]"
+    assert _static_row(path, "/s") == {
+        "LineStrips3D:colors": f"[{255 * 2**24 + 255}]",
+        "LineStrips3D:radii": "[0.5]",
+    }
+    assert _static_row(path, "/b") == {
+        "Boxes3D:half_sizes": "[[0.5, 0.25, 2.0]]",
+        "Boxes3D:fill_mode": solid,
+    }
+    assert _static_row(path, "/c") == {
+        "Capsules3D:radii": "[0.125]",
+        "Capsules3D:fill_mode": solid,
+    }
+    assert _static_row(path, "/notes") == {
+        "TextDocument:text": "[what the *panels* show]",
+        "TextDocument:media_type": "[text/markdown]",
+    }
 
 
 def test_bad_input(tmp_path):
