@@ -184,6 +184,10 @@ def test_an_error_refitting_the_average_model_is_not_a_usage_error(
         (lambda c: c.update(fit=[1]), "fit: expected an object of FitConfig fields"),
         (lambda c: c["transfer"].update(n_episodes=0), "transfer: n_episodes: "),
         (lambda c: c.update(n_trials="3"), "n_trials: expected an integer >= 1"),
+        (lambda c: c.update(n_trials=0), "n_trials: expected >= 1, got 0"),
+        (lambda c: c.update(test_masses=[[0.9, 0]]), "test_masses[0]: expected"),
+        # json writes and reads float("inf") as Infinity
+        (lambda c: c.update(test_masses=[[float("inf"), 1]]), "test_masses[0]: "),
         (lambda c: c.update(book_inertia=1), "book_inertia: expected true or false"),
     ],
 )
@@ -286,6 +290,8 @@ def test_rejects_a_folder_that_is_not_a_run_and_unknown_variants(tmp_path, run):
     # a repeated variant ran its trials twice and counted them as twice the trials
     with pytest.raises(ValueError, match="variants: expected .* each once"):
         acrobot_identified.main(run[0], variants=("hipmdp", "hipmdp", "average"))
+    with pytest.raises(ValueError, match="variants: expected some of"):
+        acrobot_identified.main(run[0], variants=())
 
 
 @pytest.fixture
@@ -782,3 +788,14 @@ def test_the_checks_command_lines_take_no_progress(monkeypatch, check):
         with pytest.raises(Stop):
             module.cli(argv + extra)
         assert seen.pop() is progress
+
+
+def test_a_model_is_matched_to_its_batch_whatever_the_order_of_its_columns(run):
+    """The model's training instances are its columns, in any order: a model
+    whose columns run in another order than the batch's ids was fitted on it."""
+    from types import SimpleNamespace
+
+    batch = hipmdp.Transitions.load(run[0] / "batch.npz")
+    assert len(batch.instance_ids) > 1
+    hip = SimpleNamespace(instance_ids=batch.instance_ids[::-1].copy(), info={})
+    acrobot_identified.check_model_data(hip, batch, "model.npz", "batch.npz")
