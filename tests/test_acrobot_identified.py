@@ -790,6 +790,170 @@ def test_the_checks_command_lines_take_no_progress(monkeypatch, check):
         assert seen.pop() is progress
 
 
+def test_each_variant_trial_gets_its_model_filter_belief_and_method(monkeypatch):
+    """``_job`` on test setting 1 hands the trial: the identified variants that
+    setting's own filtered belief ("model" or "paper", not another setting's),
+    every HiP-MDP variant the filter it names, ``model_free`` the true model's
+    method with no planning at all, and the energy variants their instance's or
+    the nominal acrobot's constraint. (The tiny run's returns, all at the step
+    limit, cannot show a swap.)"""
+    from types import SimpleNamespace
+
+    from tasks import transfer
+    from tasks.acrobot import AcrobotParams
+    from tasks.acrobot_swingup import setting_params
+
+    class Hip:
+        def prior(self):
+            return "prior"
+
+        def update(self, belief, data, *, model_error=True):
+            return model_error
+
+    beliefs = {"model": ["model 0", "model 1"], "paper": ["paper 0", "paper 1"]}
+    acrobot_identified._init(TINY.transfer, Hip(), "the average", beliefs)
+    installed, ran = [], []
+
+    def set_models(domain, config, model, average, wrapper):
+        installed.append((config, model, wrapper))
+
+    def run_trial(job):
+        ran.append(job)
+        return SimpleNamespace(returns=np.array([-1.0]))
+
+    monkeypatch.setattr(transfer, "set_models", set_models)
+    monkeypatch.setattr(transfer, "run_trial", run_trial)
+    params = setting_params(1.3, 0.7)
+    # variant: the trial's method, its prior belief, whether it filters with the
+    # model's error (None: not the HiP-MDP's filter), its energy constraint
+    for variant, method, prior, model_error, energy in (
+        ("hipmdp", "hipmdp", "prior", True, None),
+        ("hipmdp_paper_filter", "hipmdp", "prior", False, None),
+        ("identified", "hipmdp", "model 1", True, None),
+        ("identified_paper_filter", "hipmdp", "paper 1", False, None),
+        ("hipmdp_energy", "hipmdp", "prior", True, params),
+        ("hipmdp_energy_nominal", "hipmdp", "prior", True, AcrobotParams()),
+        ("average_energy_nominal", "average", None, None, AcrobotParams()),
+        ("average", "average", None, None, None),
+        ("true", "true", None, None, None),
+        ("model_free", "true", None, None, None),
+    ):
+        acrobot_identified._job((variant, 1, 0, params, (7, ())))
+        (config, model, wrapper), job = installed.pop(), ran.pop()
+        assert (job.method, job.setting, job.params) == (method, 1, params), variant
+        if model_error is not None:
+            assert model.prior() == prior, variant
+            assert model.update("b", "d") is model_error, variant
+        planned = config.initial_planning_episodes, config.planning_episodes
+        assert planned == ((0, 0) if variant == "model_free" else (1, 1)), variant
+        if energy is None:
+            assert wrapper is None, variant
+        else:
+            assert wrapper("inner", params)._params == energy, variant
+
+
+@pytest.fixture
+def written(run, tmp_path, monkeypatch):
+    """``main`` on a copy of the run with 2 test settings, 3 trials of 3 episodes
+    each, whose trials return the hand-made ``_HIPMDP`` (rows in (setting, trial)
+    order), ``_HIPMDP + _PAPER_GAIN`` for the paper's filter and -10 for ``true``;
+    and the seed each (variant, setting, trial) was given."""
+    copy = tmp_path / "two"
+    shutil.copytree(run[0], copy)
+    config = json.loads((copy / "config.json").read_text())
+    config.update(test_masses=[[0.9, 1.1], [1.3, 0.7]], n_trials=3)
+    (copy / "config.json").write_text(json.dumps(config))
+    seeds = {}
+
+    def job(args):
+        variant, setting, trial, _, seed = args
+        seeds[variant, setting, trial] = seed
+        returns = {
+            "true": np.full(3, -10.0),
+            "hipmdp": _HIPMDP[3 * setting + trial],
+            "hipmdp_paper_filter": _HIPMDP[3 * setting + trial] + _PAPER_GAIN,
+        }[variant]
+        # as a trial does, one return per episode of the protocol it was given
+        n_episodes = acrobot_identified._STATE["config"].n_episodes
+        return variant, setting, trial, returns[:n_episodes]
+
+    monkeypatch.setattr(acrobot_identified, "_job", job)
+    results = acrobot_identified.main(
+        copy, variants=("true", "hipmdp", "hipmdp_paper_filter"), trials=3,
+        episodes=3, identify=40, seed=config["seed"] + 1, workers=1,
+        progress=False, out=tmp_path / "identified.json",
+    )  # fmt: skip
+    return results, json.loads(results.out.read_text()), seeds, config
+
+
+# TINY's step limit is 60: an episode returning -60 ran to it
+_HIPMDP = np.array(
+    [
+        [-60.0, -20.0, -12.0],
+        [-20.0, -20.0, -12.0],
+        [-20.0, -30.0, -12.0],
+        [-60.0, -30.0, -12.0],
+        [-20.0, -40.0, -12.0],
+        [-20.0, -40.0, -12.0],
+    ]
+)
+_PAPER_GAIN = np.array([0.0, 6.0, 3.0])  # the paper's filter, 3 better per episode
+
+
+def test_the_summary_is_of_each_episode_over_the_trials(written):
+    """The written means, medians, step-limit shares and paired differences of
+    hand-made returns, worked out by hand (episode columns of ``_HIPMDP``:
+    -60 -60 -20 -20 -20 -20, -20 -20 -30 -30 -40 -40, six times -12)."""
+    results, data, _, config = written
+    np.testing.assert_array_equal(data["returns"]["hipmdp"], _HIPMDP)
+    np.testing.assert_array_equal(results.returns["hipmdp"], _HIPMDP)
+    curve = data["curves"]["hipmdp"]
+    np.testing.assert_allclose(curve["mean"], [-200 / 6, -30, -12])
+    assert curve["n"] == 6
+    assert np.all(np.array(curve["low"][:2]) < curve["mean"][:2])
+    assert np.all(np.array(curve["high"][:2]) > curve["mean"][:2])
+    np.testing.assert_array_equal(data["median"]["hipmdp"], [-20, -30, -12])
+    np.testing.assert_allclose(data["step_limit_rate"]["hipmdp"], [2 / 6, 0, 0])
+    np.testing.assert_array_equal(data["step_limit_rate"]["true"], [0, 0, 0])
+    # hipmdp - true: the mean of _HIPMDP (its row sums -92 -52 -62 -102 -72 -72,
+    # total -452 over 18 returns) + 10; its per-episode means + 10
+    to_true = data["paired_difference_to_true"]["hipmdp"]
+    assert to_true["all_episodes"]["mean"] == pytest.approx(-452 / 18 + 10)
+    assert to_true["all_episodes"]["n"] == 6
+    np.testing.assert_allclose(to_true["per_episode"]["mean"], [-200 / 6 + 10, -20, -2])
+    between = data["paired_difference_model_error_minus_paper_filter"]["hipmdp"]
+    assert between["all_episodes"]["mean"] == pytest.approx(-3)
+    assert data["trials_per_setting"] == 3
+    assert data["identify_transitions"] == 40
+    assert data["seed"] == config["seed"] + 1
+    assert data["first_planning_episodes"] is None
+    assert data["initial_planning_episodes"] == TINY.transfer.initial_planning_episodes
+
+
+def test_every_variant_runs_on_the_same_seeds_and_each_trial_on_its_own(written):
+    """Paired comparisons rest on each (setting, trial) having one seed for all
+    variants, and different trials different ones."""
+    _, _, seeds, _ = written
+    pairs = [(i, t) for i in range(2) for t in range(3)]
+    for i, t in pairs:
+        assert len({seeds[v, i, t] for v in ("true", "hipmdp")}) == 1
+    assert len({seeds["true", i, t] for i, t in pairs}) == len(pairs)
+
+
+def test_the_command_line_prints_each_episodes_standard_error(monkeypatch, capsys):
+    """Episode 1 returns -10 and -30: mean -20, sample standard deviation
+    (ddof=1) √200, standard error √200/√2 = 10; episode 2 likewise -30 ± 10."""
+    returns = {"true": np.array([[-10.0, -20.0], [-30.0, -40.0]])}
+    summary = {"median": {"true": [-20.0, -30.0]}, "step_limit_rate": {}}
+
+    def main(*args, **kwargs):
+        return acrobot_identified.Results("out.json", returns, summary)
+
+    monkeypatch.setattr(acrobot_identified, "main", main)
+    assert acrobot_identified.cli(["RUN"]) == 0
+    assert "true: -20.0 ± 10.0, -30.0 ± 10.0   (mean ± s.e." in capsys.readouterr().out
+
+
 def test_a_model_is_matched_to_its_batch_whatever_the_order_of_its_columns(run):
     """The model's training instances are its columns, in any order: a model
     whose columns run in another order than the batch's ids was fitted on it."""
@@ -799,3 +963,20 @@ def test_a_model_is_matched_to_its_batch_whatever_the_order_of_its_columns(run):
     assert len(batch.instance_ids) > 1
     hip = SimpleNamespace(instance_ids=batch.instance_ids[::-1].copy(), info={})
     acrobot_identified.check_model_data(hip, batch, "model.npz", "batch.npz")
+
+
+def test_true_first_predicts_wrapped_angle_changes():
+    """The true simulator's Δ stands in for the HiP-MDP's, which predicts angle
+    changes wrapped to [-π, π]: a swing across ±π changes an angle by a little,
+    not by about 2π."""
+    from tasks.acrobot_swingup import setting_params
+
+    class Hip:
+        def prior(self):
+            return "prior"
+
+    model = acrobot_identified._TrueFirst(Hip(), setting_params(0.9, 1.1))
+    states = np.array([[np.pi - 1e-3, np.pi - 1e-3, 5.0, 5.0]])
+    delta = model.mean_predictor(model.prior())(states, np.array([1]))
+    dims = list(ACROBOT.angle_dims)
+    assert np.all(np.abs(delta[:, dims]) <= np.pi)  # unwrapped: about 1 - 2π
