@@ -562,11 +562,16 @@ def cli(argv: list[str] | None = None) -> int:
         progress=not args.no_progress,
     ))  # fmt: skip
     for v, r in results.returns.items():
-        se = r.std(axis=0, ddof=1) / np.sqrt(len(r)) if len(r) > 1 else 0 * r[0]
-        cells = ", ".join(
-            f"{m:.1f} ± {s:.1f}" for m, s in zip(r.mean(axis=0), se, strict=True)
-        )
-        print(f"{v:>23}: {cells}   (mean ± s.e. per episode, {len(r)} trials)")
+        if len(r) > 1:
+            se = r.std(axis=0, ddof=1) / np.sqrt(len(r))
+            cells = ", ".join(
+                f"{m:.1f} ± {s:.1f}" for m, s in zip(r.mean(axis=0), se, strict=True)
+            )
+            what = f"mean ± s.e. per episode, {len(r)} trials"
+        else:  # no standard error of one sample ("± 0.0" read as certainty)
+            cells = ", ".join(f"{m:.1f}" for m in r[0])
+            what = "per episode, one trial: no standard error"
+        print(f"{v:>23}: {cells}   ({what})")
     for key, what in (("median", "median"), ("step_limit_rate", "step-limit share")):
         for v, x in results.summary[key].items():
             cells = ", ".join(f"{c:.3g}" for c in x)

@@ -952,6 +952,12 @@ def test_the_command_line_prints_each_episodes_standard_error(monkeypatch, capsy
     monkeypatch.setattr(acrobot_identified, "main", main)
     assert acrobot_identified.cli(["RUN"]) == 0
     assert "true: -20.0 ± 10.0, -30.0 ± 10.0   (mean ± s.e." in capsys.readouterr().out
+    # one trial has no standard error ("± 0.0" read as certainty)
+    returns["true"] = returns["true"][:1]
+    assert acrobot_identified.cli(["RUN"]) == 0
+    assert "true: -10.0, -20.0   (per episode, one trial: no standard error)" in (
+        capsys.readouterr().out
+    )
 
 
 def test_a_model_is_matched_to_its_batch_whatever_the_order_of_its_columns(run):
