@@ -73,3 +73,15 @@ def rrd_scalars(path: str | os.PathLike, entity: str) -> np.ndarray:
         for cells in rows:
             values.append([float(v) for v in cells[at].strip("[]").split(",")])
     return np.array(values)
+
+
+def rrd_static_row(path: str | os.PathLike, entity: str) -> dict[str, str]:
+    """The one row of ``entity`` with no time column (logged statically), as
+    {column: printed cell}, the row id left out."""
+    (row,) = [
+        dict(zip(columns[1:], cells[1:], strict=True))
+        for columns, rows in _chunks(path, entity)
+        for cells in rows
+        if not set(columns) & set(TIMELINES) and "log_time" not in columns
+    ]
+    return row

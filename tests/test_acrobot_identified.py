@@ -811,6 +811,7 @@ def test_each_variant_trial_gets_its_model_filter_belief_and_method(monkeypatch)
             return model_error
 
     beliefs = {"model": ["model 0", "model 1"], "paper": ["paper 0", "paper 1"]}
+    monkeypatch.setattr(acrobot_identified, "_STATE", {})  # the stand-ins stay here
     acrobot_identified._init(TINY.transfer, Hip(), "the average", beliefs)
     installed, ran = [], []
 

@@ -20,7 +20,7 @@ from tasks.recording import (
     resolve_record,
     rrd_contents,
 )
-from tests._rrd import TIMELINES, _chunks, rrd_components, rrd_times
+from tests._rrd import rrd_components, rrd_static_row, rrd_times
 
 
 def _blueprint():
@@ -190,18 +190,6 @@ def test_rrd_contents_refuses_a_file_that_does_not_verify(tmp_path):
         rrd_contents(path)
 
 
-def _static_row(path, entity: str) -> dict[str, str]:
-    """The one row of ``entity`` with no time column (logged statically), as
-    {column: printed cell}, the row id left out."""
-    (row,) = [
-        dict(zip(columns[1:], cells[1:], strict=True))
-        for columns, rows in _chunks(path, entity)
-        for cells in rows
-        if not set(columns) & set(TIMELINES) and "log_time" not in columns
-    ]
-    return row
-
-
 def test_style_and_notes_are_static_with_the_values_given(tmp_path):
     """Each moving entity's look (radius, half sizes, solid fill, color) and the
     Markdown note are logged once, statically (no time column), so that they
@@ -217,19 +205,19 @@ def test_style_and_notes_are_static_with_the_values_given(tmp_path):
         rec.capsules("/c", np.ones((2, 3, 3)), 0.125, episode=0, step=step)
         rec.text("/notes", "what the *panels* show")
     solid = f"[{rr.components.FillMode.Solid.value}]"
-    assert _static_row(path, "/s") == {
+    assert rrd_static_row(path, "/s") == {
         "LineStrips3D:colors": f"[{255 * 2**24 + 255}]",
         "LineStrips3D:radii": "[0.5]",
     }
-    assert _static_row(path, "/b") == {
+    assert rrd_static_row(path, "/b") == {
         "Boxes3D:half_sizes": "[[0.5, 0.25, 2.0]]",
         "Boxes3D:fill_mode": solid,
     }
-    assert _static_row(path, "/c") == {
+    assert rrd_static_row(path, "/c") == {
         "Capsules3D:radii": "[0.125]",
         "Capsules3D:fill_mode": solid,
     }
-    assert _static_row(path, "/notes") == {
+    assert rrd_static_row(path, "/notes") == {
         "TextDocument:text": "[what the *panels* show]",
         "TextDocument:media_type": "[text/markdown]",
     }
