@@ -29,6 +29,9 @@ run's best (lowest mean MSE), named in the row. The cart-pole's ratio of means i
 then the paper's measure on the first run and comparable across seeds.
 
 The table is printed as Markdown; ``--out FILE`` also writes every value as JSON.
+There an episode count of "never" (a median, minimum or maximum beyond the last
+episode) is ``null``, as JSON has no infinity; ``never`` says how many seeds
+never got there.
 """
 
 from __future__ import annotations

@@ -419,10 +419,18 @@ def test_an_interval_of_one_setting_reads_as_a_value_without_interval(tmp_path):
 def test_a_count_never_reached_on_most_seeds_has_median_never(tmp_path):
     """The average model reaches near-optimal on seed 0 only (k > 2 on the
     others): its median over three seeds is "never"."""
-    result = main(_runs(tmp_path, (0.0, 3.0, 4.0)))
+    out = tmp_path / "spread.json"
+    result = main(_runs(tmp_path, (0.0, 3.0, 4.0)), out=out)
     avg = _number(result, "episodes to near-optimal, average")["across_seeds"]
     assert avg == {"median": np.inf, "min": 13.0, "max": np.inf, "never": 2}
     assert "| 13 | never | never | median never (13-never) |" in report(result)
+    # In --out's JSON (no infinity there) "never" is null, counted by `never`.
+    (written,) = [
+        n["across_seeds"]
+        for n in json.loads(out.read_text())["numbers"]
+        if n["label"] == "episodes to near-optimal, average"
+    ]
+    assert written == {"median": None, "min": 13.0, "max": None, "never": 2}
 
 
 def test_the_seeds_are_columns_in_the_order_the_runs_are_given(tmp_path):
