@@ -229,22 +229,27 @@ def test_each_instance_and_repetition_is_one_job_with_its_own_seed(
     monkeypatch, tmp_path
 ):
     """gather_and_save runs config.batch_repetitions agents per instance, each
-    learning config.batch_episodes episodes, job (b, r) seeded with child
-    b * repetitions + r of the seed; an instance that diverges stops the
-    batch, naming it, rather than being left out of it."""
+    learning config.batch_episodes episodes of at most config.batch_max_steps,
+    job (b, r) seeded with child b * repetitions + r of the seed (its entropy
+    and spawn key), the jobs' transitions kept in job order; an instance that
+    diverges stops the batch, naming it, rather than being left out of it."""
     from types import SimpleNamespace
 
     from tasks import batch
     from tasks.collect import Divergence
 
-    real, calls = batch.collect_sarsa, []
+    real, calls, parts = batch.collect_sarsa, [], []
 
     def spying(domain, instances, *, episodes_per_instance, rng, **kwargs):
-        calls.append((episodes_per_instance, rng.bit_generator.seed_seq.spawn_key))
-        return real(
+        seed_seq = rng.bit_generator.seed_seq
+        calls.append((episodes_per_instance, kwargs["max_steps"], seed_seq.entropy,
+                      seed_seq.spawn_key))  # fmt: skip
+        out = real(
             domain, instances, episodes_per_instance=episodes_per_instance,
             rng=rng, **kwargs,
         )  # fmt: skip
+        parts.append(out.transitions)
+        return out
 
     monkeypatch.setattr(batch, "collect_sarsa", spying)
     config = SimpleNamespace(
@@ -255,7 +260,10 @@ def test_each_instance_and_repetition_is_one_job_with_its_own_seed(
         "cartpole", params, tmp_path / "batch.npz", config=config,
         seed=np.random.SeedSequence(5, spawn_key=(7,)), progress=False,
     )  # fmt: skip
-    assert calls == [(3, (7, k)) for k in range(4)]
+    assert calls == [(3, 20, 5, (7, k)) for k in range(4)]
+    np.testing.assert_array_equal(
+        data.states, np.concatenate([p.states for p in parts])
+    )
     assert data.dones.sum() == 2 * 2 * 3
     assert np.diff(np.flatnonzero(data.dones), prepend=-1).max() <= 20
     saved = Transitions.load(tmp_path / "batch.npz")
@@ -275,6 +283,17 @@ def test_each_instance_and_repetition_is_one_job_with_its_own_seed(
             "cartpole", params, repetitions=1, episodes=1, max_steps=5,
             seed=np.random.SeedSequence(5),
         )  # fmt: skip
+
+
+def test_parameter_table_rows_are_the_instances_in_order():
+    """Row b of the saved table is instance b's parameters (the data's id b)."""
+    from tasks.batch import parameter_table
+
+    light, heavy = (cartpole.CartpoleParams(pole_mass=m) for m in (0.3, 0.5))
+    table = parameter_table([light, light, heavy])
+    np.testing.assert_array_equal(table.instances, [0, 1, 2])
+    column = table.values[:, list(table.names).index("pole_mass")]
+    np.testing.assert_array_equal(column, [0.3, 0.3, 0.5])
 
 
 def test_the_domains_defaults_are_the_module_docstrings_table():
