@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import json
 import shutil
 
@@ -26,6 +27,7 @@ def test_errors_are_the_plain_predictions_on_each_instances_rows(run, tmp_path):
     res = acrobot_batch_errors.main(run, fast=3.0, out=tmp_path / "e.json")
     s = json.loads(res.out.read_text())
     assert s == json.loads(json.dumps(res.summary))
+    assert s["fast"] == 3.0
     _, hip, average, batch = load_run(run)
     K = hip.n_features - 1
     for col, b in enumerate(hip.instance_ids):
@@ -48,6 +50,7 @@ def test_errors_are_the_plain_predictions_on_each_instances_rows(run, tmp_path):
     assert np.mean(own) < np.mean(prior)
 
 
+@pytest.mark.filterwarnings("error")  # no "Mean of empty slice" for a user to read
 def test_a_threshold_above_every_state_leaves_no_fast_rows(run, tmp_path):
     res = acrobot_batch_errors.main(run, fast=1e6, out=tmp_path / "e.json")
     s = res.summary
@@ -59,8 +62,9 @@ def test_a_threshold_above_every_state_leaves_no_fast_rows(run, tmp_path):
 def test_bad_options_fail_before_loading(tmp_path, run, capsys):
     with pytest.raises(FileNotFoundError, match="config.json"):
         acrobot_batch_errors.main(tmp_path)
-    with pytest.raises(ValueError, match="fast: expected a finite number > 0"):
-        acrobot_batch_errors.main(run, fast=0.0)
+    for bad in (0.0, -1.0, np.inf, np.nan):  # inf: no fast states at all
+        with pytest.raises(ValueError, match="fast: expected a finite number > 0"):
+            acrobot_batch_errors.main(run, fast=bad)
     assert acrobot_batch_errors.cli([str(run), "--out", str(tmp_path / "c.json")]) == 0
     assert "wrote" in capsys.readouterr().out
 
@@ -89,3 +93,66 @@ def test_instances_are_matched_by_id_not_by_position(run, tmp_path):
     for i, inst in enumerate(a["instance_ids"]):
         row = list(table.instances).index(inst)
         assert a["instance_parameters"][i] == table.values[row].tolist()
+
+
+def test_a_state_exactly_at_the_threshold_is_fast(run, tmp_path):
+    """Fast is ``|θ̇₂| ≥ fast``: at the largest |θ̇₂| of an instance's rows as the
+    threshold, that one row (speeds are continuous: no tie) is its fast share."""
+    hip = hipmdp.load(run / "hipmdp_model.npz")
+    batch = hipmdp.Transitions.load(run / "batch.npz")
+    b = int(hip.instance_ids[0])
+    speeds = np.abs(batch.select(instances=[b]).states[:, 3])
+    res = acrobot_batch_errors.main(run, fast=speeds.max(), out=tmp_path / "e.json")
+    assert res.summary["fast_share"][0] == 1 / len(speeds)
+    assert np.isfinite(res.summary["rmse"]["own"]["fast"][0]).all()
+
+
+def test_cli_passes_its_options_and_prints_each_instances_row(
+    monkeypatch, capsys, tmp_path
+):
+    """The CLI's ``--fast`` reaches ``main`` (its default is ``main``'s), and each
+    printed row is that instance's: its id, parameters, fast share in percent and
+    its (Δθ̇₁, Δθ̇₂) RMS errors per model and band, from a hand-made summary."""
+    default = inspect.signature(acrobot_batch_errors.main).parameters["fast"].default
+    models = acrobot_batch_errors.MODELS
+    summary = {
+        "fast": 3.0,
+        "instance_ids": [4, 7],
+        "parameters": ["link_mass_1", "link_mass_2"],
+        "instance_parameters": [[0.7, 1.3], [1.3, 0.7]],
+        "fast_share": [0.25, 0.5],
+        "rmse": {
+            m: {"fast": [[i + 0.125, i + 0.25], [i + 2.5, i + 3.75]],
+                "slow": [[i + 0.5, i + 0.625], [i + 4.25, i + 5.5]]}
+            for i, m in enumerate(models)
+        },
+    }  # fmt: skip
+    calls = []
+
+    def fake_main(run, **kwargs):
+        calls.append((run, kwargs))
+        return acrobot_batch_errors.Results(tmp_path / "e.json", summary)
+
+    monkeypatch.setattr(acrobot_batch_errors, "main", fake_main)
+    assert acrobot_batch_errors.cli(["RUN"]) == 0
+    assert calls == [("RUN", {"fast": default, "out": None})]
+    acrobot_batch_errors.cli(["RUN", "--fast", "2.5", "--out", "e.json"])
+    assert calls[1] == ("RUN", {"fast": 2.5, "out": "e.json"})
+    rows = [
+        line.replace(",", " ").split()
+        for line in capsys.readouterr().out.splitlines()
+        if line.split()[:1] in (["4"], ["7"])
+    ]
+    for row, i in zip(rows, [0, 1, 0, 1], strict=True):  # two calls' printouts
+        assert [int(row[0]), *map(float, row[1:4])] == [
+            summary["instance_ids"][i],
+            *summary["instance_parameters"][i],
+            100 * summary["fast_share"][i],
+        ]
+        cells = [float(x) for x in row[4:]]
+        assert cells == [
+            x
+            for m in models
+            for band in ("fast", "slow")
+            for x in summary["rmse"][m][band][i]
+        ]
