@@ -6,6 +6,7 @@ import functools
 import json
 import shutil
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -44,14 +45,16 @@ def test_no_change_reproduces_the_runs_model(run, tmp_path):
 
 def test_changed_settings_reach_the_model_and_the_checks(run, tmp_path):
     out = tmp_path / "periodic"
-    res = acrobot_refit.main(
-        run, out, {"periodic": True, "n_support": 40}, progress=False
-    )
+    changes = {"periodic": True, "n_support": 40}
+    # progress bars for this refit only: a check fitting from the config shows none
+    res = acrobot_refit.main(run, out, changes, progress=True)
     model = hipmdp.load(out / "hipmdp_model.npz")
     assert model.hyper.periodic == (0, 1) and len(model.support) == 40
     assert res.model.n_features == model.n_features
     config = json.loads((out / "config.json").read_text())
     assert config["fit"]["periodic"] is True and config["fit"]["n_support"] == 40
+    assert config["fit"]["progress"] is False
+    assert config["refit"]["changes"] == changes  # the record of what was changed
     # a check reads the new folder as a run, its average model periodic too
     finished = acrobot_identified.load_run(out)
     assert finished.hip.hyper.periodic == finished.average.hyper.periodic == (0, 1)
@@ -200,3 +203,23 @@ def test_cli_reports_bad_options(run, tmp_path, capsys):
     assert stopped.value.code == 2
     assert "FitConfig.n_support: expected at most" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_cli_passes_the_changes_and_progress_to_main(monkeypatch, capsys, tmp_path):
+    calls = []
+
+    def fake_main(run, out, fit, *, progress):
+        calls.append((run, out, fit, progress))
+        model = SimpleNamespace(
+            n_features=3, support=np.zeros((40, 5)), info={"best_log_joint": -12.5}
+        )
+        return acrobot_refit.Results(tmp_path / "o", fit, 2.0, model)
+
+    monkeypatch.setattr(acrobot_refit, "main", fake_main)
+    assert acrobot_refit.cli(["RUN", "OUT", "--fit", "n_smooth=4000"]) == 0
+    acrobot_refit.cli(["RUN", "OUT", "--no-progress"])
+    assert calls == [
+        ("RUN", "OUT", {"n_smooth": 4000}, True),
+        ("RUN", "OUT", {}, False),
+    ]
+    assert "3 features, 40 support points, log joint -12.5" in capsys.readouterr().out
