@@ -142,6 +142,7 @@ def main(
         "run": str(run),
         "seed": seed,
         "identify_transitions": identify,
+        "evaluate_transitions": evaluate,
         "test_masses": [list(m) for m in masses],
         "test_instances": to_jsonable(instances),
         "horizons": list(horizons),

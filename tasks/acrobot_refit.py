@@ -53,7 +53,8 @@ _FIELDS = {f.name: f for f in dataclasses.fields(hipmdp.FitConfig)}
 
 
 class Results(NamedTuple):
-    """What ``main`` returns: the folder written, the new fit settings, the fit's
+    """What ``main`` returns: the folder written, the fit settings changed (as
+    given; the whole new FitConfig is ``config.json``'s ``fit``), the fit's
     seconds and the refitted model."""
 
     out: Path

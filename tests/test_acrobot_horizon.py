@@ -190,6 +190,7 @@ def test_out_writes_the_named_file_and_leaves_the_default_alone(
     written = json.loads(other.out.read_text())
     assert written["horizons"] == [2]
     assert written["seed"] == 7 and written["identify_transitions"] == 30
+    assert written["evaluate_transitions"] == 40
     assert gathered == [(30, 0), (0, 40)] * len(TINY.test_masses)
     assert (out / "horizon.json").read_text() == before
 
