@@ -4,7 +4,9 @@ writes every artefact with the documented schema."""
 from __future__ import annotations
 
 import dataclasses
+import fnmatch
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -23,6 +25,7 @@ from tasks.acrobot_swingup import (
     step_limit_split,
     transfer_metrics,
 )
+from tasks.experiment import to_jsonable, trial_seeds
 from tasks.prediction import score_settings
 from tasks.recording import rrd_contents
 from tasks.transfer import METHODS, TransferConfig, TrialResult, run_trial
@@ -251,10 +254,13 @@ def test_recording_timelines_play_the_episodes_in_turn(run):
         np.testing.assert_array_equal(belief["episode"], real["episode"])
 
 
-def test_one_episode_under_rerun_off(tmp_path, monkeypatch):
+def test_one_episode_under_rerun_off(run, tmp_path, monkeypatch):
     """``--episodes 1`` is accepted, and its report.md used to fail on the
     table's episode-2 column; under RERUN=off the run records nothing and its
-    config.json and report.md say so (they said a recording was written)."""
+    config.json and report.md say so (they said a recording was written); in
+    the folder of a run with a recording, that recording goes (it would sit
+    beside files it does not show)."""
+    shutil.copytree(run.out, tmp_path, dirs_exist_ok=True)  # the last run's files
     monkeypatch.setenv("RERUN", "off")
     one = dataclasses.replace(TINY.transfer, n_episodes=1)
     run = main(dataclasses.replace(TINY, transfer=one), out=tmp_path)
@@ -294,6 +300,13 @@ def test_cli_presets_and_bad_options(capsys):
     # fewer than 3 episodes: the target is the true model's mean over all of them
     config, _ = parse_args(["--episodes", "2"])
     assert config.transfer.n_episodes == 2 and config.final_window == 2
+    # more: still the preset's last 3
+    config, _ = parse_args(["--episodes", "10"])
+    assert config.final_window == PRESETS["quick"].final_window == 3
+    with pytest.raises(SystemExit):
+        parse_args(["--episodes", "0"])
+    assert "--episodes" in capsys.readouterr().err
+    assert SwingupConfig(n_floor_settings=0).n_floor_settings == 0  # no floor table
     with pytest.raises(ValueError, match="link_mass_1"):
         SwingupConfig(test_masses=((0.0, 1.0),))
     with pytest.raises(ValueError, match="final_window: expected <= "):
@@ -360,6 +373,9 @@ def test_time_split_reaches_the_prediction_table(run, monkeypatch):
         ("transfer", {}),
         ("record", "no"),
         ("progress", 1),
+        ("final_window", 0),  # [-0:] would average every episode
+        ("n_floor_settings", -1),  # [:-1] would score all training settings but one
+        ("n_floor_settings", len(swingup.TRAIN_MASSES) + 1),
     ],
 )
 def test_config_fields_of_the_wrong_type_are_refused_on_construction(field, bad):
@@ -412,7 +428,9 @@ def test_median_view_is_not_decided_by_one_failed_episode():
 
 def test_per_setting_differences_group_trials_by_setting():
     """Setting 0: the HiP-MDP gains 10 steps on every trial; setting 1: it loses 4
-    on one trial and gains 2 on the other. The overall interval mixes them."""
+    on one trial and gains 2 on the other. The overall interval mixes them. The
+    HiP-MDP's trials arrive in the other order: pairing by list position would
+    pair trial 0 with trial 1 and widen setting 0's zero-width interval."""
     rng = np.random.default_rng(0)
     base = {(s, t): -100.0 + rng.normal(size=2) for s in (0, 1) for t in (0, 1)}
     gain = {(0, 0): 10.0, (0, 1): 10.0, (1, 0): -4.0, (1, 1): 2.0}
@@ -429,6 +447,7 @@ def test_per_setting_differences_group_trials_by_setting():
         for (s, t), r in base.items()
         for m in METHODS
     ]
+    trials.sort(key=lambda r: -r.trial if r.method == "hipmdp" else r.trial)
     config = dataclasses.replace(TINY, test_masses=((0.7, 0.9), (1.3, 1.1)), n_trials=2)
     rows = transfer_metrics(config, trials)["paired_difference_per_setting"]
     hip_avg = rows["hipmdp - average"]
@@ -503,6 +522,8 @@ def test_step_limit_split_adds_up_and_counts_only_limit_episodes():
     assert everything["pairs"]["average - true"]["limit"] is None
     with pytest.raises(ValueError, match="equal shapes"):
         step_limit_split(returns, steps[:, :2], 50, methods=("true", "average"))
+    with pytest.raises(ValueError, match="equal shapes"):  # a row per method
+        step_limit_split(returns, steps, 50, methods=("true",))
 
 
 def test_book_inertia_reaches_every_instance(run, tmp_path, monkeypatch):
@@ -738,3 +759,179 @@ def test_each_added_method_has_a_colour_of_its_own():
     colours = [swingup_report.color(m, methods) for m in methods]
     assert len(set(colours)) == len(methods)
     assert colours[3:] == list(swingup_report.ADDED_COLORS[:3])
+
+
+def test_every_file_a_run_writes_is_an_artefact_it_replaces(run):
+    """run_dir deletes a previous run's files by ARTEFACTS before a run starts:
+    a file main writes but ARTEFACTS leaves out would outlive the run that wrote
+    it (a --no-record run beside the last run's acrobot.rrd)."""
+    for file in run.out.iterdir():
+        assert any(fnmatch.fnmatch(file.name, p) for p in swingup.ARTEFACTS), file
+
+
+def test_paper_preset_has_the_documented_sizes():
+    """README and the module docstring: --preset paper is 16 test settings x 30
+    trials of 20 real episodes, the approximation floor on every training
+    setting."""
+    paper = PRESETS["paper"]
+    assert len(set(paper.test_masses)) == 16 and paper.n_trials == 30
+    assert paper.transfer.n_episodes == 20
+    assert paper.n_floor_settings == len(paper.train_masses)
+
+
+def test_quick_test_settings_are_on_the_grid_and_not_training_ones():
+    """QUICK_TEST_MASSES' comment: four test settings of the paper's grid that
+    are not training settings, one per m1 (the quick run's MSE table is then all
+    "unseen"); every training setting is a point of the grid, so the paper
+    preset's "seen" table has them all."""
+    grid = set(swingup.TEST_MASSES)
+    quick = PRESETS["quick"].test_masses
+    assert set(quick) <= grid and not set(quick) & set(swingup.TRAIN_MASSES)
+    assert sorted(m1 for m1, _ in quick) == sorted({m1 for m1, _ in grid})
+    assert set(swingup.TRAIN_MASSES) <= grid and len(set(swingup.TRAIN_MASSES)) == 8
+
+
+def test_run_streams_are_the_seeds_children_in_the_documented_order():
+    """RunStreams' docstring: batch data, fit, average model, trials, prediction
+    table, spawned in that order from the one seed; the checks on a finished run
+    (and a user) rebuild them as SeedSequence(seed).spawn(5)."""
+    streams = swingup.run_streams(7)
+    for i, name in enumerate(("batch", "fit", "average", "trials", "mse")):
+        ss = getattr(streams, name)
+        assert (ss.entropy, ss.spawn_key) == (7, (i,)), name
+
+
+def test_transfer_jobs_share_seeds_across_methods_and_trace_one_trial(monkeypatch):
+    """Every method meets the same (setting, trial) seed, trial_seeds' seeds[i][t]
+    (the layout acrobot_identified's run_seeds relies on), each (setting, trial)
+    its own; only setting 0, trial 0 is traced, and nothing with record off."""
+    jobs = []
+
+    def pool_map(fn, given, **kwargs):  # record the jobs, run none
+        jobs.extend(given)
+        return []
+
+    monkeypatch.setattr(swingup, "pool_map", pool_map)
+    config = dataclasses.replace(
+        TINY, test_masses=((0.7, 0.9), (1.3, 1.1)), n_trials=3, record=True
+    )
+    swingup.run_transfer(config, None, None, np.random.SeedSequence(5))
+    seeds = trial_seeds(np.random.SeedSequence(5), 2, 3)
+    assert len(jobs) == len(METHODS) * 2 * 3
+    for job in jobs:
+        assert job.seed == seeds[job.setting][job.trial]
+        masses = job.params.link_mass_1, job.params.link_mass_2
+        assert masses == pytest.approx(config.test_masses[job.setting])
+    assert len({job.seed for job in jobs}) == 2 * 3
+    traced = [(j.method, j.setting, j.trial) for j in jobs if j.record]
+    assert sorted(traced) == sorted((m, 0, 0) for m in METHODS)
+    jobs.clear()
+    swingup.run_transfer(
+        dataclasses.replace(config, record=False), None, None,
+        np.random.SeedSequence(5),
+    )  # fmt: skip
+    assert jobs and not any(j.record for j in jobs)
+
+
+def test_prediction_table_scores_the_test_settings_and_the_first_training_ones(
+    monkeypatch,
+):
+    """Table 0 (test) on test_masses, table 1 (floor) on the first
+    n_floor_settings training settings, each its own seed and its own key for
+    the added methods' streams; with no floor settings, no floor table."""
+    calls = []
+
+    def score_spy(domain, models, average, batch, instances, **kwargs):
+        masses = [(p.link_mass_1, p.link_mass_2) for p in instances]
+        calls.append((masses, kwargs["table"], kwargs["seed"]))
+        return []  # nothing to summarise
+
+    monkeypatch.setattr(swingup, "score_settings", score_spy)
+    config = dataclasses.replace(TINY, n_floor_settings=2)
+    out = swingup.prediction_table(config, None, None, None, np.random.SeedSequence(1))
+    (test, t0, s0), (floor, t1, s1) = calls
+    assert test == list(config.test_masses) and t0 == 0
+    assert floor == list(config.train_masses[:2]) and t1 == 1
+    assert s0.spawn_key != s1.spawn_key
+    calls.clear()
+    config = dataclasses.replace(TINY, n_floor_settings=0)
+    out = swingup.prediction_table(config, None, None, None, np.random.SeedSequence(1))
+    assert calls[1][0] == [] and out["floor"] is None
+
+
+def test_metrics_hold_the_runs_model_batch_and_prediction_tables(run):
+    """metrics.json's model numbers are the saved model's, and its prediction
+    numbers the test table's (the floor the training table's), as the table
+    recomputed on the run's own models and seeds gives them."""
+    from tasks.acrobot_identified import load_run
+
+    m = json.loads((run.out / "metrics.json").read_text())
+    finished = load_run(run.out)
+    assert m["n_batch_transitions"] == len(finished.batch)
+    np.testing.assert_array_equal(m["training_weights"], finished.hip.weights)
+    table = swingup.prediction_table(
+        TINY, finished.hip, finished.average, finished.batch,
+        swingup.run_streams(TINY.seed).mse,
+    )  # fmt: skip
+    test = to_jsonable(table["test"])
+    for key in ("mse", "coverage", "per_setting_mse", "per_setting_loglik"):
+        _assert_close(m[key], test[key])
+    _assert_close(m["approximation_floor"], to_jsonable(table["floor"]["mse"]))
+
+
+def _assert_close(got, want):
+    """Nested JSON values equal up to rounding (null where both are null)."""
+    if isinstance(want, dict):
+        assert got.keys() == want.keys()
+        for k in want:
+            _assert_close(got[k], want[k])
+    elif isinstance(want, list):
+        assert len(got) == len(want)
+        for g, w in zip(got, want, strict=True):
+            _assert_close(g, w)
+    elif isinstance(want, float):
+        assert got == pytest.approx(want, rel=1e-9)
+    else:
+        assert got == want
+
+
+def test_added_methods_are_paired_with_the_hipmdp_and_the_true_model():
+    """run_pairs: PAIRS, then per added method the HiP-MDP against it and it
+    against the true model; "a - b" is a's return minus b's. By hand, every
+    episode: true -20, average -30, HiP-MDP -25, "mine" -40."""
+    level = {"true": -20.0, "average": -30.0, "hipmdp": -25.0, "mine": -40.0}
+    config = dataclasses.replace(
+        TINY, n_trials=2, methods=("mine=tasks.methods:BayesianLinear",)
+    )
+    m = transfer_metrics(
+        config, _trials({k: np.full((2, 2), v) for k, v in level.items()})
+    )
+    want = {
+        "hipmdp - average": 5.0, "hipmdp - true": -5.0, "average - true": -10.0,
+        "hipmdp - mine": 15.0, "mine - true": -20.0,
+    }  # fmt: skip
+    got = m["paired_difference"]
+    assert list(got) == list(want)
+    assert {k: d["all_episodes"]["mean"] for k, d in got.items()} == want
+    rows = m["paired_difference_per_setting"]
+    assert {k: r[0]["mean"] for k, r in rows.items()} == want
+    assert list(m["step_limit_split"]["pairs"]) == list(want)
+
+
+def test_near_optimal_target_is_the_mean_of_the_last_final_window_episodes():
+    """True model [-60, -40, -30, -20] on both trials, final_window 2: the
+    target is -25 (the last three would give -30), within 10% is >= -27.5; the
+    HiP-MDP's -29 at episode 1 is not, its -27 at episode 2 is. Two trials:
+    n_trials 2 beside four episodes."""
+    true = np.tile([-60.0, -40.0, -30.0, -20.0], (2, 1))
+    hip = np.tile([-29.0, -27.0, -27.0, -27.0], (2, 1))
+    config = dataclasses.replace(
+        TINY, n_trials=2, final_window=2,
+        transfer=dataclasses.replace(TINY.transfer, n_episodes=4, max_steps=100),
+    )  # fmt: skip
+    m = transfer_metrics(config, _trials({"true": true, "average": hip, "hipmdp": hip}))
+    target = m["near_optimal_target"]
+    assert target["true_model_final_mean_return"] == -25.0
+    assert target["margin"] == 0.1  # the 10% that episodes_to_near_optimal uses
+    assert m["episodes_to_near_optimal"]["hipmdp"] == 2
+    assert all(c["n_trials"] == 2 for c in m["returns"].values())
