@@ -935,3 +935,46 @@ def test_near_optimal_target_is_the_mean_of_the_last_final_window_episodes():
     assert target["margin"] == 0.1  # the 10% that episodes_to_near_optimal uses
     assert m["episodes_to_near_optimal"]["hipmdp"] == 2
     assert all(c["n_trials"] == 2 for c in m["returns"].values())
+
+
+def test_main_gives_the_fit_the_average_model_and_added_methods_their_streams(
+    tmp_path, monkeypatch
+):
+    """The checks on a finished run (acrobot_refit, acrobot_identified's
+    load_run) refit from run_streams(seed).fit and .average with the config's
+    average_n_max and periodic dimensions; the added methods draw from the run's
+    seed (tasks.methods.method_seed). Seed 3, so a hard-coded 0 shows."""
+
+    class Stop(Exception):
+        pass
+
+    seen, fit = {}, hipmdp.fit
+
+    def fit_spy(batch, config, *, rng):
+        seen["fit"] = rng.bit_generator.seed_seq
+        return fit(batch, config, rng=rng)
+
+    def fit_all_spy(loaded, batch, seed, **kwargs):
+        seen["methods"] = seed
+        return ()
+
+    def average_spy(batch, *, rng, n_max, periodic):
+        seen["average"] = rng.bit_generator.seed_seq, n_max, periodic
+        seen["periodic"] = tuple(batch.angle_dims)
+        raise Stop
+
+    monkeypatch.setattr(hipmdp, "fit", fit_spy)
+    monkeypatch.setattr(swingup, "fit_all", fit_all_spy)
+    monkeypatch.setattr(swingup.baselines, "batch_only", average_spy)
+    config = dataclasses.replace(
+        TINY, seed=3, record=False, average_n_max=123,
+        fit=dataclasses.replace(TINY.fit, periodic=True),  # angles: (0, 1)
+    )  # fmt: skip
+    with pytest.raises(Stop):
+        main(config, tmp_path)
+    streams = swingup.run_streams(3)
+    assert seen["methods"] == 3
+    assert seen["fit"].spawn_key == streams.fit.spawn_key
+    ss, n_max, periodic = seen["average"]
+    assert (ss.entropy, ss.spawn_key) == (3, streams.average.spawn_key)
+    assert n_max == 123 and periodic == seen["periodic"] and periodic
