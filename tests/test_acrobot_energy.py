@@ -4,6 +4,7 @@ known inputs, and the check itself on a finished (tiny) swing-up run."""
 from __future__ import annotations
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -117,6 +118,40 @@ def test_elbow_wrap_marks_steps_near_or_across_theta2_pi():
     assert out["wrap_kinetic_share"] == pytest.approx(energies[2] / energies.sum())
 
 
+def test_elbow_wrap_is_symmetric_and_judged_from_the_starting_state():
+    """Near −π counts as near +π; a step that ends near the wrap without
+    starting near it or crossing it does not count (the wrap share is of steps
+    that start there)."""
+    states = np.zeros((3, 4))
+    true_next = np.zeros((3, 4))
+    states[:, 1] = [-np.pi + 0.3, np.pi - 1.0, 0.0]
+    true_next[:, 1] = [-np.pi + 0.2, np.pi - 0.1, 0.1]  # the second ends near π
+    np.testing.assert_array_equal(
+        acrobot_energy.elbow_wrap(states, true_next), [True, False, False]
+    )
+    predicted = true_next.copy()
+    predicted[:, 2] = [1.0, 1.0, 0.0]
+    out = acrobot_energy.banded_errors(predicted, true_next, states, PARAMS)
+    assert out["wrap_share"] == pytest.approx(1 / 3)
+    mass = acrobot.mass_matrix(true_next, PARAMS)[:, 0, 0]
+    assert out["wrap_kinetic_share"] == pytest.approx(mass[0] / (mass[0] + mass[1]))
+
+
+def test_exact_predictions_have_zero_energy_shares_without_warnings():
+    """With no velocity error there is no ½ εᵀ M ε to share out: every share is
+    0, not 0/0. Empty bands are the rule (few states reach |θ̇₂| ≥ 14 rad/s), so
+    they must not warn either: numpy's warnings would fill the printout."""
+    states = _states(np.random.default_rng(6), 20) * [1, 1, 1, 0.2]  # |θ̇₂| < 2
+    true_next = _states(np.random.default_rng(7), 20)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = acrobot_energy.banded_errors(true_next, true_next, states, PARAMS)
+    np.testing.assert_array_equal(out["kinetic_share"], 0.0)
+    assert out["wrap_kinetic_share"] == 0.0
+    np.testing.assert_array_equal(out["rmse"][0], 0.0)
+    assert np.all(np.isnan(out["rmse"][1:]))
+
+
 def test_noisy_simulator_adds_unbiased_noise_to_velocities_only():
     simulator = SimulatorModel(ACROBOT, PARAMS)
     noisy = acrobot_energy.NoisySimulator(simulator, 0.25, np.random.default_rng(2))
@@ -180,6 +215,23 @@ def test_columns_take_the_exact_models_columns_on_fast_rows_only():
     assert exact.asked == [2]
 
 
+def test_columns_take_the_angles_predicted_for_each_fast_rows_own_action():
+    """exact_fast_angles: the exact model's angle columns, predicted with each fast
+    row's own action (an exact model that echoes the action in every column, so
+    a column or action taken from the wrong place shows)."""
+
+    class Echo:
+        def predict(self, states, actions):
+            return np.asarray(actions)[:, None] + [10.0, 20.0, 30.0, 40.0]
+
+    states = np.zeros((3, 4))
+    states[:, 3] = [0.0, 6.0, -7.0]
+    out = acrobot_energy.Columns(_Constant(0.0), Echo(), 5.0, slice(0, 2)).predict(
+        states, np.array([0, 1, 2])
+    )
+    np.testing.assert_array_equal(out, [[0, 0, 0, 0], [11, 21, 0, 0], [12, 22, 0, 0]])
+
+
 def test_sampled_weights_draw_the_training_instances_weights(run):
     import hipmdp
 
@@ -227,12 +279,21 @@ def test_batch_distance_is_normalised_and_wraps_the_angles():
             [-np.pi + 0.01, 0.0, 0.0, 0.0],  # 0.02 rad across the wrap
             [0.0, np.pi / 2, 0.0, 0.0],
             [0.0, 0.0, 7 * np.pi, 0.0],  # 1.75 box half-widths: velocities do not wrap
-            [-np.pi - 1e-17, 0.0, 0.0, 0.0],  # a hair below −π still wraps
+            [np.nextafter(-np.pi, -4), 0.0, 0.0, 0.0],  # a hair below −π wraps
         ]
     )
     np.testing.assert_allclose(
         distance(queries), [1.0, 0.5, 0.02 / np.pi, 0.5, 1.75, 0.01 / np.pi]
     )
+
+
+def test_nanmean_averages_the_finite_entries_and_leaves_empty_columns_nan():
+    """The banded summaries average over trials the bands a trial had states in;
+    a band no trial reached stays NaN (not 0, which reads as no error)."""
+    x = np.array([[1.0, np.nan, np.nan], [3.0, 4.0, np.nan]])
+    got = acrobot_energy._nanmean(x)
+    np.testing.assert_array_equal(got[:2], [2.0, 4.0])
+    assert np.isnan(got[2])
 
 
 def test_band_medians_take_each_bands_own_values():
@@ -333,6 +394,88 @@ def test_a_model_exact_everywhere_has_no_energy_error(run, tmp_path):
     )
 
 
+def test_promised_delivered_and_their_differences_are_in_steps(
+    run, tmp_path, monkeypatch
+):
+    """promised: the mean steps of the last ``last`` planned episodes; delivered:
+    the mean steps of the ``real`` real episodes; the differences are delivered
+    minus promised, and a model's delivered minus the simulator's agent's (above
+    0 is worse). The tiny run plans one episode, and every episode of it runs to
+    the step limit, so first and last, or one model and another, would look
+    alike: a copy of it plans three episodes, relabelled 1, 2, 3 steps, and its
+    real episodes are cut to 10, 20, 30 steps for ``true`` and 40, 50, 60 for
+    ``prior``. With more --states than the planner visited, all are used."""
+    import shutil
+
+    copy = tmp_path / "run"
+    shutil.copytree(run[0], copy)
+    config = json.loads((copy / "config.json").read_text())
+    config["transfer"]["initial_planning_episodes"] = 3
+    (copy / "config.json").write_text(json.dumps(config))
+    planned, lengths = [], iter([10, 20, 30, 40, 50, 60])
+    plan, run_episode = acrobot_energy._plan, acrobot_energy.run_episode
+
+    def relabelled(*args):
+        planned.append(plan(*args))
+        return planned[-1]._replace(steps=np.arange(1.0, 4.0))
+
+    def cut(*args, **kwargs):
+        episode = run_episode(*args, **kwargs)
+        return episode._replace(actions=np.zeros(next(lengths), dtype=np.int64))
+
+    monkeypatch.setattr(acrobot_energy, "_plan", relabelled)
+    monkeypatch.setattr(acrobot_energy, "run_episode", cut)
+    summary = acrobot_energy.main(
+        copy, models=("true", "prior"), trials=1, last=2, real=3, n_states=10**6,
+        workers=1, progress=False, out=tmp_path / "e.json",
+    ).summary  # fmt: skip
+    assert [len(p.steps) for p in planned] == [3, 3]
+    assert next(lengths, None) is None  # three real episodes per model
+    for m, delivered in (("true", 20.0), ("prior", 50.0)):
+        assert summary["promised_steps"][m] == [[2.5]]  # episodes 2 and 3
+        assert summary["promised_steps_mean"][m]["mean"] == 2.5
+        assert summary["delivered_steps"][m] == [[delivered]]
+        assert summary["delivered_steps_mean"][m]["mean"] == delivered
+        assert summary["delivered_minus_promised"][m]["mean"] == delivered - 2.5
+    assert summary["delivered_minus_true"]["prior"]["mean"] == 30.0
+
+
+def test_identified_beliefs_are_filtered_on_each_settings_transitions(
+    run, tmp_path, monkeypatch
+):
+    """The beliefs handed to the trials, rebuilt from --seed: the prior updated
+    on ``identify`` transitions of the setting's instance (not the prior)."""
+    import hipmdp
+    from tasks.acrobot_swingup import run_test_instances
+    from tasks.prediction import gather_split
+
+    class Captured(Exception):
+        pass
+
+    def capture(fn, jobs, *, initargs, **kwargs):
+        seen.extend(initargs[3])
+        raise Captured
+
+    seen = []
+    monkeypatch.setattr(acrobot_energy, "pool_map", capture)
+    out = run[0]
+    with pytest.raises(Captured):
+        acrobot_energy.main(
+            out, models=("true", "identified"), identify=30, last=1, seed=7,
+            workers=1, progress=False, out=tmp_path / "e.json",
+        )  # fmt: skip
+    hip = hipmdp.load(out / "hipmdp_model.npz")
+    settings = run_test_instances(json.loads((out / "config.json").read_text()))
+    streams = np.random.SeedSequence(7).spawn(2)[1].spawn(len(settings))
+    assert len(seen) == len(settings)
+    for belief, params, ss in zip(seen, settings, streams, strict=True):
+        train = gather_split(ACROBOT, params, 30, 0, rng=np.random.default_rng(ss))
+        want = hip.update(hip.prior(), train.train)
+        np.testing.assert_array_equal(belief.h, want.h)
+        np.testing.assert_array_equal(belief.P, want.P)
+        assert not np.array_equal(belief.P, hip.prior().P)
+
+
 def test_without_noise_there_is_no_noisy_model(run, tmp_path):
     out, options, _ = run
     summary = acrobot_energy.main(
@@ -366,6 +509,16 @@ def test_rejects_bad_options(tmp_path, run):
         acrobot_energy.main(out, last=1, models=("true", "noisy"))
     with pytest.raises(ValueError, match="noise: expected a σ .* exactly when"):
         acrobot_energy.main(out, last=1, models=("true", "prior"), noise=0.1)
+    # σ 0 is the simulator itself; infinite σ and --fast are no model; a count of
+    # 0 would plan or average nothing (--last 0 would take every planned episode)
+    for option, value in (("noise", 0.0), ("noise", np.inf), ("fast", np.inf)):
+        with pytest.raises(ValueError, match=f"{option}: expected a positive finite"):
+            acrobot_energy.main(out, last=1, **{option: value})
+    for option in ("identify", "real", "last", "workers"):
+        with pytest.raises(ValueError, match=f"{option}: expected >= 1"):
+            acrobot_energy.main(out, **{"last": 1, option: 0})
+    with pytest.raises(ValueError, match="seed: expected"):
+        acrobot_energy.main(out, last=1, seed=-1)
 
 
 def test_a_subset_of_models_gives_the_same_numbers_for_them(run, tmp_path):
@@ -430,6 +583,32 @@ def test_the_models_are_built_with_their_masses_columns_and_streams(run):
     got = models["train_sampled"]
     for _ in range(20):  # a different stream matches 20 draws by chance rarely
         np.testing.assert_array_equal(got.draw().belief.mean, want.draw().belief.mean)
+    # exact_fast: the simulator on fast rows, the prior-mean model on the rest
+    assert models["exact_fast"]._fast is simulator
+    assert models["exact_fast"]._slow is models["prior"]
+    # noisy: the --noise σ, on the ss_noise stream
+    states = _states(np.random.default_rng(8), 10)
+    actions = np.zeros(10, dtype=int)
+    want = acrobot_energy.NoisySimulator(
+        simulator, 0.1, np.random.default_rng(ss_noise)
+    )
+    np.testing.assert_array_equal(
+        models["noisy"].predict(states, actions), want.predict(states, actions)
+    )
+
+
+def test_each_setting_gets_its_own_identified_belief(run):
+    import hipmdp
+
+    hip = hipmdp.load(run[0] / "hipmdp_model.npz")
+    beliefs = [hip.prior(), hip.prior()]
+    acrobot_energy._init([PARAMS, PARAMS], hip, None, beliefs, {"fast": 5.0})
+    simulator = SimulatorModel(ACROBOT, PARAMS)
+    for setting, belief in enumerate(beliefs):
+        models = acrobot_energy._build_models(
+            ["identified"], setting, PARAMS, simulator, None, None
+        )
+        assert models["identified"].belief is belief
 
 
 def test_cli_refuses_bad_input_as_usage_and_shows_later_errors_whole(
