@@ -5,8 +5,10 @@ by the task, and each episode carries its instance's parameters."""
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
 import shutil
+import sys
 
 import numpy as np
 import pytest
@@ -14,6 +16,7 @@ import pytest
 from hipmdp import shards
 from tasks import cartpole, generate, minari_export
 
+pa = pytest.importorskip("pyarrow")
 pa_dataset = pytest.importorskip("pyarrow.dataset")
 
 
@@ -41,9 +44,10 @@ def read_episode(data, episode):
     }
 
 
-def test_episodes_match_the_run_and_carry_their_parameters(run, tmp_path):
+def test_episodes_match_the_run_and_carry_their_parameters(run, tmp_path, capsys):
     data = minari_export.main([str(run), "--out", str(tmp_path)])
     assert data == tmp_path / "cartpole-open-loop-v0" / "data"
+    assert capsys.readouterr().out == f"wrote {data}\n"
     meta = json.loads((data / "metadata.json").read_text())
     transitions = shards.load_dataset(run).load()
     assert meta["data_format"] == "arrow" and meta["total_episodes"] == 6
@@ -88,6 +92,37 @@ def test_episodes_match_the_run_and_carry_their_parameters(run, tmp_path):
         }
 
 
+def test_columns_and_spaces_are_typed_as_minari_writes_them(run, tmp_path):
+    """As Minari 0.5's ArrowStorage writes them (``_encode_space``,
+    ``update_episodes``): a Box observation as a fixed-size list of its dtype, a
+    Discrete action as int32, float rewards, bool end flags, the step columns
+    padded with one zero row; the spaces serialised as Minari does (Box: dtype,
+    shape, low, high). The Arrow layout needs Minari 0.5 (0.4 had HDF5 only), so
+    the version range must take 0.5.0 and refuse 0.4. The run's generating
+    config rides along, so the dataset says how it was made."""
+    from packaging.specifiers import SpecifierSet
+
+    data = minari_export.export(run, tmp_path)
+    meta = json.loads((data / "metadata.json").read_text())
+    assert json.loads(meta["observation_space"]) == {
+        "type": "Box", "dtype": "float64", "shape": [4],
+        "low": [-np.inf] * 4, "high": [np.inf] * 4,
+    }  # fmt: skip
+    versions = SpecifierSet(meta["minari_version"])
+    assert "0.5.0" in versions and "0.4.3" not in versions
+    assert meta["hipmdp_manifest"] == shards.Dataset(run).manifest["config"]
+    for e in range(meta["total_episodes"]):
+        table = pa_dataset.dataset(
+            data / str(e), format="arrow", ignore_prefixes=["metadata.json"]
+        ).to_table()
+        assert table.schema.field("observations").type == pa.list_(pa.float64(), 4)
+        for name, kind in [("actions", pa.int32()), ("rewards", pa.float64()),
+                           ("terminations", pa.bool_()),
+                           ("truncations", pa.bool_())]:  # fmt: skip
+            assert table.schema.field(name).type == kind, name
+            assert not table[name][-1].as_py(), name  # the padding row: zero
+
+
 def test_an_existing_export_is_not_overwritten(run, tmp_path):
     minari_export.export(run, tmp_path, dataset_id="cartpole-mine-v1")
     before = (tmp_path / "cartpole-mine-v1" / "data" / "metadata.json").read_bytes()
@@ -97,7 +132,9 @@ def test_an_existing_export_is_not_overwritten(run, tmp_path):
     assert after == before
 
 
-def test_a_damaged_last_shard_is_found_before_anything_is_written(run, tmp_path):
+def test_a_damaged_last_shard_is_found_before_anything_is_written(
+    run, tmp_path, monkeypatch
+):
     """It was found after the shards before it were exported, and the partial
     folder stayed."""
     damaged = tmp_path / "run"
@@ -105,9 +142,55 @@ def test_a_damaged_last_shard_is_found_before_anything_is_written(run, tmp_path)
     last = sorted(damaged.glob("shard-*.npz"))[-1]
     last.write_bytes(last.read_bytes()[:-10])
     out = tmp_path / "out"
+    started = []  # the export of the first shards began (in a folder then removed)
+    write = minari_export._export
+    monkeypatch.setattr(
+        minari_export, "_export", lambda *a: started.append(1) or write(*a)
+    )
     with pytest.raises(ValueError, match=f"shard {last.name} does not match"):
         minari_export.export(damaged, out)
     assert not out.exists() or list(out.iterdir()) == []
+    assert started == []
+
+
+def test_an_unfinished_run_is_refused(run, tmp_path):
+    """A run killed after its last shard, before its manifest said it was
+    complete: every shard is there and sound, but the run is not finished."""
+    killed = tmp_path / "run"
+    shutil.copytree(run, killed)
+    manifest = json.loads((killed / shards.MANIFEST).read_text())
+    (killed / shards.MANIFEST).write_text(json.dumps({**manifest, "complete": False}))
+    killed_run = shards.Dataset(killed)
+    killed_run.verify()  # all shards pass their checksums
+    assert not killed_run.complete
+    out = tmp_path / "out"
+    with pytest.raises(ValueError, match="is not a finished run; --resume it first"):
+        minari_export.export(killed, out)
+    assert not out.exists()
+
+
+def test_a_missing_pyarrow_is_a_usage_error_and_a_full_disk_is_not(
+    run, tmp_path, capsys, monkeypatch
+):
+    """pyarrow comes with an extra (``.[minari]``): without it the command says
+    so as a usage error (status 2) and leaves nothing; an OSError is a failure of
+    the work (status 1), not of the command line."""
+    with monkeypatch.context() as m:
+        m.setitem(sys.modules, "pyarrow", None)  # import pyarrow: ImportError
+        with pytest.raises(SystemExit) as stopped:
+            minari_export.main([str(run), "--out", str(tmp_path)])
+    assert stopped.value.code == 2
+    assert "pyarrow" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+    def full(*args, **kw):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(minari_export, "export", full)
+    with pytest.raises(SystemExit) as stopped:
+        minari_export.main([str(run), "--out", str(tmp_path)])
+    assert stopped.value.code == 1
+    assert "error: [Errno 28] No space left on device" in capsys.readouterr().err
 
 
 def test_an_error_mid_export_leaves_nothing(run, tmp_path, monkeypatch):
@@ -148,8 +231,20 @@ def test_a_namespaced_id_is_stored_as_minari_stores_it(run, tmp_path, dataset_id
 
 @pytest.mark.parametrize(
     "dataset_id",
-    # Minari refuses the last three too: a dot, no version, a 1-letter namespace
-    ["", "../out-v0", "ab//cd/x-v0", "a b-v0", "ns/..", "a.b-v0", "ab-cd", "x/y-v0"],
+    # Minari refuses "a.b-v0", "ab-cd" and "x/y-v0" too: a dot, no version, a
+    # 1-letter namespace; "ab-v" has no version number, "ab-v0/../.." leaves --out
+    [
+        "",
+        "../out-v0",
+        "ab//cd/x-v0",
+        "a b-v0",
+        "ns/..",
+        "a.b-v0",
+        "ab-cd",
+        "x/y-v0",
+        "ab-v",
+        "ab-v0/../..",
+    ],  # fmt: skip
 )
 def test_a_bad_dataset_id_is_refused_before_any_file_is_written(
     run, tmp_path, capsys, dataset_id
