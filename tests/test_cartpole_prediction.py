@@ -149,6 +149,18 @@ def test_cli_bad_option(capsys):
     assert "--seed" in capsys.readouterr().err
 
 
+def test_cli_refuses_an_out_folder_of_other_files(tmp_path, capsys):
+    """A folder holding a report.md but no config.json of a cartpole_prediction
+    run is not this experiment's: a usage error before any work, not a
+    traceback from main (which would refuse it too)."""
+    (tmp_path / "report.md").write_text("mine")
+    with pytest.raises(SystemExit) as stopped:
+        parse_args(["--out", str(tmp_path), "--no-record"])
+    assert stopped.value.code == 2
+    assert "choose a new or empty folder" in capsys.readouterr().err
+    assert (tmp_path / "report.md").read_text() == "mine"
+
+
 def test_time_split_trains_on_the_first_transitions_and_tests_on_the_last():
     from tasks.agents import CARTPOLE
     from tasks.cartpole import CartpoleParams
@@ -196,6 +208,8 @@ def test_gather_split_keeps_learning_until_it_has_enough():
         (dict(seed=-5), "seed: expected >= 0"),
         (dict(n_runs=2.0), "n_runs: expected an integer"),
         (dict(record="yes"), "record: expected True or False"),
+        (dict(n_train=0), "n_train: expected"),
+        (dict(workers=0), "workers: expected"),
     ],
 )
 def test_bad_settings(kw, match):
@@ -861,3 +875,206 @@ def test_weights_figure_plots_each_settings_own_weights(monkeypatch):
     np.testing.assert_array_equal(test_w, [[10, 11], [20, 21], [30, 31]])
     np.testing.assert_array_equal(train_p, config.train_settings)
     np.testing.assert_array_equal(test_p, config.test_settings)
+
+
+def test_main_hands_each_step_its_part_of_the_config(tmp_path, monkeypatch):
+    """One run whose counts differ from the defaults and from each other, through
+    spies that call the real functions: each test setting gathered with the
+    config's counts, episodes and split, on a stream of its own (the two settings
+    with the same parameters get different data), and scored with its key
+    (table 0, setting i) and ``average_n_max``; the average model fitted with
+    ``average_n_max``, measuring the angle θ as the HiP-MDP does (periodic
+    kernels here); the bootstrap on the seed's 5th child (main's comment),
+    which no other step draws from; added methods seeded from the run's seed;
+    the fits independent, saved and listed in order; the figures and recording
+    given fit 0, whose beliefs are filtered on each setting's train
+    transitions; the unseen settings' ratio taken on their own MSEs. The folder
+    held an earlier run with 3 fits and a recording: none of its files stay;
+    RERUN=off, so this run records nothing and its config.json and report say
+    so."""
+    import copy
+    import dataclasses
+
+    from tasks import cartpole_prediction as cp
+    from tasks import prediction_report
+    from tasks.experiment import write_json
+
+    config = dataclasses.replace(
+        TINY, seed=3, test_settings=((0.1, 0.4), (0.25, 0.55), (0.25, 0.55)),
+        n_train=7, n_test=9, gather_episodes=2, split="time", average_n_max=120,
+        fit=dataclasses.replace(TINY.fit, periodic=True),
+    )  # fmt: skip
+    monkeypatch.setenv("RERUN", "off")
+    write_json(tmp_path / "config.json", TINY)  # the earlier run's files
+    for name in ("hipmdp_run2.npz", "cartpole.rrd"):
+        (tmp_path / name).write_bytes(b"earlier run")
+    calls = {
+        k: [] for k in ("gather", "score", "average", "bootstrap", "hip", "methods")
+    }
+
+    def state(rng):  # a stream's state before any draw
+        return copy.deepcopy(rng.bit_generator.state)
+
+    real = cp.gather_split, cp.score_instance, cp.baselines.batch_only
+    real += cp.ratio_intervals, prediction_report.write_artefacts, cp.fit_all
+
+    def gather(*args, rng, **kw):
+        calls["gather"].append((args, kw, state(rng)))
+        return real[0](*args, rng=rng, **kw)
+
+    def score(*args, **kw):
+        calls["score"].append(kw)
+        return real[1](*args, **kw)
+
+    def average(batch, *, rng, **kw):
+        calls["average"].append((kw, state(rng)))
+        return real[2](batch, rng=rng, **kw)
+
+    def bootstrap(per_setting, mse, *, rng):
+        calls["bootstrap"].append(state(rng))
+        return real[3](per_setting, mse, rng=rng)
+
+    def write(path, config, metrics, hip, splits):
+        calls["hip"].append((hip, splits))
+        return real[4](path, config, metrics, hip, splits)
+
+    def fit_methods(loaded, batch, seed, *args, **kw):
+        calls["methods"].append(seed)
+        return real[5](loaded, batch, seed, *args, **kw)
+
+    monkeypatch.setattr(cp, "gather_split", gather)
+    monkeypatch.setattr(cp, "fit_all", fit_methods)
+    monkeypatch.setattr(cp, "score_instance", score)
+    monkeypatch.setattr(cp.baselines, "batch_only", average)
+    monkeypatch.setattr(cp, "ratio_intervals", bootstrap)
+    monkeypatch.setattr(prediction_report, "write_artefacts", write)
+
+    run = main(config, out=tmp_path)
+    m = json.loads((run.out / "metrics.json").read_text())
+    assert not (tmp_path / "hipmdp_run2.npz").exists()
+    assert not (tmp_path / "cartpole.rrd").exists()
+    assert json.loads((tmp_path / "config.json").read_text())["record"] is False
+    assert "No recording" in (tmp_path / "report.md").read_text()
+
+    settings, streams = [], []
+    for (_, params, n_train, n_test), kw, stream in calls["gather"]:
+        assert (n_train, n_test) == (7, 9)
+        assert kw["n_episodes"] == 2 and kw["split"] == "time"
+        settings.append((params.pole_mass, params.pole_half_length))
+        streams.append(stream)
+    assert settings == list(config.test_settings)
+    splits = calls["hip"][0][1]
+    assert not np.array_equal(splits[1].train.states, splits[2].train.states)
+    assert [kw["key"] for kw in calls["score"]] == [(0, 0), (0, 1), (0, 2)]
+    assert all(kw["n_max"] == 120 for kw in calls["score"])
+    ((kw, average_stream),) = calls["average"]
+    assert kw["n_max"] == 120
+
+    assert calls["methods"] == [3]  # added methods' streams: from the run's seed
+    fifth = np.random.default_rng(np.random.SeedSequence(3).spawn(5)[4])
+    assert calls["bootstrap"] == [state(fifth)]
+    assert calls["bootstrap"][0] not in [average_stream, *streams]
+
+    fits = [hipmdp.load(run.out / f"hipmdp_run{r}.npz") for r in range(2)]
+    for fit, weights in zip(fits, m["training_weights"], strict=True):
+        np.testing.assert_array_equal(fit.weights, weights)
+    # the average model measures θ (dimension 1) as an angle, as the fits do
+    assert tuple(kw["periodic"]) == tuple(fits[0].hyper.periodic) == (1,)
+    a, b = (fit.weights for fit in fits)
+    assert a.shape != b.shape or not np.array_equal(a, b)  # not one fit twice
+    # K counts the mean dynamics (z[0], all True); the belief is over the others
+    assert m["n_latent_features"] == [len(z) - 1 for z in m["z"]]
+    assert len(m["test_belief_means"][0]) == m["n_latent_features"][0]
+    hip = calls["hip"][0][0]
+    np.testing.assert_array_equal(hip.weights, fits[0].weights)
+    for belief, split in zip(m["test_belief_means"], splits, strict=True):
+        # the same model saved at full precision: the same belief to rounding
+        want = fits[0].update(fits[0].prior(), split.train).mean
+        np.testing.assert_allclose(belief, want, rtol=1e-12)
+    batch = hipmdp.Transitions.load(run.out / "batch.npz")
+    assert m["n_batch_transitions"] == len(batch)
+
+    assert m["test_settings_seen"] == [True, False, False]
+    unseen = m["unseen"]
+    assert unseen["n_instances"] == 2
+    for d in DIM_NAMES:
+        mean = {method: mse[d]["mean"] for method, mse in unseen["mse"].items()}
+        best = min(mean[method] for method in PREDICTION_METHODS[1:])
+        ratio = unseen["mse_ratio_to_best_baseline"][d]
+        assert ratio == pytest.approx(mean["hipmdp"] / best)
+    assert unseen["mse_ratio_to_best_baseline"] != m["mse_ratio_to_best_baseline"]
+
+
+def test_ratio_intervals_take_each_dimensions_best_baseline_or_give_none():
+    """Each dimension against its own best baseline (train only on dx, batch only
+    elsewhere): a HiP-MDP at half of it has the interval [0.5, 0.5]; one equal to
+    it has ratio 1 in every resample, which is not lower (share 1); a baseline
+    that predicts a dimension exactly (MSE 0) leaves no ratio, as ``_ratios``
+    does; nor does a single setting (nothing to resample)."""
+    base = np.random.default_rng(7).lognormal(size=(5, 4))
+    base[:, 2] = 0.0  # batch only predicts dx_dot exactly
+    train = 3.0 * base
+    train[:, 0] = 0.25 * base[:, 0]  # the best on dx
+    hip = 0.5 * base
+    hip[:, 0] = 0.5 * train[:, 0]
+    hip[:, 2] = 1.0
+    hip[:, 3] = base[:, 3]  # equal to the best on dtheta_dot
+    per_setting = {"hipmdp": hip, "batch only": base, "train only": train}
+    mse = {m: {d: {"mean": v[:, j].mean()} for j, d in enumerate(DIM_NAMES)}
+           for m, v in per_setting.items()}  # fmt: skip
+    got = ratio_intervals(per_setting, mse, rng=np.random.default_rng(1))
+    for d in ("dx", "dtheta"):
+        assert got[d]["low"] == pytest.approx(0.5) == got[d]["high"], d
+        assert got[d]["share_at_least_1"] == 0.0
+    assert got["dx_dot"] is None
+    assert got["dtheta_dot"]["low"] == got["dtheta_dot"]["high"] == 1.0
+    assert got["dtheta_dot"]["share_at_least_1"] == 1.0
+    one = {m: v[:1] for m, v in per_setting.items()}
+    assert ratio_intervals(one, mse, rng=np.random.default_rng(1)) == dict.fromkeys(
+        DIM_NAMES
+    )
+
+
+def test_the_paper_preset_is_the_papers_protocol(tmp_path):
+    """The module docstring's protocol (the paper's Table 1): the seven training
+    settings as printed, (0.3, 0.4) twice; the 5 × 5 grid of pole masses
+    0.1–0.3 kg by half-lengths 0.4–0.6 m (quick: the 3 × 3 grid in steps of
+    0.1); 5 Sarsa agents × 30 episodes × ≤ 300 steps per training setting; 5
+    fits; 50 train and 50 test transitions."""
+    out = ["--out", str(tmp_path / "run"), "--no-record"]
+    paper, _ = parse_args(["--preset", "paper", *out])
+    grid = [(m, l) for m in np.linspace(0.1, 0.3, 5) for l in np.linspace(0.4, 0.6, 5)]
+    np.testing.assert_allclose(paper.test_settings, grid)
+    assert len(paper.train_settings) == 7
+    assert paper.train_settings.count((0.3, 0.4)) == 2
+    assert (paper.batch_repetitions, paper.batch_episodes) == (5, 30)
+    assert paper.batch_max_steps == 300 and paper.n_runs == 5
+    assert paper.n_train == paper.n_test == 50
+    quick, _ = parse_args(out)
+    assert quick.train_settings == paper.train_settings
+    np.testing.assert_allclose(
+        quick.test_settings, [(m, l) for m in (0.1, 0.2, 0.3) for l in (0.4, 0.5, 0.6)]
+    )
+
+
+def test_cli_runs_the_parsed_config_and_prints_the_ratios(
+    tmp_path, monkeypatch, capsys
+):
+    """What the command prints: where it wrote, and the HiP-MDP's MSE over the
+    best baseline's (main stubbed: the parsed config reaches it)."""
+    from tasks import cartpole_prediction as cp
+
+    given = []
+
+    def fake_main(config, out):
+        given.append((config, out))
+        return cp.Results(tmp_path, {"mse_ratio_to_best_baseline": {"dx": 0.5}})
+
+    monkeypatch.setattr(cp, "main", fake_main)
+    assert cp.cli(["--runs", "3", "--no-record", "--out", str(tmp_path)]) == 0
+    ((config, out),) = given
+    assert config.n_runs == 3 and str(out) == str(tmp_path)
+    assert capsys.readouterr().out.splitlines() == [
+        f"wrote {tmp_path}/ (report.md, metrics.json, figures)",
+        "HiP-MDP MSE / best baseline: {'dx': 0.5}",
+    ]
