@@ -787,11 +787,17 @@ def test_recording_shows_each_settings_mse_belief_and_first_episode(run, monkeyp
         assert len(means) == len(sds) == len(train) + 1
         np.testing.assert_allclose(means[0], hip.prior().mean)
         posterior = hip.update(hip.prior(), train)
-        # one transition at a time or all at once: the same conjugate posterior,
-        # up to rounding (~1e-7 relative here, the weights being large); filtering
-        # fewer or other transitions moves it by orders more
-        np.testing.assert_allclose(means[-1], posterior.mean, rtol=1e-6)
-        np.testing.assert_allclose(sds[-1], np.sqrt(np.diag(posterior.cov)), rtol=1e-6)
+        # one transition at a time or all at once: the same conjugate posterior
+        # up to rounding. Measured in the belief's own sds, not relative to the
+        # weights (large here, ~1e3, so their rounding is ~1e-7 relative and
+        # depends on the fit): a hundredth of an sd is no difference a reader
+        # of the panel could see, while one transition fewer moves the mean by
+        # tens of sds (the check can see a belief filtered on the wrong data)
+        sd = np.sqrt(np.diag(posterior.cov))
+        assert np.max(np.abs(means[-1] - posterior.mean) / sd) < 1e-2
+        np.testing.assert_allclose(sds[-1], sd, rtol=1e-3)
+        fewer = hip.update(hip.prior(), train.head(len(train) - 1))
+        assert np.max(np.abs(fewer.mean - posterior.mean) / sd) > 1
         assert truth == {
             "pole_mass": settings[e][0],
             "pole_half_length": settings[e][1],
