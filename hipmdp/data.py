@@ -146,7 +146,8 @@ def atomic_folder(path: str | os.PathLike):
             atomic_write(tmp / "model.npz", ...)
 
     ``path`` appears, whole, only when the block ends without an error; an error
-    removes the temporary folder and leaves ``path`` as it was. A kill leaves at
+    removes the temporary folder, and the parent folders made for it, and leaves
+    ``path`` as it was. A kill leaves at
     most a hidden ``.<name>.<random>.tmp`` folder beside it, which the next
     ``atomic_folder`` on the same ``path`` removes (so two writers of one ``path``
     must not run at once). A symbolic link is followed: the folder is made where
@@ -157,6 +158,7 @@ def atomic_folder(path: str | os.PathLike):
             empty folder.
     """
     path = check_empty_folder(Path(path).resolve())
+    made = [p for p in path.parents if not p.exists()]  # deepest first
     path.parent.mkdir(parents=True, exist_ok=True)
     for stale in _folder_temporaries(path):  # a killed writer's
         shutil.rmtree(stale)
@@ -172,6 +174,11 @@ def atomic_folder(path: str | os.PathLike):
         os.rename(tmp, path)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
+        for parent in made:  # unless something else was put there meanwhile
+            try:
+                parent.rmdir()
+            except OSError:
+                break
         raise
     fsync_folder(path.parent)
 

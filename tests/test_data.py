@@ -256,6 +256,27 @@ def test_atomic_folder_appears_whole_or_not_at_all(tmp_path):
     assert out.stat().st_mode & 0o777 == 0o777 & ~umask  # as mkdir would make it
 
 
+def test_atomic_folder_that_fails_leaves_no_parent_folders_it_made(tmp_path):
+    """out = runs/new/deeper/run with runs/ there already: an error removes
+    new/ and deeper/ (an empty deeper/ would be the run's only trace), and a
+    parent another writer has put a file into meanwhile stays, with its file."""
+    from hipmdp.data import atomic_folder
+
+    (tmp_path / "runs").mkdir()
+    out = tmp_path / "runs" / "new" / "deeper" / "run"
+    with pytest.raises(RuntimeError, match="failed"):
+        with atomic_folder(out) as tmp:
+            assert tmp.parent == out.parent
+            raise RuntimeError("failed")
+    assert list((tmp_path / "runs").iterdir()) == []
+
+    with pytest.raises(RuntimeError, match="failed"):
+        with atomic_folder(out):
+            (tmp_path / "runs" / "new" / "other.txt").write_text("someone's")
+            raise RuntimeError("failed")
+    assert [p.name for p in (tmp_path / "runs" / "new").iterdir()] == ["other.txt"]
+
+
 def test_atomic_folder_follows_a_symbolic_link(tmp_path):
     from hipmdp.data import atomic_folder
 
