@@ -629,3 +629,74 @@ def test_cli_refuses_bad_input_as_usage_and_shows_later_errors_whole(
     monkeypatch.setattr(acrobot_energy, "pool_map", failing)
     with pytest.raises(ValueError, match="a failure in the trials"):
         acrobot_energy.cli([out, "--last", "1", "--workers", "1", "--trials", "1"])
+
+
+class _Shifted:
+    """A stand-in simulator: every next state is the state with θ̇₂ 10 rad/s
+    higher (so the next states fall in other |θ̇₂| bands than the states)."""
+
+    def __init__(self, domain, params):
+        pass
+
+    def predict(self, states, actions):
+        return np.asarray(states, dtype=np.float64) + [0.0, 0.0, 0.0, 10.0]
+
+
+def test_a_trial_uses_all_start_states_real_step_limits_and_visited_states(
+    monkeypatch,
+):
+    """One trial of the simulator's agent, with real step limits (7) other than the
+    planning's (5) and 3 start states. Planning is replaced by asking the model for
+    three hand-picked states; each real episode applies no torque until the
+    environment ends it: from the hanging start an unforced acrobot cannot reach
+    the goal (its energy stays far below the goal's), so it runs to the real step
+    limit. The batch distance is stood in for by θ₁, so the band medians show
+    which states were banded: the visited ones, θ̇₂ 1, 1 and 3 rad/s (bands 0 and
+    1), not their next states at 11, 11 and 13 (band 10-14)."""
+    from tasks.transfer import TransferConfig
+
+    asked = []
+    visited = np.array(
+        [[0.1, 0.0, 0.0, 1.0], [0.2, 0.0, 0.0, -1.0], [0.6, 0.0, 0.0, 3.0]]
+    )
+
+    def planned(state, basis, model, task, starts, n_episodes, rng):
+        asked.append((np.array(starts), task.max_steps))
+        model.predict(visited, np.array([0, 1, 2]))
+        steps = np.ones(n_episodes, dtype=np.int64)
+        return acrobot_energy.PlanResult(state, steps, steps * 0.0, steps < 0)
+
+    def unforced(env, basis, config, state, *, rng):
+        time_step, n = env.reset(), 0
+        while not time_step.last():
+            time_step, n = env.step(1), n + 1  # ACTIONS[1] is 0 N·m
+        return agents.Episode(state, None, np.zeros(n, dtype=np.int64), None, False)
+
+    monkeypatch.setattr(acrobot_energy, "_plan", planned)
+    monkeypatch.setattr(acrobot_energy, "run_episode", unforced)
+    monkeypatch.setattr(acrobot_energy, "SimulatorModel", _Shifted)
+    monkeypatch.setattr(
+        acrobot_energy,
+        "_build_models",
+        lambda names, setting, params, simulator, *_: {
+            "true": acrobot_energy._Recorder(simulator)
+        },
+    )
+    transfer = TransferConfig(
+        initial_planning_episodes=2, n_start_states=3, max_steps=7,
+        planning_max_steps=5,
+    )  # fmt: skip
+    options = dict(
+        transfer=transfer, models=["true"], last=1, real=2, n_states=100,
+        batch_distance=lambda states: states[:, 0],
+    )  # fmt: skip
+    acrobot_energy._init([PARAMS], None, None, [], options)
+    setting, trial, out = acrobot_energy._job((0, 1, (5, (0, 0))))
+    assert (setting, trial) == (0, 1)
+    ((starts, planning_max_steps),) = asked
+    assert starts.shape == (3, 4)
+    assert len({tuple(s) for s in starts}) == 3  # three resets, not one
+    assert planning_max_steps == 5
+    assert out["delivered"]["true"] == 7.0
+    np.testing.assert_allclose(out["batch_distance"][:2], [0.15, 0.6])
+    assert np.all(np.isnan(out["batch_distance"][2:]))
