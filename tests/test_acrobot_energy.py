@@ -700,3 +700,82 @@ def test_a_trial_uses_all_start_states_real_step_limits_and_visited_states(
     assert out["delivered"]["true"] == 7.0
     np.testing.assert_allclose(out["batch_distance"][:2], [0.15, 0.6])
     assert np.all(np.isnan(out["batch_distance"][2:]))
+
+
+def _two_settings_with_made_up_trials(run, tmp_path, monkeypatch):
+    """A copy of the tiny run with a second test setting, whose trials are made
+    up: trial ``j = 2 i + t`` (setting ``i``, trial ``t``) promises ``10 + j``
+    steps to ``true`` and ``20 + j`` to ``prior``, delivers ``30 + j`` and
+    ``40 + j``, has all its states in band ``j``, all its ½ εᵀ M ε in band
+    ``j + 1`` and a share ``j / 10`` of its steps at the elbow's wrap. The
+    models: true and prior; two trials per setting."""
+    import shutil
+
+    copy = tmp_path / "run"
+    shutil.copytree(run[0], copy)
+    config = json.loads((copy / "config.json").read_text())
+    config["test_masses"] = [[0.9, 1.1], [1.1, 0.9]]
+    (copy / "config.json").write_text(json.dumps(config))
+
+    def trial(j):
+        terms = dict.fromkeys(acrobot_energy.TERMS, 0.0)
+        bands = {
+            "share": np.eye(7)[j],
+            "rmse": np.ones((7, 2)),
+            "kinetic_share": np.eye(7)[j + 1],
+            "wrap_share": j / 10,
+            "wrap_kinetic_share": 0.5,
+        }
+        return {
+            "promised": {"true": 10.0 + j, "prior": 20.0 + j},
+            "delivered": {"true": 30.0 + j, "prior": 40.0 + j},
+            "energy": {"prior": terms},
+            "bands": {"prior": bands},
+            "batch_distance": np.ones(7),
+        }
+
+    def made_up(fn, jobs, **kwargs):
+        return [(i, t, trial(2 * i + t)) for i, t, _ in jobs]
+
+    monkeypatch.setattr(acrobot_energy, "pool_map", made_up)
+    return copy
+
+
+def test_the_banded_and_wrap_shares_are_averaged_over_settings_and_trials(
+    run, tmp_path, monkeypatch
+):
+    """Trials 0-3 put their states in bands 0-3 and their ½ εᵀ M ε in bands 1-4,
+    with 0, 0.1, 0.2, 0.3 of their steps at the wrap: the summary's shares are the
+    means over all four, a quarter in each band, and 0.15."""
+    copy = _two_settings_with_made_up_trials(run, tmp_path, monkeypatch)
+    summary = acrobot_energy.main(
+        copy, models=("true", "prior"), trials=2, last=1, workers=1,
+        progress=False, out=tmp_path / "e.json",
+    ).summary  # fmt: skip
+    np.testing.assert_allclose(summary["band_share"], [0.25] * 4 + [0] * 3)
+    np.testing.assert_allclose(
+        summary["band_kinetic_share"]["prior"], [0] + [0.25] * 4 + [0] * 2
+    )
+    assert summary["elbow_wrap_share"] == pytest.approx(0.15)
+
+
+def test_cli_prints_promised_and_delivered_over_every_settings_trials(
+    run, tmp_path, monkeypatch, capsys
+):
+    """Two settings of two trials: the means are over 4 trials; true promised
+    10-13 steps (mean 11.5) and delivered 30-33 (31.5), prior 20-23 (21.5) and
+    40-43 (41.5), 10 more than true's."""
+    copy = _two_settings_with_made_up_trials(run, tmp_path, monkeypatch)
+    assert acrobot_energy.cli(
+        [str(copy), "--models", "true", "prior", "--trials", "2", "--last", "1",
+         "--workers", "1", "--no-progress", "--out", str(tmp_path / "e.json")]
+    ) == 0  # fmt: skip
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "steps to the goal, mean [95% interval] over 4 trials"
+    assert lines[1].split()[:3] == ["model", "promised", "delivered"]
+    rows = {line.split()[0]: line.split() for line in lines[2:4]}
+    # model, promised mean, [low, high], delivered mean, [low, high], difference
+    assert rows["true"][1] == "11.5" and rows["true"][4] == "31.5"
+    assert rows["prior"][1] == "21.5" and rows["prior"][4] == "41.5"
+    assert rows["prior"][7] == "+10"
+    assert len(rows["true"]) == 7  # no difference for the simulator's own agent
