@@ -18,6 +18,14 @@ from tests.test_acrobot_swingup import TINY
 PARAMS = AcrobotParams(0.9, 1.1, 1.0, 1.0)
 
 
+@pytest.fixture(autouse=True)
+def _own_worker_state(monkeypatch):
+    """``_init`` installs a worker's models and options in the module's
+    ``_STATE``; tests that call it (some with stand-ins such as ``hip=None``)
+    each get their own, so none leaves its stand-ins to a later test."""
+    monkeypatch.setattr(acrobot_energy, "_STATE", {})
+
+
 def _states(rng, n):
     return rng.uniform(-1, 1, (n, 4)) * [np.pi, np.pi, 4.0, 8.0]
 
