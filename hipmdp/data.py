@@ -146,9 +146,9 @@ def atomic_folder(path: str | os.PathLike):
             atomic_write(tmp / "model.npz", ...)
 
     ``path`` appears, whole, only when the block ends without an error; an error
-    removes the temporary folder, and the parent folders made for it, and leaves
-    ``path`` as it was. A kill leaves at
-    most a hidden ``.<name>.<random>.tmp`` folder beside it, which the next
+    removes the temporary folder, and the parent folders this call made for it
+    while they are empty, and leaves ``path`` as it was. A kill leaves at most a
+    hidden ``.<name>.<random>.tmp`` folder beside it, which the next
     ``atomic_folder`` on the same ``path`` removes (so two writers of one ``path``
     must not run at once). A symbolic link is followed: the folder is made where
     it points.
@@ -158,13 +158,16 @@ def atomic_folder(path: str | os.PathLike):
             empty folder.
     """
     path = check_empty_folder(Path(path).resolve())
-    made = [p for p in path.parents if not p.exists()]  # deepest first
-    path.parent.mkdir(parents=True, exist_ok=True)
-    for stale in _folder_temporaries(path):  # a killed writer's
-        shutil.rmtree(stale)
-    tmp = Path(
-        tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    )
+    made = _make_parents(path)
+    try:
+        for stale in _folder_temporaries(path):  # a killed writer's
+            shutil.rmtree(stale)
+        tmp = Path(
+            tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        )
+    except BaseException:
+        _remove_empty(made)
+        raise
     try:
         yield tmp
         os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp's 0700 -> what mkdir would give
@@ -174,13 +177,39 @@ def atomic_folder(path: str | os.PathLike):
         os.rename(tmp, path)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
-        for parent in made:  # unless something else was put there meanwhile
-            try:
-                parent.rmdir()
-            except OSError:
-                break
+        _remove_empty(made)
         raise
     fsync_folder(path.parent)
+
+
+def _make_parents(path: Path) -> list[Path]:
+    """Make ``path``'s missing parent folders; those this call made, deepest
+    first (one that another process makes meanwhile is not counted: it is not
+    ours to remove)."""
+    made = []
+    try:
+        for parent in reversed([p for p in path.parents if not p.exists()]):
+            try:
+                parent.mkdir()
+            except FileExistsError:
+                if not parent.is_dir():
+                    raise
+                continue
+            made.append(parent)
+    except BaseException:  # e.g. no permission one level down
+        _remove_empty(made[::-1])
+        raise
+    return made[::-1]
+
+
+def _remove_empty(folders: list[Path]) -> None:
+    """Remove ``folders`` (deepest first) as long as they are empty: one that
+    something else was put into meanwhile stays, and so do its parents."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:
+            break
 
 
 #: The dtype each kind of array is hashed at (:meth:`Transitions.sha256`).

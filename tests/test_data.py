@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import io
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -266,7 +267,7 @@ def test_atomic_folder_that_fails_leaves_no_parent_folders_it_made(tmp_path):
     out = tmp_path / "runs" / "new" / "deeper" / "run"
     with pytest.raises(RuntimeError, match="failed"):
         with atomic_folder(out) as tmp:
-            assert tmp.parent == out.parent
+            assert tmp.parent == out.parent.resolve()
             raise RuntimeError("failed")
     assert list((tmp_path / "runs").iterdir()) == []
 
@@ -275,6 +276,42 @@ def test_atomic_folder_that_fails_leaves_no_parent_folders_it_made(tmp_path):
             (tmp_path / "runs" / "new" / "other.txt").write_text("someone's")
             raise RuntimeError("failed")
     assert [p.name for p in (tmp_path / "runs" / "new").iterdir()] == ["other.txt"]
+
+
+def test_atomic_folder_that_cannot_start_leaves_no_parent_folders_it_made(
+    tmp_path, monkeypatch
+):
+    """An error before the block (here the temporary folder cannot be made)
+    removes the parents made for it too; a parent another process made while
+    they were being made is not this call's to remove."""
+    import tempfile
+
+    from hipmdp import data
+
+    def no_space(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    out = tmp_path / "runs" / "new" / "run"
+    with monkeypatch.context() as m:
+        m.setattr(tempfile, "mkdtemp", no_space)
+        with pytest.raises(OSError, match="No space"):
+            with data.atomic_folder(out):
+                pass
+    assert list(tmp_path.iterdir()) == []
+
+    real_mkdir = Path.mkdir
+
+    def raced(self, *args, **kwargs):  # another writer makes runs/ first
+        if self == (tmp_path / "runs").resolve():
+            real_mkdir(self)
+        return real_mkdir(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "mkdir", raced)
+    with pytest.raises(RuntimeError, match="failed"):
+        with data.atomic_folder(out):
+            raise RuntimeError("failed")
+    assert [p.name for p in tmp_path.iterdir()] == ["runs"]
+    assert list((tmp_path / "runs").iterdir()) == []
 
 
 def test_atomic_folder_follows_a_symbolic_link(tmp_path):
