@@ -148,8 +148,9 @@ class SwingupConfig:
         fit: HiP-MDP settings.
         average_n_max: transitions per action in the average-model GP (also
             the prediction table's batch only); the table's batch + train takes
-            2,000 batch transitions per action (score_instance's default, where
-            the cart-pole passes its average_n_max; README, "Experiments").
+            at most 2,000 per action, the train transitions and batch ones for
+            the rest (score_instance's default, where the cart-pole passes its
+            average_n_max; README, "Experiments").
         n_trials: trials per test setting.
         transfer: sizes of the transfer protocol.
         mse_train, mse_test: transitions per instance for the prediction table.
