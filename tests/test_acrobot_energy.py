@@ -659,8 +659,8 @@ def test_a_trial_uses_all_start_states_real_step_limits_and_visited_states(
     environment ends it: from the hanging start an unforced acrobot cannot reach
     the goal (its energy stays far below the goal's), so it runs to the real step
     limit. The batch distance is stood in for by θ₁, so the band medians show
-    which states were banded: the visited ones, θ̇₂ 1, 1 and 3 rad/s (bands 0 and
-    1), not their next states at 11, 11 and 13 (band 10-14)."""
+    which states were banded: the visited ones, θ̇₂ 1, −1 and 3 rad/s (bands 0 and
+    1), not their next states at 11, 9 and 13 (bands 8-10 and 10-14)."""
     from tasks.transfer import TransferConfig
 
     asked = []

@@ -261,6 +261,7 @@ def test_one_episode_under_rerun_off(run, tmp_path, monkeypatch):
     the folder of a run with a recording, that recording goes (it would sit
     beside files it does not show)."""
     shutil.copytree(run.out, tmp_path, dirs_exist_ok=True)  # the last run's files
+    assert (tmp_path / "acrobot.rrd").exists()  # else the check below is empty
     monkeypatch.setenv("RERUN", "off")
     one = dataclasses.replace(TINY.transfer, n_episodes=1)
     run = main(dataclasses.replace(TINY, transfer=one), out=tmp_path)
@@ -974,7 +975,7 @@ def test_main_gives_the_fit_the_average_model_and_added_methods_their_streams(
         main(config, tmp_path)
     streams = swingup.run_streams(3)
     assert seen["methods"] == 3
-    assert seen["fit"].spawn_key == streams.fit.spawn_key
+    assert (seen["fit"].entropy, seen["fit"].spawn_key) == (3, streams.fit.spawn_key)
     ss, n_max, periodic = seen["average"]
     assert (ss.entropy, ss.spawn_key) == (3, streams.average.spawn_key)
     assert n_max == 123 and periodic == seen["periodic"] and periodic
