@@ -452,7 +452,11 @@ def test_identified_beliefs_are_filtered_on_each_settings_transitions(
     run, tmp_path, monkeypatch
 ):
     """The beliefs handed to the trials, rebuilt from --seed: the prior updated
-    on ``identify`` transitions of the setting's instance (not the prior)."""
+    on ``identify`` transitions of the setting's instance (not the prior), on a
+    copy of the tiny run with two test settings (with one, every setting's
+    belief would be setting 0's)."""
+    import shutil
+
     import hipmdp
     from tasks.acrobot_swingup import run_test_instances
     from tasks.prediction import gather_split
@@ -466,7 +470,11 @@ def test_identified_beliefs_are_filtered_on_each_settings_transitions(
 
     seen = []
     monkeypatch.setattr(acrobot_energy, "pool_map", capture)
-    out = run[0]
+    out = tmp_path / "run"
+    shutil.copytree(run[0], out)
+    config = json.loads((out / "config.json").read_text())
+    config["test_masses"] = [[0.9, 1.1], [1.1, 0.9]]
+    (out / "config.json").write_text(json.dumps(config))
     with pytest.raises(Captured):
         acrobot_energy.main(
             out, models=("true", "identified"), identify=30, last=1, seed=7,
@@ -475,7 +483,7 @@ def test_identified_beliefs_are_filtered_on_each_settings_transitions(
     hip = hipmdp.load(out / "hipmdp_model.npz")
     settings = run_test_instances(json.loads((out / "config.json").read_text()))
     streams = np.random.SeedSequence(7).spawn(2)[1].spawn(len(settings))
-    assert len(seen) == len(settings)
+    assert len(seen) == len(settings) == 2
     for belief, params, ss in zip(seen, settings, streams, strict=True):
         train = gather_split(ACROBOT, params, 30, 0, rng=np.random.default_rng(ss))
         want = hip.update(hip.prior(), train.train)
