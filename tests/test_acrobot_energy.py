@@ -341,7 +341,9 @@ def run(tmp_path_factory):
         trials=2, models=acrobot_energy.MODELS, identify=30, noise=0.2, fast=1.0,
         n_states=50, last=1, workers=1, progress=False,
     )  # fmt: skip
-    return out, options, acrobot_energy.main(out, **options)
+    with pytest.MonkeyPatch.context() as m:  # its workers' _STATE, not the module's
+        m.setattr(acrobot_energy, "_STATE", {})
+        return out, options, acrobot_energy.main(out, **options)
 
 
 def test_writes_promised_delivered_and_energy_per_model(run, capsys):
