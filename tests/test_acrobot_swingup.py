@@ -979,3 +979,10 @@ def test_main_gives_the_fit_the_average_model_and_added_methods_their_streams(
     ss, n_max, periodic = seen["average"]
     assert (ss.entropy, ss.spawn_key) == (3, streams.average.spawn_key)
     assert n_max == 123 and periodic == seen["periodic"] and periodic
+    # and no periodic dimension where the fit has none
+    flat = dataclasses.replace(
+        config, fit=dataclasses.replace(config.fit, periodic=False)
+    )
+    with pytest.raises(Stop):
+        main(flat, tmp_path / "flat")
+    assert tuple(seen["average"][2]) == ()
