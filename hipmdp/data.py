@@ -171,10 +171,16 @@ def atomic_folder(path: str | os.PathLike):
     try:
         yield tmp
         os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp's 0700 -> what mkdir would give
-        if path.is_dir():
+        emptied = path.is_dir()
+        if emptied:
             path.rmdir()  # empty, as checked (os.rename cannot replace a folder
             # on every system)
-        os.rename(tmp, path)
+        try:
+            os.rename(tmp, path)
+        except BaseException:
+            if emptied:  # as it was
+                path.mkdir(exist_ok=True)
+            raise
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         _remove_empty(made)

@@ -314,6 +314,28 @@ def test_atomic_folder_that_cannot_start_leaves_no_parent_folders_it_made(
     assert list((tmp_path / "runs").iterdir()) == []
 
 
+def test_atomic_folder_whose_rename_fails_leaves_an_empty_folder_there(
+    tmp_path, monkeypatch
+):
+    """out exists as an empty folder (accepted, as absent) and the final rename
+    fails: out is still there, empty, as before (it is removed just before the
+    rename, which cannot replace a folder on every system)."""
+    from hipmdp import data
+
+    out = tmp_path / "run"
+    out.mkdir()
+
+    def failing(src, dst):
+        raise OSError("rename failed")
+
+    monkeypatch.setattr(data.os, "rename", failing)
+    with pytest.raises(OSError, match="rename failed"):
+        with data.atomic_folder(out) as tmp:
+            (tmp / "a.txt").write_text("whole")
+    assert [p.name for p in tmp_path.iterdir()] == ["run"]
+    assert list(out.iterdir()) == []
+
+
 def test_atomic_folder_follows_a_symbolic_link(tmp_path):
     from hipmdp.data import atomic_folder
 
