@@ -414,7 +414,7 @@ def test_promised_delivered_and_their_differences_are_in_steps(
     the step limit, so first and last, or one model and another, would look
     alike: a copy of it plans three episodes, relabelled 1, 2, 3 steps, and its
     real episodes are cut to 10, 20, 30 steps for ``true`` and 40, 50, 60 for
-    ``prior``. With more --states than the planner visited, all are used."""
+    ``prior``. (``n_states`` above what the planner visited is accepted.)"""
     import shutil
 
     copy = tmp_path / "run"

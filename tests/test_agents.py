@@ -286,7 +286,8 @@ def test_each_instance_and_repetition_is_one_job_with_its_own_seed(
 
 
 def test_parameter_table_rows_are_the_instances_in_order():
-    """Row b of the saved table is instance b's parameters (the data's id b)."""
+    """Row b of the parameter table (saved beside the batch) is instance b's
+    parameters (the data's id b)."""
     from tasks.batch import parameter_table
 
     light, heavy = (cartpole.CartpoleParams(pole_mass=m) for m in (0.3, 0.5))

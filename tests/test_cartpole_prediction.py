@@ -795,7 +795,7 @@ def test_recording_shows_each_settings_mse_belief_and_first_episode(run, monkeyp
         # tens of sds (the check can see a belief filtered on the wrong data)
         sd = np.sqrt(np.diag(posterior.cov))
         assert np.max(np.abs(means[-1] - posterior.mean) / sd) < 1e-2
-        np.testing.assert_allclose(sds[-1], sd, rtol=1e-3)
+        np.testing.assert_allclose(sds[-1], sd, rtol=1e-3)  # fewer: 4-9% off
         fewer = hip.update(hip.prior(), train.head(len(train) - 1))
         assert np.max(np.abs(fewer.mean - posterior.mean) / sd) > 1
         assert truth == {
