@@ -346,6 +346,23 @@ def run(tmp_path_factory):
         return out, options, acrobot_energy.main(out, **options)
 
 
+def _edited_copy(run_dir, tmp_path, edit):
+    """A copy of the finished run ``run_dir`` as ``tmp_path / "run"``, with
+    ``edit`` applied to its config.json (a dict edited in place)."""
+    import shutil
+
+    copy = tmp_path / "run"
+    shutil.copytree(run_dir, copy)
+    config = json.loads((copy / "config.json").read_text())
+    edit(config)
+    (copy / "config.json").write_text(json.dumps(config))
+    return copy
+
+
+def _two_test_settings(config):
+    config["test_masses"] = [[0.9, 1.1], [1.1, 0.9]]
+
+
 def test_writes_promised_delivered_and_energy_per_model(run, capsys):
     out, options, results = run
     data = json.loads((out / "energy.json").read_text())
@@ -415,13 +432,11 @@ def test_promised_delivered_and_their_differences_are_in_steps(
     alike: a copy of it plans three episodes, relabelled 1, 2, 3 steps, and its
     real episodes are cut to 10, 20, 30 steps for ``true`` and 40, 50, 60 for
     ``prior``. (``n_states`` above what the planner visited is accepted.)"""
-    import shutil
 
-    copy = tmp_path / "run"
-    shutil.copytree(run[0], copy)
-    config = json.loads((copy / "config.json").read_text())
-    config["transfer"]["initial_planning_episodes"] = 3
-    (copy / "config.json").write_text(json.dumps(config))
+    def three_planning_episodes(config):
+        config["transfer"]["initial_planning_episodes"] = 3
+
+    copy = _edited_copy(run[0], tmp_path, three_planning_episodes)
     planned, lengths = [], iter([10, 20, 30, 40, 50, 60])
     plan, run_episode = acrobot_energy._plan, acrobot_energy.run_episode
 
@@ -457,7 +472,6 @@ def test_identified_beliefs_are_filtered_on_each_settings_transitions(
     on ``identify`` transitions of the setting's instance (not the prior), on a
     copy of the tiny run with two test settings (with one, every setting's
     belief would be setting 0's)."""
-    import shutil
 
     import hipmdp
     from tasks.acrobot_swingup import run_test_instances
@@ -472,11 +486,7 @@ def test_identified_beliefs_are_filtered_on_each_settings_transitions(
 
     seen = []
     monkeypatch.setattr(acrobot_energy, "pool_map", capture)
-    out = tmp_path / "run"
-    shutil.copytree(run[0], out)
-    config = json.loads((out / "config.json").read_text())
-    config["test_masses"] = [[0.9, 1.1], [1.1, 0.9]]
-    (out / "config.json").write_text(json.dumps(config))
+    out = _edited_copy(run[0], tmp_path, _two_test_settings)
     with pytest.raises(Captured):
         acrobot_energy.main(
             out, models=("true", "identified"), identify=30, last=1, seed=7,
@@ -727,13 +737,8 @@ def _two_settings_with_made_up_trials(run, tmp_path, monkeypatch):
     ``40 + j``, has all its states in band ``j``, all its ½ εᵀ M ε in band
     ``j + 1`` and a share ``j / 10`` of its steps at the elbow's wrap. The
     models: true and prior; two trials per setting."""
-    import shutil
 
-    copy = tmp_path / "run"
-    shutil.copytree(run[0], copy)
-    config = json.loads((copy / "config.json").read_text())
-    config["test_masses"] = [[0.9, 1.1], [1.1, 0.9]]
-    (copy / "config.json").write_text(json.dumps(config))
+    copy = _edited_copy(run[0], tmp_path, _two_test_settings)
 
     def trial(j):
         terms = dict.fromkeys(acrobot_energy.TERMS, 0.0)
