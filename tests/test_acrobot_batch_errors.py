@@ -14,6 +14,7 @@ import hipmdp
 from tasks import acrobot_batch_errors
 from tasks.acrobot_identified import load_run
 from tasks.acrobot_swingup import main as swingup_main
+from tests._cli import fake_main
 from tests.test_acrobot_swingup import TINY
 
 
@@ -127,13 +128,7 @@ def test_cli_passes_its_options_and_prints_each_instances_row(
             for i, m in enumerate(models)
         },
     }  # fmt: skip
-    calls = []
-
-    def fake_main(run, **kwargs):
-        calls.append((run, kwargs))
-        return acrobot_batch_errors.Results(tmp_path / "e.json", summary)
-
-    monkeypatch.setattr(acrobot_batch_errors, "main", fake_main)
+    calls = fake_main(monkeypatch, acrobot_batch_errors, tmp_path / "e.json", summary)
     assert acrobot_batch_errors.cli(["RUN"]) == 0
     assert calls == [("RUN", {"fast": default, "out": None})]
     acrobot_batch_errors.cli(["RUN", "--fast", "2.5", "--out", "e.json"])

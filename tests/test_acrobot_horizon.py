@@ -13,6 +13,7 @@ from tasks import acrobot_horizon
 from tasks.acrobot_swingup import main as swingup_main
 from tasks.agents import ACROBOT
 from tasks.prediction import gather_split
+from tests._cli import fake_main
 from tests.test_acrobot_swingup import TINY
 
 
@@ -220,13 +221,7 @@ def test_cli_passes_its_options_and_prints_means_over_settings_with_windows(
                     "4": [[10, 20, 30, 40], nan]}
                 for m in acrobot_horizon.MODELS},
     }  # fmt: skip
-    calls = []
-
-    def fake_main(run, **kwargs):
-        calls.append((run, kwargs))
-        return acrobot_horizon.Results(tmp_path / "h.json", summary)
-
-    monkeypatch.setattr(acrobot_horizon, "main", fake_main)
+    calls = fake_main(monkeypatch, acrobot_horizon, tmp_path / "h.json", summary)
     assert acrobot_horizon.cli(["RUN"]) == 0
     assert calls.pop() == ("RUN", defaults)
     acrobot_horizon.cli([
