@@ -1,6 +1,8 @@
 """Benchmark of `hipmdp.fit` at paper scale and of the online filter.
 
 Run:  python -m benchmarks.model [--sweeps 250] [--chains 2] [--repeats 3]
+      python -m benchmarks.model --small   (tiny sizes, seconds: runs the checks
+                                         for tests; its figures mean nothing)
 
 Data: B = 7 training instances of a synthetic HiP-MDP with 2 actions and 4-dimensional
 states (two latent parameters acting on different (action, dimension) rows), 6000
@@ -56,14 +58,16 @@ def true_deltas(S: np.ndarray, acts: np.ndarray, w: np.ndarray) -> np.ndarray:
     return delta
 
 
-def make_batch(rng: np.random.Generator) -> tuple[hipmdp.Transitions, np.ndarray]:
+def make_batch(
+    rng: np.random.Generator, n_per: int = N_PER
+) -> tuple[hipmdp.Transitions, np.ndarray]:
     W = rng.uniform(-1.5, 1.5, size=(B, 2))
     parts = []
     for b in range(B):
-        S = rng.normal(size=(N_PER, D))
-        acts = rng.integers(0, A, size=N_PER)
-        delta = true_deltas(S, acts, W[b]) + 1e-3 * rng.normal(size=(N_PER, D))
-        parts.append(hipmdp.Transitions(S, acts, S + delta, np.full(N_PER, b)))
+        S = rng.normal(size=(n_per, D))
+        acts = rng.integers(0, A, size=n_per)
+        delta = true_deltas(S, acts, W[b]) + 1e-3 * rng.normal(size=(n_per, D))
+        parts.append(hipmdp.Transitions(S, acts, S + delta, np.full(n_per, b)))
     return hipmdp.Transitions.concatenate(parts), W
 
 
@@ -74,7 +78,12 @@ def timed(fn):
     return out, time.perf_counter() - t0
 
 
-def main() -> None:
+# --small: every size cut so that a test runs the whole script, checks included,
+# in about a second (300 transitions per instance, m = 30, 1,000 batched states)
+SMALL = dict(n_support=30, n_hyper=100, n_candidates=200, n_smooth=100, n_residual=200)
+
+
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         prog="python -m benchmarks.model", description=__doc__.splitlines()[0]
     )
@@ -83,16 +92,25 @@ def main() -> None:
     parser.add_argument(
         "--repeats", type=int, default=3, help="paired repeats per comparison"
     )
-    args = parser.parse_args()
+    parser.add_argument(
+        "--small",
+        action="store_true",
+        help="tiny sizes (for tests: the checks run, the figures mean nothing)",
+    )
+    args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error(f"--repeats must be >= 1, got {args.repeats}")
+    n_per, n_batched = (300, 1000) if args.small else (N_PER, 100_000)
     rng = np.random.default_rng(0)
-    batch, _ = make_batch(rng)
+    batch, _ = make_batch(rng, n_per)
     config = FitConfig(
-        n_support=750, n_sweeps=args.sweeps, n_chains=args.chains, progress=False
+        **(SMALL if args.small else dict(n_support=750)),
+        n_sweeps=args.sweeps,
+        n_chains=args.chains,
+        progress=False,
     )
     print(
-        f"data: B={B} instances x {N_PER} transitions, A={A}, D={D}; "
+        f"data: B={B} instances x {n_per} transitions, A={A}, D={D}; "
         f"m={config.n_support}, {config.n_sweeps} sweeps x {config.n_chains} chains"
     )
 
@@ -134,7 +152,8 @@ def main() -> None:
     print(f"hipmdp.fit total: {t:8.2f} s   (K = {model.n_features} features)")
 
     # Filter latency: single-transition update + single-state predict.
-    new = make_batch(np.random.default_rng(5))[0].select(instances=[0]).head(200)
+    new = make_batch(np.random.default_rng(5), n_per)[0]
+    new = new.select(instances=[0]).head(200)
     singles = [
         hipmdp.Transitions(
             new.states[i : i + 1],
@@ -200,7 +219,7 @@ def main() -> None:
         " of its calls)"
     )
 
-    S = np.random.default_rng(6).normal(size=(100_000, D))
+    S = np.random.default_rng(6).normal(size=(n_batched, D))
     acts = np.random.default_rng(7).integers(0, A, size=len(S))
     calls = {
         "predict": lambda: model.predict(S, acts, belief)[0],
