@@ -20,11 +20,11 @@ transitions per instance. Prints:
 - batched `predict`, `predict_mean` and `mean_predictor` throughput in states per
   second.
 
-The means are first compared (also the warm-up): `mean_predictor` and
-`predict_mean` against `predict`'s mean to a relative 1e-9, single-state and
-batched. The comparisons are `--repeats` measurements of each side taken in turn
-(`benchmarks.timing.paired`); figures are medians, ratios the median of the
-repeats' ratios with their range.
+The means are first compared (also the warm-up), to a relative 1e-9: single
+states, `mean_predictor` against `predict_mean`; batched, both against
+`predict`'s mean. The comparisons are `--repeats` measurements of each side
+taken in turn (`benchmarks.timing.paired`); figures are medians, ratios the
+median of the repeats' ratios with their range.
 """
 
 from __future__ import annotations
