@@ -28,6 +28,7 @@ import io
 import os
 import re
 import shutil
+import stat
 import tempfile
 import zipfile
 import zlib
@@ -173,13 +174,16 @@ def atomic_folder(path: str | os.PathLike):
         os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp's 0700 -> what mkdir would give
         emptied = path.is_dir()
         if emptied:
+            mode = stat.S_IMODE(path.stat().st_mode)
             path.rmdir()  # empty, as checked (os.rename cannot replace a folder
             # on every system)
         try:
             os.rename(tmp, path)
         except BaseException:
-            if emptied:  # as it was
-                path.mkdir(exist_ok=True)
+            if emptied:  # put back as it was; the rename's error is the one raised
+                with contextlib.suppress(OSError):
+                    path.mkdir()
+                    os.chmod(path, mode)
             raise
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)

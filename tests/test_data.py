@@ -314,26 +314,37 @@ def test_atomic_folder_that_cannot_start_leaves_no_parent_folders_it_made(
     assert list((tmp_path / "runs").iterdir()) == []
 
 
-def test_atomic_folder_whose_rename_fails_leaves_an_empty_folder_there(
-    tmp_path, monkeypatch
+@pytest.mark.parametrize("existed", [False, True])
+def test_atomic_folder_whose_rename_fails_leaves_out_as_it_was(
+    tmp_path, monkeypatch, existed
 ):
-    """out exists as an empty folder (accepted, as absent) and the final rename
-    fails: out is still there, empty, as before (it is removed just before the
-    rename, which cannot replace a folder on every system)."""
+    """The final rename fails: out is as before, absent or an empty folder
+    (accepted, as absent) with its mode (it is removed just before the rename,
+    which cannot replace a folder on every system), and the rename's error is
+    the one raised. Only that rename fails: other renames go through."""
+    import stat
+
     from hipmdp import data
 
     out = tmp_path / "run"
-    out.mkdir()
+    if existed:
+        out.mkdir()
+        out.chmod(0o705)  # no usual umask (022, 002, 027, 077) makes mkdir give it
+    rename = os.rename
 
     def failing(src, dst):
-        raise OSError("rename failed")
+        if Path(dst) == out.resolve():  # atomic_folder resolves out
+            raise OSError("rename failed")
+        rename(src, dst)
 
     monkeypatch.setattr(data.os, "rename", failing)
     with pytest.raises(OSError, match="rename failed"):
         with data.atomic_folder(out) as tmp:
             (tmp / "a.txt").write_text("whole")
-    assert [p.name for p in tmp_path.iterdir()] == ["run"]
-    assert list(out.iterdir()) == []
+    assert [p.name for p in tmp_path.iterdir()] == (["run"] if existed else [])
+    if existed:
+        assert list(out.iterdir()) == []
+        assert stat.S_IMODE(out.stat().st_mode) == 0o705
 
 
 def test_atomic_folder_follows_a_symbolic_link(tmp_path):
