@@ -17,6 +17,7 @@ import pytest
 from benchmarks import control, generate, model, sampler, simulation, timing
 from hipmdp import gibbs_dense, gibbs_eigen
 from hipmdp.baselines import GPBaseline
+from hipmdp.fitting import FitConfig
 from hipmdp.model import HipMDP
 
 OFF = 1 + 1e-7  # "off by a little": 100x the checks' relative 1e-9
@@ -237,8 +238,37 @@ def test_sampler_conditional_checks_raise_when_a_side_is_off(
 SMALL = ["--small", "--sweeps", "3", "--chains", "1", "--repeats", "1"]
 
 
-def test_model_runs_small():
+def test_model_runs_small(capsys):
+    """--small's sizes are what its comment says: 300 transitions per instance,
+    m = 30, 1,000 batched states; --sweeps and --chains are taken as given."""
     model.main(SMALL)
+    out = capsys.readouterr().out
+    assert "B=7 instances x 300 transitions" in out
+    assert "m=30, 3 sweeps x 1 chains" in out
+    assert out.count("(1000 states, ") == 3
+
+
+class Stop(Exception):
+    pass
+
+
+def test_model_full_size_is_the_papers_scale(monkeypatch, capsys):
+    """Without --small: 7 x 6,000 transitions, m = 750, 250 sweeps, FitConfig's
+    chains and its 1,000 transitions per action for the hyperparameters (the
+    run stops at its first stage)."""
+    seen = {}
+
+    def first_stage(states, actions, deltas, instances, n_actions, **kwargs):
+        seen.update(n=len(states), n_subsample=kwargs["n_subsample"])
+        raise Stop
+
+    monkeypatch.setattr(model, "fit_hyper_set", first_stage)
+    with pytest.raises(Stop):
+        model.main([])
+    out = capsys.readouterr().out
+    assert "B=7 instances x 6000 transitions" in out
+    assert f"m=750, 250 sweeps x {FitConfig.n_chains} chains" in out
+    assert seen == dict(n=7 * 6000, n_subsample=1000)
 
 
 def _off_when(batched: bool):
@@ -413,4 +443,7 @@ def test_generate_bookkeeping_and_tiny_run(tmp_path, capsys):
          "--raw-steps", "10", "--repeats", "1", "--run-instances", "32",
          "--dir", str(tmp_path)]
     )  # fmt: skip
-    assert "ratio" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    # --run-instances 32 in shards of --instances 1
+    assert "a run of 32 instances in 32 shards of 1" in out
+    assert "  ratio " in out
