@@ -79,7 +79,8 @@ def timed(fn):
 
 
 # --small: every size cut so that a test runs the whole script, checks included,
-# in about a second (300 transitions per instance, m = 30, 1,000 batched states)
+# in about a second with --sweeps 3 --chains 1 (300 transitions per instance,
+# m = 30, 1,000 batched states; about 6 s with the default sweeps and chains)
 SMALL = dict(n_support=30, n_hyper=100, n_candidates=200, n_smooth=100, n_residual=200)
 
 
