@@ -347,6 +347,35 @@ def test_atomic_folder_whose_rename_fails_leaves_out_as_it_was(
         assert stat.S_IMODE(out.stat().st_mode) == 0o705
 
 
+def test_atomic_folder_raises_the_renames_error_when_out_cannot_be_put_back(
+    tmp_path, monkeypatch
+):
+    """The final rename fails and putting the emptied out back fails too: the
+    error raised is the rename's (the cause a user must see), not the mkdir's."""
+    from hipmdp import data
+
+    out = tmp_path / "run"
+    out.mkdir()
+    rename, mkdir = os.rename, Path.mkdir
+
+    def failing_rename(src, dst):
+        if Path(dst) == out.resolve():
+            raise OSError("rename failed")
+        rename(src, dst)
+
+    def failing_mkdir(self, *args, **kwargs):
+        if self == out.resolve():
+            raise OSError("mkdir failed")
+        mkdir(self, *args, **kwargs)
+
+    monkeypatch.setattr(data.os, "rename", failing_rename)
+    monkeypatch.setattr(Path, "mkdir", failing_mkdir)
+    with pytest.raises(OSError, match="rename failed"):
+        with data.atomic_folder(out) as tmp:
+            (tmp / "a.txt").write_text("whole")
+    assert list(tmp_path.iterdir()) == []  # no temporary folder either
+
+
 def test_atomic_folder_follows_a_symbolic_link(tmp_path):
     from hipmdp.data import atomic_folder
 
