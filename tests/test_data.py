@@ -314,6 +314,19 @@ def test_atomic_folder_that_cannot_start_leaves_no_parent_folders_it_made(
     assert list((tmp_path / "runs").iterdir()) == []
 
 
+def _fail_renames_onto(out, monkeypatch):
+    """os.rename raises OSError("rename failed") when its target is ``out``
+    (resolved, as atomic_folder resolves it); every other rename goes through."""
+    rename = os.rename
+
+    def failing(src, dst):
+        if Path(dst) == out.resolve():
+            raise OSError("rename failed")
+        rename(src, dst)
+
+    monkeypatch.setattr(os, "rename", failing)
+
+
 @pytest.mark.parametrize("existed", [False, True])
 def test_atomic_folder_whose_rename_fails_leaves_out_as_it_was(
     tmp_path, monkeypatch, existed
@@ -330,14 +343,7 @@ def test_atomic_folder_whose_rename_fails_leaves_out_as_it_was(
     if existed:
         out.mkdir()
         out.chmod(0o705)  # no usual umask (022, 002, 027, 077) makes mkdir give it
-    rename = os.rename
-
-    def failing(src, dst):
-        if Path(dst) == out.resolve():  # atomic_folder resolves out
-            raise OSError("rename failed")
-        rename(src, dst)
-
-    monkeypatch.setattr(data.os, "rename", failing)
+    _fail_renames_onto(out, monkeypatch)
     with pytest.raises(OSError, match="rename failed"):
         with data.atomic_folder(out) as tmp:
             (tmp / "a.txt").write_text("whole")
@@ -356,19 +362,14 @@ def test_atomic_folder_raises_the_renames_error_when_out_cannot_be_put_back(
 
     out = tmp_path / "run"
     out.mkdir()
-    rename, mkdir = os.rename, Path.mkdir
-
-    def failing_rename(src, dst):
-        if Path(dst) == out.resolve():
-            raise OSError("rename failed")
-        rename(src, dst)
+    _fail_renames_onto(out, monkeypatch)
+    mkdir = Path.mkdir
 
     def failing_mkdir(self, *args, **kwargs):
         if self == out.resolve():
             raise OSError("mkdir failed")
         mkdir(self, *args, **kwargs)
 
-    monkeypatch.setattr(data.os, "rename", failing_rename)
     monkeypatch.setattr(Path, "mkdir", failing_mkdir)
     with pytest.raises(OSError, match="rename failed"):
         with data.atomic_folder(out) as tmp:
