@@ -54,20 +54,24 @@ def test_writes_every_variant_on_the_same_trials(run):
         )
 
 
+class _Hip:
+    """A stand-in fitted HiP-MDP: its prior is "prior", and ``update`` returns
+    what it was given, ``model_error`` included."""
+
+    n_features = 3
+
+    def prior(self):
+        return "prior"
+
+    def update(self, belief, data, *, model_error=True):
+        return (belief, data, model_error)
+
+
 def test_identified_model_starts_from_the_given_belief_and_filters_as_asked():
-    class Hip:
-        n_features = 3
-
-        def prior(self):
-            return "prior"
-
-        def update(self, belief, data, *, model_error=True):
-            return (belief, data, model_error)
-
-    model = acrobot_identified._Identified(Hip(), "filtered")
+    model = acrobot_identified._Identified(_Hip(), "filtered")
     assert model.prior() == "filtered" and model.n_features == 3
     assert model.update("b", "d") == ("b", "d", True)
-    paper = acrobot_identified._Identified(Hip(), None, model_error=False)
+    paper = acrobot_identified._Identified(_Hip(), None, model_error=False)
     assert paper.prior() == "prior"
     assert paper.update("b", "d") == ("b", "d", False)
 
@@ -803,16 +807,9 @@ def test_each_variant_trial_gets_its_model_filter_belief_and_method(monkeypatch)
     from tasks.acrobot import AcrobotParams
     from tasks.acrobot_swingup import setting_params
 
-    class Hip:
-        def prior(self):
-            return "prior"
-
-        def update(self, belief, data, *, model_error=True):
-            return model_error
-
     beliefs = {"model": ["model 0", "model 1"], "paper": ["paper 0", "paper 1"]}
     monkeypatch.setattr(acrobot_identified, "_STATE", {})  # the stand-ins stay here
-    acrobot_identified._init(TINY.transfer, Hip(), "the average", beliefs)
+    acrobot_identified._init(TINY.transfer, _Hip(), "the average", beliefs)
     installed, ran = [], []
 
     def set_models(domain, config, model, average, wrapper):
@@ -844,7 +841,7 @@ def test_each_variant_trial_gets_its_model_filter_belief_and_method(monkeypatch)
         assert (job.method, job.setting, job.params) == (method, 1, params), variant
         if model_error is not None:
             assert model.prior() == prior, variant
-            assert model.update("b", "d") is model_error, variant
+            assert model.update("b", "d") == ("b", "d", model_error), variant
         planned = config.initial_planning_episodes, config.planning_episodes
         assert planned == ((0, 0) if variant == "model_free" else (1, 1)), variant
         if energy is None:
@@ -978,11 +975,7 @@ def test_true_first_predicts_wrapped_angle_changes():
     not by about 2π."""
     from tasks.acrobot_swingup import setting_params
 
-    class Hip:
-        def prior(self):
-            return "prior"
-
-    model = acrobot_identified._TrueFirst(Hip(), setting_params(0.9, 1.1))
+    model = acrobot_identified._TrueFirst(_Hip(), setting_params(0.9, 1.1))
     states = np.array([[np.pi - 1e-3, np.pi - 1e-3, 5.0, 5.0]])
     delta = model.mean_predictor(model.prior())(states, np.array([1]))
     dims = list(ACROBOT.angle_dims)
