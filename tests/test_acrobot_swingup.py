@@ -412,13 +412,8 @@ def test_median_view_is_not_decided_by_one_failed_episode():
     base = np.array([[-20.0, -20.0], [-21.0, -20.0], [-19.0, -20.0]])
     returns = {m: base.copy() for m in METHODS}
     returns["hipmdp"][0, 0] = -cap  # one failure in episode 1
-    trials = [
-        TrialResult(m, 0, i, r[i], -r[i], np.zeros((3, 1)), None)
-        for m, r in returns.items()
-        for i in range(len(r))
-    ]
     config = dataclasses.replace(TINY, final_window=1, test_masses=TINY.test_masses[:1])
-    m = transfer_metrics(config, trials)
+    m = transfer_metrics(config, _trials(returns))
     for method, r in returns.items():
         np.testing.assert_array_equal(m["median_returns"][method], np.median(r, 0))
     assert m["true_model_final_median_return"] == -20.0
@@ -849,7 +844,7 @@ def test_prediction_table_scores_the_test_settings_and_the_first_training_ones(
 
     monkeypatch.setattr(swingup, "score_settings", score_spy)
     config = dataclasses.replace(TINY, n_floor_settings=2)
-    out = swingup.prediction_table(config, None, None, None, np.random.SeedSequence(1))
+    swingup.prediction_table(config, None, None, None, np.random.SeedSequence(1))
     (test, t0, s0), (floor, t1, s1) = calls
     assert test == list(config.test_masses) and t0 == 0
     assert floor == list(config.train_masses[:2]) and t1 == 1
