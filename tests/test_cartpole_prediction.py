@@ -293,39 +293,54 @@ def test_coverage_refuses_mismatched_or_zero_variances(mean, var, observed, matc
         coverage(mean, var, observed)
 
 
+class _Spy:
+    """A fitted model that predicts a constant mean and variance for Δs and
+    records the data it is given (its log-likelihood: a distinct constant)."""
+
+    def __init__(self, mean, var=1.0, loglik=0.0):
+        self.mean, self.var, self.loglik = mean, var, loglik
+        self.n_actions, self.hyper = 2, SimpleNamespace(periodic=(1,))
+        self.seen = {}
+
+    def prior(self):
+        return "prior"
+
+    def update(self, belief, data):
+        self.seen["update"] = (belief, data)
+        return "posterior"
+
+    def predict(self, states, actions, belief=None):
+        self.seen["predict"] = (states, belief)
+        shape = (len(states), 4)
+        return np.full(shape, self.mean), np.full(shape, self.var)
+
+    def log_likelihood(self, data, belief=None):
+        self.seen["log_likelihood"] = (data, belief)
+        return self.loglik
+
+
+def _transitions(n, rng):
+    """``n`` transitions of one instance: standard normal states and Δs, actions
+    0 or 1."""
+    s = rng.normal(size=(n, 4))
+    a = rng.integers(0, 2, n)
+    return hipmdp.Transitions(s, a, s + rng.normal(size=(n, 4)), np.zeros(n, int))
+
+
 def test_score_instance_averages_the_fits_scores(monkeypatch):
     """With several HiP-MDP fits, its MSE and coverage are the means of each fit's
     (stub models: each predicts a constant mean and variance)."""
     from tasks import prediction
 
-    class Stub:
-        def __init__(self, mean, var):
-            self.mean, self.var, self.n_actions = mean, var, 2
-            self.hyper = SimpleNamespace(periodic=())
-
-        def prior(self):
-            return None
-
-        def update(self, belief, data):
-            return None
-
-        def predict(self, states, actions, belief=None):
-            shape = (len(states), 4)
-            return np.full(shape, self.mean), np.full(shape, self.var)
-
-        def log_likelihood(self, data, belief=None):
-            return 10.0 * self.mean + 1.0  # distinct per fit
+    def stub(mean, var):  # a log-likelihood distinct per fit
+        return _Spy(mean, var, loglik=10.0 * mean + 1.0)
 
     for name in ("train_only", "batch_plus_train"):
-        monkeypatch.setattr(prediction.baselines, name, lambda *a, **k: Stub(0, 1))
+        monkeypatch.setattr(prediction.baselines, name, lambda *a, **k: stub(0, 1))
     rng = np.random.default_rng(5)
-    states = rng.normal(size=(400, 4))
-    test = hipmdp.Transitions(
-        states, rng.integers(0, 2, 400), states + rng.normal(size=(400, 4)),
-        np.zeros(400, int),
-    )  # fmt: skip
-    fits = [Stub(0.0, 0.25), Stub(1.0, 4.0)]
-    scores = prediction.score_instance(fits, Stub(0, 1), test, test, test, rng=rng)
+    test = _transitions(400, rng)
+    fits = [stub(0.0, 0.25), stub(1.0, 4.0)]
+    scores = prediction.score_instance(fits, stub(0, 1), test, test, test, rng=rng)
     d = test.deltas
     np.testing.assert_allclose(
         scores.mse["hipmdp"], np.mean([np.mean((d - f.mean) ** 2, 0) for f in fits], 0)
@@ -475,32 +490,6 @@ def test_gather_split_counts_episodes_and_transitions_as_documented():
         gathered(50, 50, max_steps=5, n_episodes=1, max_episodes=2)
 
 
-class _Spy:
-    """A fitted model that predicts a constant mean and variance for Δs and
-    records the data it is given (its log-likelihood: a distinct constant)."""
-
-    def __init__(self, mean, var=1.0, loglik=0.0):
-        self.mean, self.var, self.loglik = mean, var, loglik
-        self.n_actions, self.hyper = 2, SimpleNamespace(periodic=(1,))
-        self.seen = {}
-
-    def prior(self):
-        return "prior"
-
-    def update(self, belief, data):
-        self.seen["update"] = (belief, data)
-        return "posterior"
-
-    def predict(self, states, actions, belief=None):
-        self.seen["predict"] = (states, belief)
-        shape = (len(states), 4)
-        return np.full(shape, self.mean), np.full(shape, self.var)
-
-    def log_likelihood(self, data, belief=None):
-        self.seen["log_likelihood"] = (data, belief)
-        return self.loglik
-
-
 def test_score_instance_fits_scores_and_filters_on_the_data_the_protocol_says(
     monkeypatch,
 ):
@@ -531,13 +520,8 @@ def test_score_instance_fits_scores_and_filters_on_the_data_the_protocol_says(
     monkeypatch.setattr(prediction.baselines, "train_only", train_only)
     monkeypatch.setattr(prediction.baselines, "batch_plus_train", batch_plus_train)
 
-    def data(n, rng):
-        s = rng.normal(size=(n, 4))
-        a = rng.integers(0, 2, n)
-        return hipmdp.Transitions(s, a, s + rng.normal(size=(n, 4)), np.zeros(n, int))
-
     rng = np.random.default_rng(8)
-    batch, train, test = data(30, rng), data(20, rng), data(10, rng)
+    batch, train, test = (_transitions(n, rng) for n in (30, 20, 10))
     average, hip = _Spy(0.5, loglik=-1.0), _Spy(-1.0, loglik=-4.0)
     seen = []
 
