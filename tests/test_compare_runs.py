@@ -378,15 +378,13 @@ def test_a_trials_file_with_fewer_rows_than_methods_is_unreadable(tmp_path):
     """A trials.npz whose ``returns`` has fewer rows than its ``methods`` names
     (a damaged or hand-edited file), against a run that shares some methods:
     lining up the shared rows raised an IndexError that stopped the comparison."""
-    from hipmdp.data import npz_bytes
+
+    def trials(run, rows, *methods):
+        np.savez(run / "trials.npz", returns=np.zeros((rows, 2)), methods=methods)
 
     a, b = _run(tmp_path / "a"), _run(tmp_path / "b")
-    (a / "trials.npz").write_bytes(npz_bytes({
-        "returns": np.zeros((3, 2)), "methods": np.array(["true", "mine", "hipmdp"])
-    }))  # fmt: skip
-    (b / "trials.npz").write_bytes(npz_bytes({
-        "returns": np.zeros((2, 2)), "methods": np.array(["x", "true", "hipmdp"])
-    }))  # fmt: skip
+    trials(a, 3, "true", "mine", "hipmdp")
+    trials(b, 2, "x", "true", "hipmdp")
     result = main(a, b)
     assert result.arrays["trials.npz:returns"] == {
         "unreadable": "returns: expected a row per entry of its file's methods "
@@ -395,12 +393,8 @@ def test_a_trials_file_with_fewer_rows_than_methods_is_unreadable(tmp_path):
     assert not result.identical
     # the row missing is of a method the other run lacks: the shared rows exist,
     # and were compared as if the file were whole
-    (a / "trials.npz").write_bytes(npz_bytes({
-        "returns": np.zeros((2, 2)), "methods": np.array(["true", "hipmdp", "mine"])
-    }))  # fmt: skip
-    (b / "trials.npz").write_bytes(npz_bytes({
-        "returns": np.zeros((2, 2)), "methods": np.array(["true", "hipmdp"])
-    }))  # fmt: skip
+    trials(a, 2, "true", "hipmdp", "mine")
+    trials(b, 2, "true", "hipmdp")
     unreadable = main(a, b).arrays["trials.npz:returns"]["unreadable"]
     assert unreadable.endswith("methods (3), got shape (2, 2)")
 
