@@ -558,24 +558,6 @@ def test_load_run_refits_the_average_model_with_the_runs_kernels(run, tmp_path):
         assert average.hyper.periodic == want
 
 
-def test_load_run_average_is_the_model_the_run_used(run):
-    # the run's one-step MSE table, recomputed with the refitted average model on
-    # the run's own prediction seeds, gives the numbers in metrics.json
-    from tasks.acrobot_swingup import prediction_table, run_streams
-
-    finished = acrobot_identified.load_run(run[0])
-    ss_mse = run_streams(TINY.seed).mse  # as the run did
-    table = prediction_table(
-        TINY, finished.hip, finished.average, finished.batch, ss_mse
-    )
-    metrics = json.loads((run[0] / "metrics.json").read_text())
-    want = metrics["mse"]["batch only"]
-    got = table["test"]["mse"]["batch only"]
-    assert got.keys() == want.keys()
-    for dim in want:
-        assert got[dim]["mean"] == pytest.approx(want[dim]["mean"], rel=1e-9)
-
-
 def test_energy_variants_plan_on_the_conserving_model_of_their_method(
     planned, monkeypatch
 ):

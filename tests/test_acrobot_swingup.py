@@ -858,7 +858,8 @@ def test_prediction_table_scores_the_test_settings_and_the_first_training_ones(
 def test_metrics_hold_the_runs_model_batch_and_prediction_tables(run):
     """metrics.json's model numbers are the saved model's, and its prediction
     numbers the test table's (the floor the training table's), as the table
-    recomputed on the run's own models and seeds gives them."""
+    recomputed on the run's own models and seeds gives them: load_run's
+    refitted average model is the one the run used ("batch only")."""
     from tasks.acrobot_identified import load_run
 
     m = json.loads((run.out / "metrics.json").read_text())
