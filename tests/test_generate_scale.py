@@ -34,6 +34,18 @@ def files(directory):
     return {p.name: p.read_bytes() for p in sorted(directory.iterdir())}
 
 
+def copy_unfinished(reference, run, edit=lambda manifest: None):
+    """A copy of the finished run ``reference`` at ``run``, its manifest edited
+    in place by ``edit`` and marked unfinished, and shard 1 gone (the shard a
+    resume has to redo)."""
+    shutil.copytree(reference, run)
+    manifest = json.loads((run / "manifest.json").read_text())
+    edit(manifest)
+    manifest["complete"] = False
+    (run / "manifest.json").write_text(json.dumps(manifest))
+    (run / "shard-00001.npz").unlink()
+
+
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory):
     out = tmp_path_factory.mktemp("reference")
@@ -317,13 +329,12 @@ def test_a_run_of_this_config_with_other_instances_is_refused_untouched(
 ):
     """Same config, other instance parameters (drawn by another version of the
     code): resuming would add shards of the new draws to those of the old."""
+
+    def other_first_pole(manifest):
+        manifest["shards"][0]["parameters"][0][1] += 0.01  # the first pole's mass
+
     run = tmp_path / "run"
-    shutil.copytree(reference, run)
-    manifest = json.loads((run / "manifest.json").read_text())
-    manifest["shards"][0]["parameters"][0][1] += 0.01  # the first pole's mass
-    manifest["complete"] = False
-    (run / "manifest.json").write_text(json.dumps(manifest))
-    (run / "shard-00001.npz").unlink()
+    copy_unfinished(reference, run, other_first_pole)
     before = files(run)
     with pytest.raises(SystemExit) as stopped:
         generate.main([*RUN, "--out", str(run), "--resume"])
@@ -350,11 +361,7 @@ def test_temporary_files_a_kill_left_are_removed_on_resume(reference, tmp_path):
     a shard: the resumed run deletes them, so the folder ends as an
     uninterrupted run's."""
     run = tmp_path / "run"
-    shutil.copytree(reference, run)
-    manifest = json.loads((run / "manifest.json").read_text())
-    manifest["complete"] = False
-    (run / "manifest.json").write_text(json.dumps(manifest))
-    (run / "shard-00001.npz").unlink()
+    copy_unfinished(reference, run)
     (run / ".shard-00001.npz.k1ll3d.tmp").write_bytes(b"half a shard")
     (run / ".manifest.json.k1ll3d.tmp").write_text("{")
     assert generate.main([*RUN, "--out", str(run), "--resume"]).redone == (1,)
@@ -478,19 +485,18 @@ def test_resume_refuses_a_run_made_by_other_software(
 ):
     """--resume compared only the config and the instances: shards made before
     a code edit or a package upgrade mixed with shards made after it."""
+
+    def other_software(manifest):
+        if change is None:
+            del manifest["software"]
+        else:
+            packages = manifest["software"]["packages"]
+            if "packages" in change:
+                packages = packages | change["packages"] | {"numpy": "1.0"}
+            manifest["software"] |= change | {"packages": packages}
+
     run = tmp_path / "run"
-    shutil.copytree(reference, run)
-    manifest = json.loads((run / "manifest.json").read_text())
-    if change is None:
-        del manifest["software"]
-    else:
-        packages = manifest["software"]["packages"]
-        if "packages" in change:
-            packages = packages | change["packages"] | {"numpy": "1.0"}
-        manifest["software"] |= change | {"packages": packages}
-    manifest["complete"] = False
-    (run / "manifest.json").write_text(json.dumps(manifest))
-    (run / "shard-00001.npz").unlink()
+    copy_unfinished(reference, run, other_software)
     before = files(run)
     with pytest.raises(SystemExit):
         generate.main([*RUN, "--out", str(run), "--resume"])
