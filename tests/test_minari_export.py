@@ -29,12 +29,17 @@ def run(tmp_path_factory):
     return out
 
 
+def episode_table(data, episode):
+    """One episode's Arrow table, read as Minari's ``ArrowStorage`` reads it."""
+    return pa_dataset.dataset(
+        f"{data}/{episode}", format="arrow", ignore_prefixes=["_", ".", "metadata.json"]
+    ).to_table()
+
+
 def read_episode(data, episode):
     """What `minari.dataset._storages.arrow_storage.ArrowStorage.get_episodes`
     does for one episode (without gymnasium's space decoding)."""
-    table = pa_dataset.dataset(
-        f"{data}/{episode}", format="arrow", ignore_prefixes=["_", ".", "metadata.json"]
-    ).to_table()
+    table = episode_table(data, episode)
     return {
         "observations": np.stack(table["observations"].to_numpy(zero_copy_only=False)),
         "actions": np.asarray(table["actions"])[:-1],
@@ -112,9 +117,7 @@ def test_columns_and_spaces_are_typed_as_minari_writes_them(run, tmp_path):
     assert "0.5.0" in versions and "0.4.3" not in versions
     assert meta["hipmdp_manifest"] == shards.Dataset(run).manifest["config"]
     for e in range(meta["total_episodes"]):
-        table = pa_dataset.dataset(
-            data / str(e), format="arrow", ignore_prefixes=["metadata.json"]
-        ).to_table()
+        table = episode_table(data, e)
         assert table.schema.field("observations").type == pa.list_(pa.float64(), 4)
         for name, kind in [("actions", pa.int32()), ("rewards", pa.float64()),
                            ("terminations", pa.bool_()),
