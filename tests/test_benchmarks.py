@@ -328,32 +328,27 @@ def test_control_runs_tiny():
     assert len(rates) == 8 and all(r > 0 for r in rates.values())
 
 
-@pytest.mark.parametrize("side", ["predict", "predict_mean", "mean_predictor"])
-def test_control_check_raises_when_a_gp_side_is_off(monkeypatch, side):
+def _plus_1e6(mean):
+    return mean + 1e-6
+
+
+@pytest.mark.parametrize(
+    "owner, side, change, what",
+    [
+        # predict off: the first side compared with it, predict_mean, is named
+        (control.FullPredict, "predict", lambda mv: (_plus_1e6(mv[0]), mv[1]),
+         "predict_mean"),
+        (control.MeanOnly, "predict_mean", _plus_1e6, "predict_mean"),
+        (GPBaseline, "mean_predictor", lambda f: _off(f, _plus_1e6), "mean_predictor"),
+    ],
+    ids=["predict", "predict_mean", "mean_predictor"],
+)  # fmt: skip
+def test_control_check_raises_when_a_gp_side_is_off(
+    monkeypatch, owner, side, change, what
+):
     """One GP row's means off by 1e-6 (absolute; the allowed round-off is at
     most 1e-13 σ_f²‖α‖₁, ~1e-10 here, or 1e-9 of the mean)."""
-    if side == "predict":
-        real = control.FullPredict.predict
-        monkeypatch.setattr(
-            control.FullPredict,
-            "predict",
-            lambda self, s, a: (lambda m, v: (m + 1e-6, v))(*real(self, s, a)),
-        )
-        what = "predict_mean"  # the first compared with predict's
-    elif side == "predict_mean":
-        real = control.MeanOnly.predict_mean
-        monkeypatch.setattr(
-            control.MeanOnly, "predict_mean", lambda self, s, a: real(self, s, a) + 1e-6
-        )
-        what = "predict_mean"
-    else:
-        real = GPBaseline.mean_predictor
-        monkeypatch.setattr(
-            GPBaseline,
-            "mean_predictor",
-            lambda self: (lambda f: lambda s, a: f(s, a) + 1e-6)(real(self)),
-        )
-        what = "mean_predictor"
+    monkeypatch.setattr(owner, side, _off(getattr(owner, side), change))
     with pytest.raises(AssertionError, match=f"^{what}: predictions differ"):
         control.main(TINY)
 
