@@ -15,6 +15,10 @@ Measured side by side in one run, in MuJoCo steps (`mj_step` calls) per second:
   `env.step` per control step) and the `sarsa` policy (an agent learning per
   instance, the paper's data).
 
+Before timing, one open-loop shard is computed both in this process and on the
+pool, and their archives are checked to be byte-identical
+(``check_same_shards``): the two sides timed make the same data.
+
 Also the bookkeeping per finished shard for a run of `--run-instances` instances
 (default 90,000) in shards of `--instances`: rewriting the whole manifest, as
 `tasks.generate` did after every shard until 2026-12-03, against appending one
@@ -40,6 +44,7 @@ import tasks  # noqa: F401
 import argparse
 import concurrent.futures as cf
 import dataclasses
+import hashlib
 import multiprocessing
 import os
 import time
@@ -104,6 +109,22 @@ def jobs(args, policy: str, n_shards: int, first: int = 0) -> list[generate.Shar
         )
         for k in range(first, first + n_shards)
     ]
+
+
+def check_same_shards(batch, submits: dict) -> None:
+    """Raise AssertionError unless every job of ``batch`` gives the same
+    `run_shard` output (archive bytes, counts, diverged episodes) through each
+    of ``submits`` (name: a function submitting `run_shard` for a job)."""
+    for job in batch:
+        outputs = {name: submit(job).result() for name, submit in submits.items()}
+        (first, want), *others = outputs.items()
+        for name, got in others:
+            if got != want:
+                raise AssertionError(
+                    f"shard {job.index} ({job.policy}): {name} and {first} differ "
+                    f"(archive sha256 {hashlib.sha256(got.data).hexdigest()[:12]} "
+                    f"against {hashlib.sha256(want.data).hexdigest()[:12]})"
+                )
 
 
 def shard_rate(batch, submit) -> Rate:
@@ -200,6 +221,13 @@ def main(argv=None) -> None:
     with cf.ProcessPoolExecutor(2, mp_context=context) as pool:
         # Warm up both workers (imports, first compile) before any timing.
         list(pool.map(timed_run_shard, jobs(args, "open-loop", 2, first=1000)))
+        check_same_shards(
+            jobs(args, "open-loop", 1, first=2000),
+            {
+                "in process": lambda job: inline.submit(generate.run_shard, job),
+                "in the pool": lambda job: pool.submit(generate.run_shard, job),
+            },
+        )
 
         def in_process(job):
             return inline.submit(timed_run_shard, job)
@@ -241,7 +269,8 @@ def main(argv=None) -> None:
         f"steps (sarsa: 2 instances); median of {args.repeats}; "
         f"mujoco {mujoco.__version__}; load average before/after "
         f"{load[0]:.1f}/{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores "
-        "(other processes make every figure noisy, the 2-worker one most)"
+        "(other processes make every figure noisy, the 2-worker one most); an "
+        "open-loop shard checked byte-identical in this process and in the pool"
     )
     print(f"  {'mj_step/s':<20} {'wall':>10} {'per CPU s':>10}   (wall per repeat)")
     for name in results:

@@ -10,7 +10,10 @@ For each domain, measured side by side in one run on the same compiled model:
   uniformly random actions, resetting when an episode ends (observations, reward,
   termination, action checks and resets included).
 
-The two are measured in turn, `--repeats` times (the order alternating, raw
+Before timing, the two are checked to be the same physics
+(``check_same_physics``): from the environment's reset state, the same actions
+through both give bit-identical `qpos` and `qvel`. The two are measured in turn,
+`--repeats` times (the order alternating, raw
 first, after one untimed warm-up of each). Prints the median control
 steps per second of each (and raw MuJoCo physics steps per second) and the
 median of the repeats' paired ratios env / raw: the fraction of raw speed the
@@ -59,6 +62,35 @@ def env_steps_per_second(env, n_actions, n_steps, rng):
     return n_steps / (time.perf_counter() - start)
 
 
+def check_same_physics(env, module, n_steps: int, rng) -> None:
+    """Raise AssertionError unless ``n_steps`` random actions through
+    ``env.step`` and through the raw side's `mj_step(model, data, N_SUB_STEPS)`
+    with ``data.ctrl`` from ``module.ACTIONS`` give bit-identical `qpos` and
+    `qvel` after every step, both starting from the environment's reset state
+    (again after each reset): the raw side times exactly the environment's
+    physics."""
+    physics = env.physics
+    model = physics.model.ptr
+    data = mujoco.MjData(model)
+    last = True
+    for n, a in enumerate(rng.integers(len(module.ACTIONS), size=n_steps), 1):
+        if last:
+            env.reset()
+            data.qpos[:], data.qvel[:] = physics.data.qpos, physics.data.qvel
+            data.act[:], data.time = physics.data.act, physics.data.time
+        last = env.step(a).last()
+        data.ctrl[0] = module.ACTIONS[a]
+        mujoco.mj_step(model, data, module.N_SUB_STEPS)
+        for name in ("qpos", "qvel"):
+            env_value, raw_value = getattr(physics.data, name), getattr(data, name)
+            if not np.array_equal(env_value, raw_value):
+                raise AssertionError(
+                    f"{module.__name__}: env.step and raw mj_step differ in "
+                    f"{name} after step {n} (action {a}): {env_value} against "
+                    f"{raw_value}"
+                )
+
+
 def paired_rates(env, module, n_steps: int, repeats: int, rng):
     """``repeats`` (raw, env) control-step rates measured in turn, the order
     alternating, after one untimed warm-up of each; two arrays."""
@@ -91,7 +123,8 @@ def main(argv=None) -> None:
     rng = np.random.default_rng(0)
     print(
         f"{args.steps} control steps per measurement, {args.repeats} paired "
-        f"repeats (medians), mujoco {mujoco.__version__}"
+        f"repeats (medians), mujoco {mujoco.__version__}; env.step checked "
+        "bit-identical to raw mj_step first"
     )
     header = f"{'domain':<9} {'sub':>3} {'raw mj_step/s':>14} {'raw ctrl/s':>11}"
     print(f"{header} {'env ctrl/s':>11} {'env/raw':>8} {'range':>11}")
@@ -99,6 +132,7 @@ def main(argv=None) -> None:
         env = factory(seed=0)
         module = acrobot if name == "acrobot" else cartpole
         n_sub = module.N_SUB_STEPS
+        check_same_physics(env, module, args.steps, rng)
         raws, envs = paired_rates(env, module, args.steps, args.repeats, rng)
         ratios = envs / raws
         raw, ours = float(np.median(raws)), float(np.median(envs))

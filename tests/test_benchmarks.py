@@ -9,6 +9,7 @@ reader of the printed figures would notice), must raise naming that comparison.
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 from types import SimpleNamespace
 
 import numpy as np
@@ -406,7 +407,59 @@ def test_control_check_tolerance_is_as_documented(name, entry):
         control.check_same_predictions(_stand_in_gp(), models(err), data)
 
 
-# --- benchmarks.simulation and benchmarks.generate (no agreement check) ------
+# --- benchmarks.simulation and benchmarks.generate ---------------------------
+
+
+@pytest.mark.parametrize("name", ["acrobot", "cartpole"])
+def test_simulation_check_passes_on_the_environments(name):
+    """The raw side is the environment's physics, bit for bit, over 60 steps:
+    more than one cart-pole episode under random actions, so a reset is
+    crossed."""
+    module = simulation.acrobot if name == "acrobot" else simulation.cartpole
+    env = simulation.DOMAINS[name](seed=0)
+    simulation.check_same_physics(env, module, 60, np.random.default_rng(0))
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        # 1 - 1e-9 rather than 1 + 1e-9: the actuator clips controls to [-1, 1]
+        lambda m: {"ACTIONS": m.ACTIONS * (1 - 1e-9)},
+        lambda m: {"ACTIONS": m.ACTIONS[::-1]},
+        lambda m: {"N_SUB_STEPS": m.N_SUB_STEPS + 1},
+        lambda m: {"N_SUB_STEPS": m.N_SUB_STEPS - 1},
+    ],
+    ids=["control 1e-9 off", "table reversed", "one sub-step more", "one fewer"],
+)
+def test_simulation_check_fails_when_the_raw_side_is_other_physics(change):
+    """A raw side whose controls are off by a relative 1e-9, whose action table
+    is reversed, or that takes one sub-step more or fewer than the environment
+    is refused at the first step (the seed's first action is 2, control +1)."""
+    env = simulation.DOMAINS["acrobot"](seed=0)
+    m = simulation.acrobot
+    other = SimpleNamespace(
+        __name__="tasks.acrobot", ACTIONS=m.ACTIONS, N_SUB_STEPS=m.N_SUB_STEPS
+    )
+    vars(other).update(change(m))
+    message = r"^tasks\.acrobot: env\.step and raw mj_step differ in q(pos|vel) after "
+    with pytest.raises(AssertionError, match=message + r"step 1 \(action 2\)"):
+        simulation.check_same_physics(env, other, 5, np.random.default_rng(0))
+
+
+def test_simulation_checks_before_timing(monkeypatch):
+    """main runs the check on each domain before any timing of it: a failing
+    check stops the run with nothing timed."""
+
+    def refuse(env, module, n_steps, rng):
+        raise AssertionError(f"{module.__name__} checked over {n_steps} steps")
+
+    def timed(*args):
+        raise RuntimeError("timed before the check")
+
+    monkeypatch.setattr(simulation, "check_same_physics", refuse)
+    monkeypatch.setattr(simulation, "paired_rates", timed)
+    with pytest.raises(AssertionError, match=r"^tasks\.acrobot checked over 7 steps$"):
+        simulation.main(["--steps", "7", "--repeats", "1"])
 
 
 def test_simulation_prints_env_over_raw(monkeypatch, capsys):
@@ -429,15 +482,57 @@ def test_simulation_runs_tiny(capsys):
     assert len(capsys.readouterr().out.splitlines()) == 4
 
 
-def test_generate_bookkeeping_and_tiny_run(tmp_path, capsys):
+def _done(value):
+    future = cf.Future()
+    future.set_result(value)
+    return future
+
+
+def test_generate_shard_check():
+    """Two sides that give the same output pass; one byte of one archive
+    changed is refused, naming the shard, the policy and both sides."""
+    job = generate.jobs(
+        SimpleNamespace(domain="acrobot", instances=1, episodes=1, max_steps=5),
+        "open-loop",
+        1,
+        first=3,
+    )[0]
+    want = generate.generate.run_shard(job)
+    other = want._replace(data=want.data[:-1] + bytes([want.data[-1] ^ 1]))
+    same = {side: lambda job: _done(want) for side in ("a", "b")}
+    generate.check_same_shards([job], same)
+    with pytest.raises(AssertionError, match=r"^shard 3 \(open-loop\): b and a differ"):
+        generate.check_same_shards(
+            [job], {"a": lambda job: _done(want), "b": lambda job: _done(other)}
+        )
+
+
+def test_generate_bookkeeping_and_tiny_run(tmp_path, capsys, monkeypatch):
+    """The tiny run checks one open-loop shard in this process against the
+    pool, before timing (the check itself runs, on the real pool), then prints
+    the bookkeeping for --run-instances."""
     book = generate.bookkeeping(40, 16, 2, str(tmp_path))
     assert book["shards"] == 3  # 40 instances in shards of 16
     assert book["manifest_bytes"] > 0 and book["manifest"] > 0 < book["progress"]
+    checked, check = [], generate.check_same_shards
+    timed = generate.shard_rate
+
+    def spy(batch, submits):
+        checked.append(([(job.policy, job.instances) for job in batch], [*submits]))
+        check(batch, submits)
+
+    def after_check(batch, submit):
+        assert checked, "timed before the check"
+        return timed(batch, submit)
+
+    monkeypatch.setattr(generate, "check_same_shards", spy)
+    monkeypatch.setattr(generate, "shard_rate", after_check)
     generate.main(
         ["--instances", "1", "--episodes", "1", "--max-steps", "5",
          "--raw-steps", "10", "--repeats", "1", "--run-instances", "32",
          "--dir", str(tmp_path)]
     )  # fmt: skip
+    assert checked == [([("open-loop", (2000,))], ["in process", "in the pool"])]
     out = capsys.readouterr().out
     # --run-instances 32 in shards of --instances 1
     assert "a run of 32 instances in 32 shards of 1" in out
