@@ -363,7 +363,7 @@ def _two_test_settings(config):
     config["test_masses"] = [[0.9, 1.1], [1.1, 0.9]]
 
 
-def test_writes_promised_delivered_and_energy_per_model(run, capsys):
+def test_writes_promised_delivered_and_energy_per_model(run):
     out, options, results = run
     data = json.loads((out / "energy.json").read_text())
     assert data["models"] == list(acrobot_energy.MODELS)

@@ -25,7 +25,7 @@ def run(tmp_path_factory):
     )
 
 
-def test_writes_errors_per_model_horizon_and_setting(run, capsys):
+def test_writes_errors_per_model_horizon_and_setting(run):
     out, results = run
     data = json.loads((out / "horizon.json").read_text())
     assert data["horizons"] == [1, 4]

@@ -284,7 +284,7 @@ def test_a_model_built_in_python_names_the_field_of_bad_arrays(fitted, change, m
         dataclasses.replace(fitted, **change(fitted))
 
 
-def test_a_model_takes_lists_and_0_1_flags(fitted, tmp_path):
+def test_a_model_takes_lists_and_0_1_flags(fitted):
     """Lists (an AttributeError on .shape) and a 0/1 z are taken as the arrays
     they stand for, and predict what the model does."""
     rebuilt = dataclasses.replace(
