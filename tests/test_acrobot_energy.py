@@ -599,21 +599,37 @@ def test_the_models_are_built_with_their_masses_columns_and_streams(run):
     assert models["prior_energy_nominal"]._params == AcrobotParams()
     assert models["average_energy"]._model.model is average
     assert models["prior_energy"]._model.belief is not None
-    for name, columns in (
-        ("exact_fast_angles", (0, 2)),
-        ("exact_fast_velocities", (2, 4)),
-    ):
-        model = models[name]
-        assert (model._columns.start, model._columns.stop) == columns
-        assert model._threshold == 5.0 and model._exact is simulator
-        assert isinstance(model._model, LearnedModel)
     want = acrobot_energy.SampledWeights(hip, np.random.default_rng(ss_weights))
     got = models["train_sampled"]
     for _ in range(20):  # a different stream matches 20 draws by chance rarely
         np.testing.assert_array_equal(got.draw().belief.mean, want.draw().belief.mean)
-    # exact_fast: the simulator on fast rows, the prior-mean model on the rest
-    assert models["exact_fast"]._fast is simulator
-    assert models["exact_fast"]._slow is models["prior"]
+    # By their predictions, on states either side of the --fast 5 rad/s: the
+    # simulator's on fast rows (all columns, or only the angles' or the
+    # velocities'), the prior-mean model's elsewhere; exact_slow the reverse.
+    states = _states(np.random.default_rng(7), 40)
+    actions = np.random.default_rng(8).integers(3, size=40)
+    fast = np.abs(states[:, 3]) >= 5.0
+    assert 5 < fast.sum() < 35
+    exact, prior = (
+        simulator.predict(states, actions),
+        models["prior"].predict(states, actions),
+    )
+    # every entry tells them apart, by far more than the round-off of the prior
+    # model's batched algebra on a subset of rows (the tolerance below)
+    assert np.abs(exact - prior).min() > 1e-6
+    assert isinstance(models["prior"], LearnedModel)
+    for name, rows, columns in (
+        ("exact_fast", fast, slice(0, 4)),
+        ("exact_slow", ~fast, slice(0, 4)),
+        ("exact_fast_angles", fast, slice(0, 2)),
+        ("exact_fast_velocities", fast, slice(2, 4)),
+    ):
+        want = prior.copy()
+        want[np.ix_(rows, np.arange(4)[columns])] = exact[rows, columns]
+        np.testing.assert_allclose(
+            models[name].predict(states, actions), want, rtol=0, atol=1e-10,
+            err_msg=name,
+        )  # fmt: skip
     # noisy: the --noise σ, on the ss_noise stream
     states = _states(np.random.default_rng(8), 10)
     actions = np.zeros(10, dtype=int)
