@@ -7,9 +7,11 @@ Writes `OUT/<dataset_id>/data/` as Minari's `ArrowStorage` lays it out (Minari â
 (or copy `OUT/<dataset_id>` into Minari's datasets folder for `minari.load_dataset`):
 
 - `data/metadata.json`: `dataset_id` (default `<domain>-<policy>-v0`),
-  `minari_version` (`>=0.5.0`), `data_format`, `total_episodes`, `total_steps`, and
-  the observation space `Box(-inf, inf, (D,), float64)` and action space
-  `Discrete(A)` serialised as Minari does;
+  `minari_version` (`0.5.0`: one release, not a range; Minari looks it up in
+  its `supported_dataset_versions`, e.g. 0.5.4 takes 0.4.0 to 0.5.4, and refused
+  the `>=0.5.0` written until 2026-12-04), `data_format`, `total_episodes`,
+  `total_steps`, and the observation space `Box(-inf, inf, (D,), float64)` and
+  action space `Discrete(A)` serialised as Minari does;
 - per episode `e`, `data/<e>/part-0.arrow` (an Arrow IPC file) with the columns
   `observations` (`T + 1` rows, `s_0 â€¦ s_T`), `actions`, `rewards`, `terminations`
   and `truncations` (`T` rows padded with one zero row, as Minari stores them);
@@ -22,10 +24,11 @@ failure); otherwise the episode was cut by the step limit (`truncations[-1]`).
 Needs `pyarrow` (installed with rerun-sdk, which the project already depends on);
 Minari itself is not needed, and is not installed in the project's environment, so
 the export is checked by reading it back the way Minari's `ArrowStorage` does
-(`tests/test_minari_export.py`), not with Minari itself. Every shard is checked
-against its checksum before anything is written; the export is built in a temporary
-folder and renamed into place (an error removes it, the next export clears one a
-kill left); an existing dataset is never overwritten.
+(`tests/test_minari_export.py`), not with Minari itself; by hand, Minari 0.5.4
+(in a separate environment) read an export's 400 episodes on 2026-12-04. Every
+shard is checked against its checksum before anything is written; the export is
+built in a temporary folder and renamed into place (an error removes it, the next
+export clears one a kill left); an existing dataset is never overwritten.
 """
 
 from __future__ import annotations
@@ -46,7 +49,9 @@ from tasks.experiment import check_folder_out, path_argument
 
 Array = np.ndarray
 
-MINARI_VERSION = ">=0.5.0"
+# the first release with the Arrow layout; Minari checks this field by membership
+# in its set of supported dataset versions, so it must be one release
+MINARI_VERSION = "0.5.0"
 
 
 def export(run: str | Path, out: str | Path, *, dataset_id: str | None = None) -> Path:

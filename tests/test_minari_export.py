@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import errno
 import json
+import re
 import shutil
 import sys
 
@@ -102,10 +103,13 @@ def test_columns_and_spaces_are_typed_as_minari_writes_them(run, tmp_path):
     ``update_episodes``): a Box observation as a fixed-size list of its dtype, a
     Discrete action as int32, float rewards, bool end flags, the step columns
     padded with one zero row; the spaces serialised as Minari does (Box: dtype,
-    shape, low, high). The Arrow layout needs Minari 0.5 (0.4 had HDF5 only), so
-    the version range must take 0.5.0 and refuse 0.4. The run's generating
-    config rides along, so the dataset says how it was made."""
-    from packaging.specifiers import SpecifierSet
+    shape, low, high). The Arrow layout needs Minari 0.5 (0.4 had HDF5 only),
+    and Minari looks ``minari_version`` up in its set of supported releases
+    (``minari_version not in supported_dataset_versions``), so it must be one
+    release, 0.5 or later: a range such as ">=0.5.0" is refused by every Minari.
+    The run's generating config rides along, so the dataset says how it was
+    made."""
+    from packaging.version import Version
 
     data = minari_export.export(run, tmp_path)
     meta = json.loads((data / "metadata.json").read_text())
@@ -113,8 +117,9 @@ def test_columns_and_spaces_are_typed_as_minari_writes_them(run, tmp_path):
         "type": "Box", "dtype": "float64", "shape": [4],
         "low": [-np.inf] * 4, "high": [np.inf] * 4,
     }  # fmt: skip
-    versions = SpecifierSet(meta["minari_version"])
-    assert "0.5.0" in versions and "0.4.3" not in versions
+    version = meta["minari_version"]
+    assert re.fullmatch(r"\d+\.\d+\.\d+", version), version
+    assert Version(version) >= Version("0.5.0")
     assert meta["hipmdp_manifest"] == shards.Dataset(run).manifest["config"]
     for e in range(meta["total_episodes"]):
         table = episode_table(data, e)
