@@ -307,6 +307,27 @@ class NpzArchive(Mapping):
         self.close()
 
 
+#: Every array a dataset file may hold (:meth:`Transitions.arrays`).
+FILE_ARRAYS = frozenset(
+    ["format_version", "states", "actions", "next_states", "instances",
+     "angle_dims", "rewards", "dones", "dt",
+     "table_instances", "table_names", "table_values"]
+)  # fmt: skip
+
+
+def _check_members(path, archive: NpzArchive) -> None:
+    """Raise ``ValueError`` naming ``path`` if the archive holds an array that
+    no dataset file has: a member name with a damaged byte (zipfile checks the
+    data's CRC, not the central directory's names), which would otherwise read
+    as that optional array (``rewards``, ``dones``, ``dt``, the table) missing."""
+    unknown = sorted(set(archive.files) - FILE_ARRAYS)
+    if unknown:
+        raise ValueError(
+            f"{path}: holds arrays no hipmdp dataset file has ({', '.join(unknown)}):"
+            " a damaged member name, or not a file hipmdp wrote"
+        )
+
+
 def npz_bytes(arrays: dict[str, Array]) -> bytes:
     """An ``.npz`` archive of ``arrays`` whose bytes depend only on the arrays.
 
@@ -538,8 +559,18 @@ class ParameterTable:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> ParameterTable | None:
-        """The table stored in a dataset file, or None if it has none."""
+        """The table stored in a dataset file (:meth:`Transitions.save`), or None
+        if it has none; or a sharded dataset's (its directory or
+        ``manifest.json``: every planned instance's row, from the manifest,
+        :attr:`hipmdp.shards.Dataset.parameters`)."""
+        if isinstance(path, str | os.PathLike):
+            path = Path(path)
+            if path.is_dir() or path.suffix == ".json":
+                from hipmdp.shards import Dataset  # shards builds on this module
+
+                return Dataset(path).parameters
         with load_npz(path) as f:
+            _check_members(path, f)
             if "table_instances" not in f:
                 return None
             missing = [k for k in ("table_names", "table_values") if k not in f]
@@ -859,6 +890,7 @@ class Transitions:
                     f"{path}: format_version {version.tolist()}, expected "
                     f"{FORMAT_VERSION}"
                 )
+            _check_members(path, f)
             required = ("states", "actions", "next_states", "instances", "angle_dims")
             missing = [k for k in required if k not in f]
             if missing:

@@ -98,6 +98,20 @@ def test_parameters_in_the_manifest_match_the_shards(run):
         assert stored.names == table.names
 
 
+def test_parameter_table_loads_a_run_as_transitions_do(run):
+    """ParameterTable.load takes a run's folder or its manifest.json, as
+    Transitions.load does (it was an IsADirectoryError, and "not an .npz
+    archive"): a row per instance, the shards' own rows."""
+    data = Transitions.load(run)
+    for path in (run, run / "manifest.json", str(run)):
+        table = ParameterTable.load(path)
+        np.testing.assert_array_equal(table.instances, data.instance_ids)
+        for index, ids in enumerate([[0, 1], [2, 3], [4]]):
+            stored = ParameterTable.load(run / shards.shard_name(index))
+            np.testing.assert_array_equal(table.values[ids], stored.values)
+            assert table.names == stored.names
+
+
 def test_temporaries_are_removed_and_foreign_manifests_refused(tmp_path):
     for name in (".shard-00001.npz.x1.tmp", ".manifest.json.y2.tmp", ".other.tmp"):
         (tmp_path / name).write_bytes(b"partial")
