@@ -223,15 +223,31 @@ def read_runs(
     if len(set(seeds)) != len(seeds):
         raise ValueError(f"runs: expected distinct seeds, got {seeds}")
     for run, config in zip(runs[1:], configs[1:], strict=True):
-        differ = differences(_settings(configs[0]), _settings(config), PRESENTATION)
+        a, b = _settings(configs[0]), _settings(config)
+        differ = differences(a, b, PRESENTATION)
         if differ:
             raise ValueError(
                 f"{run}: its config differs from {runs[0]}'s in more than the seed: "
                 + ", ".join(
-                    f"{k} ({a!r} vs {b!r})" for k, (a, b) in list(differ.items())[:5]
-                )  # fmt: skip
+                    f"{k} ({_at(a, k)} vs {_at(b, k)})" for k in list(differ)[:5]
+                )
             )
     return kinds[0], configs, metrics, commits
+
+
+def _at(config: dict, key: str) -> str:
+    """The value at a dotted ``key`` of ``config`` (as
+    :func:`tasks.compare_runs.flatten` names it), as repr; "absent" where the
+    config has none (``differences`` gives None there, as for a null)."""
+    value: Any = config
+    for part in key.split("."):
+        if isinstance(value, dict) and part in value:
+            value = value[part]
+        elif isinstance(value, list) and part.isdigit() and int(part) < len(value):
+            value = value[int(part)]
+        else:
+            return "absent"
+    return repr(value)
 
 
 def _interval(value: Any, label: str, run: str) -> dict[str, Any]:
