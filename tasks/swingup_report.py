@@ -169,6 +169,8 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
     """report.md: the tables in plain language."""
     ep = metrics["episodes_to_near_optimal"]
     target = metrics["near_optimal_target"]["true_model_final_mean_return"]
+    n = metrics["near_optimal_target"]["final_window"]
+    window = "episode" if n == 1 else f"{n} episodes"
     curves = metrics["returns"]
     n_ep = len(curves["true"]["mean"])
     show = sorted({0, min(1, n_ep - 1), min(4, n_ep - 1), n_ep - 1})
@@ -273,7 +275,8 @@ features inferred. {inertia}
 
 {transfer}
 
-"Near-optimal" is within 10% of the true model's final mean return ({target:.1f}).
+"Near-optimal" is within 10% of the true model's final mean return ({target:.1f},
+its mean over the last {window}).
 Per trial, each method's return minus 10% below the true model's final return on
 the same trial (mean [95% interval] over trials; above 0: within 10%):
 

@@ -710,7 +710,11 @@ def test_report_tables_show_the_episodes_they_name(run, tmp_path):
     assert list(row) == ["true model", "average model", "HiP-MDP"]
     assert means(row["HiP-MDP"][1:5]) == [-45.67, -38.0, -32.0, -22.0]
     assert row["HiP-MDP"][5] == "10" and row["average model"][5] == "not within 10"
-    assert "true model's final mean return (-20.0)" in report
+    # final_window 1: the last episode's mean, and the report says so
+    assert (
+        "true model's final mean return (-20.0,\nits mean over the last episode)"
+        in report
+    )
 
     # margin per trial: the return minus -22 (10% below the true model's -20)
     header, *rows = _table(report, "Per trial, each method's return")
