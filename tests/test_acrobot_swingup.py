@@ -715,6 +715,11 @@ def test_report_tables_show_the_episodes_they_name(run, tmp_path):
         "true model's final mean return (-20.0,\nits mean over the last episode)"
         in report
     )
+    window = dict(metrics["near_optimal_target"], final_window=3)
+    swingup_report.write_report(
+        tmp_path, config, metrics | {"near_optimal_target": window}
+    )
+    assert "its mean over the last 3 episodes)" in (tmp_path / "report.md").read_text()
 
     # margin per trial: the return minus -22 (10% below the true model's -20)
     header, *rows = _table(report, "Per trial, each method's return")
