@@ -204,7 +204,13 @@ class DiscreteActionTask(base.Task):
         self._actions = np.asarray(actions, dtype=float)
         self.initial_noise = initial_noise
         self.max_steps = max_steps
-        self.rng = np.random.default_rng(seed)
+        try:
+            self.rng = np.random.default_rng(seed)
+        except (TypeError, ValueError) as err:  # numpy's message names no field
+            raise ValueError(
+                "seed: expected what np.random.default_rng takes (None, an int "
+                f">= 0, a SeedSequence or a Generator), got {seed!r} ({err})"
+            ) from None
         self.steps = 0
         self.state: Array | None = None
 

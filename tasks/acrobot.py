@@ -424,8 +424,8 @@ def swingup(
     """
     params = _check_params(params)
     max_steps = check_max_steps(max_steps)
+    task = SwingUp(params, max_steps=max_steps, seed=seed)  # checks seed first
     physics = Physics.from_mj_model(make_model(params))
-    task = SwingUp(params, max_steps=max_steps, seed=seed)
     return control.Environment(
         physics, task, n_sub_steps=sub_steps(params), legacy_step=False
     )

@@ -209,8 +209,8 @@ def balance(
     """
     params = _check_params(params)
     max_steps = check_max_steps(max_steps)
+    task = Balance(params, max_steps=max_steps, seed=seed)  # checks seed first
     physics = Physics.from_mj_model(make_model(params))
-    task = Balance(params, max_steps=max_steps, seed=seed)
     return control.Environment(
         physics, task, n_sub_steps=sub_steps(params), legacy_step=False
     )

@@ -141,6 +141,9 @@ def test_factory_rejects_bad_arguments(name):
     for max_steps in (0, True, 2.5):  # a bool is not a count; 2.5 steps is not one
         with pytest.raises(ValueError, match="max_steps must be a positive int"):
             factory(None, max_steps=max_steps)
+    for seed in (-1, 2.5, "0"):  # numpy's own message named no field
+        with pytest.raises(ValueError, match=rf"^seed: expected .*, got {seed!r} \("):
+            factory(None, seed=seed)
 
 
 @pytest.mark.parametrize("name", DOMAINS)
