@@ -364,7 +364,7 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
     t0 = time.perf_counter()  # first, so that a method that breaks does so early
     added = fit_all(
         loaded, batch, config.seed, n_actions=ACROBOT.n_actions,
-        pickled=must_pickle(config.workers),
+        pickled=must_pickle(config.workers), transfer=True,
     )  # fmt: skip
     timings["added_methods"] = time.perf_counter() - t0
 

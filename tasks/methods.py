@@ -474,6 +474,7 @@ def fit_all(
     seed: int,
     n_actions: int | None = None,
     pickled: bool = False,
+    transfer: bool = False,
 ) -> tuple[Added, ...]:
     """Fit every loaded method (:func:`load_all`) on a copy of ``batch``, each with
     its own stream (:func:`method_seed`), then try it as the runs will use it, so
@@ -482,9 +483,15 @@ def fit_all(
 
     - adapted to the first ``TRIAL_SIZE`` batch transitions, predicting the next
       ``TRIAL_SIZE`` (key ``(2,)``), as in a prediction table;
-    - adapted to no transitions, predicting one state (key ``(2, 1)``), as a
-      transfer trial's first planning does; with ``predict_mean``, that must
-      agree with ``predict``'s mean (``numpy.allclose``), as planning calls it.
+    - with ``transfer`` (an experiment with transfer trials) also adapted to no
+      transitions, predicting one state (key ``(2, 1)``), as a transfer trial's
+      first planning does; with ``predict_mean``, that must agree with
+      ``predict``'s mean (``numpy.allclose``), as planning calls it. Without
+      transfer trials no method is adapted to no transitions, so none is tried
+      so.
+
+    An error in a try has a note saying how many transitions the method was
+    adapted to.
 
     A policy instead gets one agent (key ``(2, 2)``) that acts on the first
     batch state (an action ``0 .. n_actions - 1``: ``n_actions`` must be given
@@ -516,10 +523,24 @@ def fit_all(
                 )
             _check_policy(trying, batch, n_actions)
         else:
-            trying.predict(trial_train, trial_test, (2,))
-            _check_planning(trying, batch)
+            with _adapted_to(spec.name, len(trial_train)):
+                trying.predict(trial_train, trial_test, (2,))
+            if transfer:
+                with _adapted_to(spec.name, 0):
+                    _check_planning(trying, batch)
         out.append(added)
     return tuple(out)
+
+
+@contextlib.contextmanager
+def _adapted_to(name: str, n: int) -> Iterator[None]:
+    """:func:`fit_all`'s try of method ``name`` adapted to ``n`` transitions: an
+    error raised in it gets a note saying so."""
+    try:
+        yield
+    except Exception as err:
+        err.add_note(f"(in the try of method {name} after adapt on {n} transitions)")
+        raise
 
 
 def must_pickle(workers: int) -> bool:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
+import warnings
 
 import numpy as np
 import pytest
@@ -424,7 +425,76 @@ def test_fit_all_tries_the_transfers_first_planning_too():
     for wrong in (DisagreeingMean(), FlatMean()):
         loaded = [(MethodSpec("mine", "m", "A"), wrong)]
         with pytest.raises(ValueError, match="mine: predict_mean gives .* must agree"):
-            methods.fit_all(loaded, batch, 0)
+            methods.fit_all(loaded, batch, 0, transfer=True)
+
+
+class TrainMean:
+    """A method with nothing to say before it has seen the instance: it predicts
+    the mean Δs of the train transitions it was adapted to, NaN on none."""
+
+    def fit(self, batch, *, rng):
+        pass
+
+    def adapt(self, train, *, rng):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # the mean of no rows
+            return TrainMean.Predictor(train.deltas.mean(0))
+
+    @dataclasses.dataclass
+    class Predictor:
+        mean: np.ndarray
+
+        def predict(self, states, actions):
+            return np.tile(self.mean, (len(states), 1)), np.ones(states.shape)
+
+
+def test_fit_all_adapts_to_no_transitions_only_for_transfer_trials():
+    """Only the swing-up's transfer trials adapt a method to no transitions
+    (their first planning): without them TrainMean passes its try; with them it
+    is refused, the error saying what it was adapted to."""
+    batch = transitions(weights(np.random.default_rng(0)), 40, np.random.default_rng(1))
+    loaded = [(MethodSpec("naive", "m", "A"), TrainMean())]
+    (fitted,) = methods.fit_all(loaded, batch, 0)
+    assert isinstance(fitted.method, TrainMean)
+    with pytest.raises(ValueError, match="naive: predict's mean is not fin") as err:
+        methods.fit_all(loaded, batch, 0, transfer=True)
+    note = "".join(err.value.__notes__)
+    assert "the try of method naive after adapt on 0 transitions" in note
+    # an error in the user's code says it too, beside its own note
+    with pytest.raises(RuntimeError, match="predict failed") as err:
+        methods.fit_all([(MethodSpec("bad", "m", "A"), Failing())], batch, 0)
+    note = "".join(err.value.__notes__)
+    assert "in method bad: predict" in note
+    assert f"the try of method bad after adapt on {methods.TRIAL_SIZE} trans" in note
+
+
+@pytest.mark.parametrize("experiment", ["cartpole", "swingup"])
+def test_each_experiment_tries_a_method_as_it_will_adapt_it(
+    experiment, tmp_path, monkeypatch
+):
+    """The cart-pole, which never adapts to no transitions, takes TrainMean
+    past its try (on to the HiP-MDP fit, stopped here); the swing-up, whose
+    transfer trials plan on it adapted to none, refuses it."""
+    import tasks.acrobot_swingup as swingup
+    import tasks.cartpole_prediction as cp
+    from tests.test_acrobot_swingup import TINY as SWINGUP
+
+    class Stop(Exception):
+        pass
+
+    def stop(*args, **kwargs):
+        raise Stop
+
+    monkeypatch.setattr(hipmdp, "fit", stop)
+    method = ("naive=tests.test_methods:TrainMean",)
+    if experiment == "cartpole":
+        with pytest.raises(Stop):
+            cp.main(dataclasses.replace(TINY, methods=method, record=False), tmp_path)
+    else:
+        config = dataclasses.replace(SWINGUP, methods=method, record=False)
+        with pytest.raises(ValueError, match="naive: predict's mean is not") as err:
+            swingup.main(config, tmp_path)
+        assert "after adapt on 0 transitions" in "".join(err.value.__notes__)
 
 
 def test_errors_while_planning_on_an_added_method_name_it(tmp_path):
@@ -737,12 +807,12 @@ class Spy:
 
 def test_fit_all_tries_a_prediction_on_transitions_it_did_not_adapt_to():
     """The first try adapts to the first TRIAL_SIZE batch transitions and
-    predicts the next TRIAL_SIZE; the second adapts to none and predicts the
-    first state."""
+    predicts the next TRIAL_SIZE; the second, for transfer trials, adapts to
+    none and predicts the first state."""
     rng = np.random.default_rng(3)
     batch = transitions(weights(rng), 25, rng)
     Spy.seen = []
-    methods.fit_all([(MethodSpec("spy", "m", "A"), Spy())], batch, 0)
+    methods.fit_all([(MethodSpec("spy", "m", "A"), Spy())], batch, 0, transfer=True)
     size = methods.TRIAL_SIZE
     assert [kind for kind, _ in Spy.seen] == ["adapt", "predict"] * 2
     (_, train), (_, test), (_, none), (_, one) = Spy.seen

@@ -331,8 +331,9 @@ def test_a_models_fit_and_each_trials_adapt_get_their_own_streams():
     ModelDraws.drawn = {}
     loaded = [(MethodSpec("m", "x", "A"), ModelDraws())]
     set_models(
-        ACROBOT, config, None, None, added=methods.fit_all(loaded, batch(), 7, 3)
-    )
+        ACROBOT, config, None, None,
+        added=methods.fit_all(loaded, batch(), 7, 3, transfer=True),
+    )  # fmt: skip
     fit = np.random.default_rng(method_seed(7, "m", 0)).random()
     assert ModelDraws.drawn["fit"] == [fit]
     # fit_all's two tries (TRIAL_SIZE transitions, then none): keys (2,), (2, 1)
