@@ -628,6 +628,7 @@ def parse_args(argv: list[str] | None = None) -> tuple[SwingupConfig, str | None
         n_trials=args.trials,
         transfer=transfer,
         artefacts=ARTEFACTS,
+        policies=True,
         final_window=final_window,
         book_inertia=args.book_inertia or None,
         split=args.split,

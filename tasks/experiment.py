@@ -807,12 +807,20 @@ FLAGS = {
 
 
 def apply_common(
-    parser, args, preset: Any, *, artefacts: Sequence[str] = (), **changes: Any
+    parser,
+    args,
+    preset: Any,
+    *,
+    artefacts: Sequence[str] = (),
+    policies: bool = False,
+    **changes: Any,
 ) -> Any:
     """The preset with the common options (and ``changes``) applied, and
     ``--out`` checked as the run will use it (:func:`check_out`, with the
-    experiment's ``artefacts``); a bad value is reported through
-    ``parser.error`` (exit status 2), naming the flag."""
+    experiment's ``artefacts``), and each ``--method`` built and checked as the
+    run will (``tasks.methods.load_all``; ``policies``: whether the experiment
+    takes policies); a bad value is reported through ``parser.error`` (exit
+    status 2), naming the flag."""
     changes = {k: v for k, v in changes.items() if v is not None}
     changes["seed"] = args.seed
     if args.workers is not None:
@@ -830,7 +838,8 @@ def apply_common(
         if getattr(config, "methods", ()):
             from tasks.methods import load_all  # tasks.methods imports this module
 
-            load_all(config.methods, build=False)  # import each, before any work
+            # build each, before any work: main builds them again
+            load_all(config.methods, policies=policies)
         if getattr(config, "record", False):
             from tasks.recording import recording_enabled
 

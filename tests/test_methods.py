@@ -649,6 +649,12 @@ def test_the_command_line_takes_methods_and_refuses_bad_ones(capsys, tmp_path):
     for bad, match in [
         ("linear", "--method \\(methods\\): expected NAME=module:attribute"),
         ("x=tasks.nothing:A", "--method \\(methods\\): .*cannot import"),
+        # a class that will not build or is not a model: refused as usage too,
+        # before the run gathers any data
+        ("x=tests.test_methods:NoAdapt", "--method .*: .*NoAdapt has no adapt"),
+        ("x=tasks.methods:load", "--method .*: calling load\\(\\) with no arg"),
+        ("x=tests.test_policies:BothKinds", "--method .*: .* both adapt and agent"),
+        ("x=tasks.methods:SarsaPolicy", "--method .*: .* only tasks.acrobot_swingup"),
     ]:
         with pytest.raises(SystemExit) as exit_:
             parse_args(["--method", bad, "--out", str(tmp_path / "x")])

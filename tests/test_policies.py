@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import re
 
 import numpy as np
 import pytest
@@ -190,6 +191,26 @@ def test_the_cart_pole_refuses_a_policy_before_any_work(tmp_path):
     with pytest.raises(ValueError, match="only tasks.acrobot_swingup runs policies"):
         main(dataclasses.replace(TINY, methods=(SARSA,)), out=tmp_path / "run")
     assert not (tmp_path / "run").exists()
+
+
+def test_the_swing_up_command_line_takes_a_policy_and_refuses_a_bad_class(
+    capsys, tmp_path
+):
+    """A class that is neither a model nor a policy is a usage error (exit
+    status 2) naming --method, before the run gathers any data."""
+    from tasks.acrobot_swingup import parse_args
+
+    assert parse_args(["--method", SARSA])[0].methods == (SARSA,)
+    for bad, match in [
+        ("x=tests.test_policies:BothKinds", "BothKinds has both adapt and agent"),
+        ("x=tests.test_policies:NoObserve", "NoObserve has no fit and no adapt or"),
+    ]:
+        with pytest.raises(SystemExit) as exit_:
+            parse_args(["--method", bad, "--out", str(tmp_path / "x")])
+        assert exit_.value.code == 2
+        assert re.search(
+            f"error: --method \\(methods\\): .*{match}", capsys.readouterr().err
+        )
 
 
 def test_an_agent_gets_its_keys_stream_and_copies_of_the_states():
