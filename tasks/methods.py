@@ -171,7 +171,8 @@ def is_policy(method: Any) -> bool:
 def load(spec: MethodSpec, build: bool = True) -> Any:
     """Import ``spec.module`` and find ``spec.attribute``; with ``build``, call it
     with no arguments and check that the result has ``fit`` and either ``adapt``
-    (a model) or ``agent`` (a policy), not both.
+    (a model) or ``agent`` (a policy), not both, each taking the arguments the
+    run will pass it (the keyword ``rng`` among them).
     Raise ValueError, naming the spec, if any step fails. Returns the object
     (with ``build``) or the class or function."""
     where = f"methods: {spec.name}={spec.module}:{spec.attribute}"
@@ -216,7 +217,26 @@ def load(spec: MethodSpec, build: bool = True) -> Any:
         raise ValueError(f"{kind} no {' and no '.join(lacks)}{hint}")
     if {"adapt", "agent"} <= has:
         raise ValueError(f"{kind} both adapt and agent")
+    for name in sorted(has):  # as the run will call them
+        try:
+            signature = inspect.signature(getattr(method, name))
+        except (TypeError, ValueError):  # none to read (a builtin): the call tells
+            continue
+        try:
+            signature.bind(*_ARGUMENTS[name], rng=None)
+        except TypeError:
+            args = _ARGUMENTS[name]
+            raise ValueError(
+                f"{where}: {type(method).__name__}.{name}{signature} cannot take "
+                f"the run's call {name}({', '.join((*args, 'rng=rng'))}); expected "
+                f"{name}({', '.join((*args, '*', 'rng'))}) (or **kwargs)"
+            ) from None
     return method
+
+
+#: The positional arguments of each method of a loaded method; each also gets
+#: the keyword ``rng``.
+_ARGUMENTS = {"fit": ("batch",), "adapt": ("train",), "agent": ()}
 
 
 def provenance(loaded: Sequence[tuple[MethodSpec, Any]]) -> dict[str, Any]:

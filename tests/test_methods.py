@@ -249,6 +249,26 @@ def agent_on_the_object():
     return method
 
 
+class FitWithoutRng(Constant):
+    def fit(self, batch):
+        pass
+
+
+class AdaptWithoutRng(Constant):
+    def adapt(self, train):
+        return self
+
+
+class TakesKeywords(Constant):
+    """Takes rng (and anything else) as **kwargs: fine."""
+
+    def fit(self, batch, **kwargs):
+        pass
+
+    def adapt(self, train, **kwargs):
+        return self
+
+
 class AdaptIsNotAMethod(NoAdapt):
     adapt = None  # a placeholder attribute, not something to call
 
@@ -326,9 +346,21 @@ def test_methods_that_cannot_be_loaded_are_refused(tmp_path, monkeypatch):
         ("x=tests.test_methods:NoAdapt", "NoAdapt has no adapt"),
         ("x=tests.test_methods:agent_on_the_object", "must be a method of its class"),
         ("x=tasks.methods:load", "calling load\\(\\) with no arguments raised"),
+        # the run calls fit(batch, rng=rng) and adapt(train, rng=rng)
+        (
+            "x=tests.test_methods:FitWithoutRng",
+            "FitWithoutRng.fit\\(batch\\) cannot take the run's call fit\\(batch, "
+            "rng=rng\\); expected fit\\(batch, \\*, rng\\)",
+        ),
+        (
+            "x=tests.test_methods:AdaptWithoutRng",
+            "AdaptWithoutRng.adapt\\(train\\) cannot take .* expected adapt\\(tr",
+        ),
     ]:
         with pytest.raises(ValueError, match=match):
             methods.load_all([spec])
+    ((_, method),) = methods.load_all(["x=tests.test_methods:TakesKeywords"])
+    assert type(method).__name__ == "TakesKeywords"
     # without building, only the import and the attribute are checked
     assert methods.load_all(["x=tasks.methods:load"], build=False)[0][1] is (
         methods.load
@@ -655,6 +687,7 @@ def test_the_command_line_takes_methods_and_refuses_bad_ones(capsys, tmp_path):
         ("x=tasks.methods:load", "--method .*: calling load\\(\\) with no arg"),
         ("x=tests.test_policies:BothKinds", "--method .*: .* both adapt and agent"),
         ("x=tasks.methods:SarsaPolicy", "--method .*: .* only tasks.acrobot_swingup"),
+        ("x=tests.test_methods:FitWithoutRng", "--method .*: .*fit\\(batch\\) cannot"),
     ]:
         with pytest.raises(SystemExit) as exit_:
             parse_args(["--method", bad, "--out", str(tmp_path / "x")])

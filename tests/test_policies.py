@@ -87,6 +87,11 @@ class BothKinds(Acts):
         return self
 
 
+class AgentWithoutRng(Acts):
+    def agent(self):
+        return self
+
+
 class NoObserve:
     def act(self, state):
         return 0
@@ -182,6 +187,9 @@ def test_policies_are_loaded_by_the_swing_up_alone():
         methods.load_all(["x=tests.test_policies:BothKinds"], policies=True)
     with pytest.raises(ValueError, match="NoObserve has no fit and no adapt or agent"):
         methods.load_all(["x=tests.test_policies:NoObserve"], policies=True)
+    # the trials call agent(rng=rng)
+    with pytest.raises(ValueError, match="AgentWithoutRng.agent\\(\\) cannot take"):
+        methods.load_all(["x=tests.test_policies:AgentWithoutRng"], policies=True)
 
 
 def test_the_cart_pole_refuses_a_policy_before_any_work(tmp_path):
