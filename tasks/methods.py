@@ -594,7 +594,13 @@ def _check_planning(added: Added, batch: Transitions) -> None:
             fast = np.asarray(
                 predictor.predict_mean(one.states.copy(), one.actions.copy()), float
             )
-        if fast.shape != mean.shape or not np.allclose(fast, mean):
+        if fast.shape != mean.shape:
+            raise ValueError(
+                f"{where} gives shape {fast.shape}, expected {mean.shape} as "
+                "predict's mean: planning calls predict_mean, which must give "
+                "shape (n, D) for n states"
+            )
+        if not np.allclose(fast, mean):
             raise ValueError(
                 f"{where} gives {fast.tolist()}, predict's mean {mean.tolist()}; "
                 "planning calls predict_mean, so the two must agree"

@@ -452,11 +452,15 @@ def test_errors_in_the_users_code_keep_their_type_and_name_the_method():
 
 
 def test_fit_all_tries_the_transfers_first_planning_too():
-    """A predict_mean that disagrees with predict is refused before any run."""
+    """A predict_mean that disagrees with predict, or gives its values in
+    another shape, is refused before any run."""
     batch = transitions(weights(np.random.default_rng(0)), 40, np.random.default_rng(1))
-    for wrong in (DisagreeingMean(), FlatMean()):
+    for wrong, match in [
+        (DisagreeingMean(), "mine: predict_mean gives .* must agree"),
+        (FlatMean(), "mine: predict_mean gives shape \\(2,\\), expected \\(1, 2\\)"),
+    ]:
         loaded = [(MethodSpec("mine", "m", "A"), wrong)]
-        with pytest.raises(ValueError, match="mine: predict_mean gives .* must agree"):
+        with pytest.raises(ValueError, match=match):
             methods.fit_all(loaded, batch, 0, transfer=True)
 
 
