@@ -184,10 +184,15 @@ def load(spec: MethodSpec, build: bool = True) -> Any:
         raise ValueError(
             f"{where}: importing {spec.module!r} raised {type(err).__name__}: {err}"
         ) from err
-    factory = getattr(module, spec.attribute, None)
-    if not callable(factory):
+    if not hasattr(module, spec.attribute):
         raise ValueError(
             f"{where}: {spec.module!r} has no class or function {spec.attribute!r}"
+        )
+    factory = getattr(module, spec.attribute)
+    if not callable(factory):
+        raise ValueError(
+            f"{where}: {spec.module}.{spec.attribute} is not callable (type "
+            f"{type(factory).__name__}); expected a class or function"
         )
     if not build:
         return factory
