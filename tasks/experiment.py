@@ -24,6 +24,7 @@ import re
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import traceback
 from collections.abc import Callable, Sequence
@@ -574,7 +575,9 @@ def pool_map(
             it = map(fn, jobs)
             return list(tqdm(it, total=len(jobs), desc=desc, disable=not progress))
     with ProcessPoolExecutor(
-        workers, initializer=_init_worker, initargs=(initializer, initargs)
+        workers,
+        initializer=_init_worker,
+        initargs=(initializer, initargs, os.getpid()),
     ) as pool:
         it = pool.map(functools.partial(_sendable_errors, fn), jobs)
         try:
@@ -606,12 +609,42 @@ def _sendable_errors(fn, job):
         raise
 
 
-def _init_worker(initializer, initargs: tuple) -> None:
-    """A pool worker's start: one BLAS thread for its lifetime, then
-    ``initializer(*initargs)``."""
+def _init_worker(initializer, initargs: tuple, owner: int) -> None:
+    """A pool worker's start: :func:`exit_with` the pool's ``owner``, one BLAS
+    thread for its lifetime, then ``initializer(*initargs)``."""
+    exit_with(owner)
     threadpool_limits(limits=1)
     if initializer is not None:
         initializer(*initargs)
+
+
+def exit_with(owner: int, every: float = 0.5) -> None:
+    """In a pool worker: end this process (``os._exit``) once the process
+    ``owner``, whose pool it serves, is gone, or this process's parent has
+    changed (the owner died, and the worker was handed to another process).
+
+    A pool's workers wait for their next job on a pipe they hold both ends of,
+    so an owner killed without a chance to shut its pool down (SIGKILL, the
+    out-of-memory killer) left them idle for ever (a forkserver's workers kept
+    the forkserver up too). A daemon thread checks every ``every`` seconds;
+    a job that is running is cut short, as the owner will never read its
+    result.
+    """
+    parent = os.getppid()
+
+    def watch() -> None:
+        while True:
+            time.sleep(every)
+            try:
+                os.kill(owner, 0)
+            except ProcessLookupError:
+                os._exit(1)
+            except PermissionError:  # its pid now belongs to another user
+                os._exit(1)
+            if os.getppid() != parent:
+                os._exit(1)
+
+    threading.Thread(target=watch, name=f"exit-with-{owner}", daemon=True).start()
 
 
 def check_settings(config: Any, train: str, test: str, make, what: str) -> None:

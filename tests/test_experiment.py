@@ -415,6 +415,69 @@ def test_a_failed_job_stops_the_pool_without_running_the_queued_ones(tmp_path, w
         assert ran == 0
 
 
+_OWNER = """
+import os, signal, sys, threading, time
+from pathlib import Path
+
+from tasks.experiment import pool_map
+
+marks = Path(sys.argv[1])
+
+
+def job(i):  # each worker's first job marks its pid, then runs for a minute
+    (marks / str(os.getpid())).write_text("")
+    time.sleep(60)
+
+
+def die():  # once both workers are in a job: SIGKILL, no shutdown of the pool
+    while len(list(marks.iterdir())) < 2:
+        time.sleep(0.02)
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+if __name__ == "__main__":
+    threading.Thread(target=die, daemon=True).start()
+    pool_map(job, [0, 1, 2, 3], workers=2, desc="", progress=False)
+"""
+
+
+def _running(pid: int) -> bool:
+    """Whether ``pid`` is a live process (a zombie, which a container's first
+    process may never reap, is not)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except FileNotFoundError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
+def test_pool_workers_end_when_their_owner_is_killed(tmp_path):
+    """A pool_map owner killed by SIGKILL mid-job (no shutdown) left its two
+    workers running for ever: after their job, they wait on a pipe whose
+    writing end they hold themselves. exit_with ends them within its 0.5 s
+    polls; the bound of 30 s, against jobs of 60 s, only waits out a loaded
+    machine."""
+    import subprocess
+    import sys
+
+    script, marks = tmp_path / "owner.py", tmp_path / "marks"
+    script.write_text(_OWNER)
+    marks.mkdir()
+    owner = subprocess.run([sys.executable, str(script), str(marks)], timeout=60)
+    assert owner.returncode == -9
+    workers = [int(p.name) for p in marks.iterdir()]
+    assert len(workers) == 2
+    try:
+        deadline = time.monotonic() + 30
+        while any(map(_running, workers)) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not any(map(_running, workers))
+    finally:
+        for pid in filter(_running, workers):
+            os.kill(pid, 9)
+
+
 @pytest.mark.parametrize(
     "entry",
     [
