@@ -52,12 +52,15 @@ import argparse
 import concurrent.futures as cf
 import contextlib
 import dataclasses
+import functools
 import hashlib
 import importlib.resources
 import importlib.util
 import json
 import math
 import multiprocessing
+import shlex
+import signal
 import sys
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -663,10 +666,24 @@ def executor_for(workers: int, scheduler: str | None) -> Iterator[cf.Executor]:
         # per worker. Not this module itself: under `python -m tasks.generate` the
         # server also runs it as the main module, and runpy warns when it was
         # imported already.
+        # Ctrl-C reaches the workers too: an idle one ends without a traceback
+        # (SystemExit), a busy one's shard fails, and the caller reports it;
+        # unless the caller ignores Ctrl-C (started in the background), then
+        # they do too.
         context = multiprocessing.get_context("forkserver")
         context.set_forkserver_preload(["tasks.collect", "tasks.rollout"])
-        with cf.ProcessPoolExecutor(workers, mp_context=context) as pool:
+        ignored = signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+        action = signal.SIG_IGN if ignored else _exit_quietly
+        quiet = functools.partial(signal.signal, signal.SIGINT, action)
+        with cf.ProcessPoolExecutor(
+            workers, mp_context=context, initializer=quiet
+        ) as pool:
             yield pool
+
+
+def _exit_quietly(signum: int, frame: Any) -> None:
+    """A pool worker's Ctrl-C: end without a traceback (as SystemExit does)."""
+    raise SystemExit(128 + signum)
 
 
 def generate(
@@ -726,18 +743,25 @@ def generate(
         in_flight = 2 * max(config.workers, 1) if config.scheduler is None else 64
         pending: set[cf.Future] = set()
         queue = list(reversed(jobs))
-        while queue or pending:
-            while queue and len(pending) < in_flight:
-                pending.add(pool.submit(run_shard, queue.pop()))
-            done, pending = cf.wait(pending, return_when=cf.FIRST_COMPLETED)
-            for future in done:
-                result = future.result()
-                entry = entries[result.index]
-                entry["sha256"] = shards.write_shard(out, result.index, result.data)
-                entry["counts"] = result.counts
-                entry["diverged"] = result.diverged
-                shards.append_progress(out, entry)
-                bar.update()
+        try:
+            while queue or pending:
+                while queue and len(pending) < in_flight:
+                    pending.add(pool.submit(run_shard, queue.pop()))
+                done, pending = cf.wait(pending, return_when=cf.FIRST_COMPLETED)
+                # the finished shards first: a failed one's error (Ctrl-C in the
+                # inline executor) is raised once they are kept
+                for future in sorted(done, key=lambda f: f.exception() is not None):
+                    result = future.result()
+                    entry = entries[result.index]
+                    entry["sha256"] = shards.write_shard(out, result.index, result.data)
+                    entry["counts"] = result.counts
+                    entry["diverged"] = result.diverged
+                    shards.append_progress(out, entry)
+                    bar.update()
+        except BaseException:  # interrupted: the shards not started are not run
+            for future in pending:
+                future.cancel()
+            raise
     manifest["complete"] = True
     shards.write_manifest(out, manifest)
     shards.remove_progress(out)
@@ -745,20 +769,30 @@ def generate(
 
 
 def main(argv: Sequence[str] | None = None) -> Generated:
-    """Command-line entry point; returns what was written."""
+    """Command-line entry point; returns what was written.
+
+    Ctrl-C stops it with status 130 and one line on stderr: how many shards
+    are finished (kept) and the command that resumes the run."""
     parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
     config = parse_config(argv)
+    started = False
     try:
-        prepared = prepare(config)  # a bad --out stops here, before any writing
-    except ValueError as error:
-        parser.error(str(error))
-    for warning in config.distribution.far_from_nominal():
-        print(f"{parser.prog}: warning: {warning}", file=sys.stderr)
-    finished = prepared[0]["complete"] and not prepared[1]
-    try:
-        result = generate(config, prepared=prepared)
-    except OSError as error:  # a scheduler that cannot be reached, a full disk
-        parser.exit(1, f"{parser.prog}: error: {error}\n")
+        try:
+            prepared = prepare(config)  # a bad --out stops here, before any writing
+        except ValueError as error:
+            parser.error(str(error))
+        for warning in config.distribution.far_from_nominal():
+            print(f"{parser.prog}: warning: {warning}", file=sys.stderr)
+        finished = prepared[0]["complete"] and not prepared[1]
+        started = True
+        try:
+            result = generate(config, prepared=prepared)
+        except OSError as error:  # a scheduler that cannot be reached, a full disk
+            parser.exit(1, f"{parser.prog}: error: {error}\n")
+    except KeyboardInterrupt:
+        stopped = _interrupted(config, argv, started=started)
+        parser.exit(130, f"{parser.prog}: {stopped}\n")
     counts = [e["counts"] for e in result.content["shards"]]
     done = "nothing to do: already finished," if finished else "wrote"
     print(
@@ -769,6 +803,22 @@ def main(argv: Sequence[str] | None = None) -> Generated:
         f"({len(result.redone)} shards generated now)"
     )
     return result
+
+
+def _interrupted(config: Config, argv: list[str], *, started: bool) -> str:
+    """What a run stopped by Ctrl-C leaves, and the command that continues it."""
+    command = ["python", "-m", "tasks.generate", *argv]
+    manifest = shards.read_manifest(config.out) if started else None
+    if manifest is None:  # stopped before the run wrote anything
+        return f"interrupted before the run began; run again: {shlex.join(command)}"
+    entries = manifest["shards"]
+    kept = sum(e["sha256"] is not None for e in entries)  # as a resume finds them
+    plus = "" if config.resume else " plus --resume"
+    resume = shlex.join(command + ([] if config.resume else ["--resume"]))
+    return (
+        f"interrupted: {kept} of {len(entries)} shards finished are kept in "
+        f"{config.out}; resume with the same command{plus}: {resume}"
+    )
 
 
 if __name__ == "__main__":

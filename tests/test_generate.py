@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shlex
+import signal
 
 import numpy as np
 import pytest
@@ -546,6 +548,49 @@ def test_workers_choose_in_process_or_a_process_pool():
         assert isinstance(inline, generate.InlineExecutor)
     with generate.executor_for(2, None) as pool:
         assert isinstance(pool, cf.ProcessPoolExecutor)
+
+
+def test_ctrl_c_keeps_the_finished_shards_and_says_how_to_resume(
+    tmp_path, capsys, monkeypatch
+):
+    """Ctrl-C after the first shard (a worker's KeyboardInterrupt reaches the
+    caller through its future): status 130 and one line on stderr, no traceback,
+    naming the shards kept and the command that resumes; that command finishes
+    the run as an uninterrupted one would have."""
+    argv = ["--domain", "acrobot", "--seed", "3", *TINY, *QUIET]
+    run_shard = generate.run_shard
+
+    def interrupted_after_the_first(job):
+        if job.index > 0:
+            raise KeyboardInterrupt
+        return run_shard(job)
+
+    out = tmp_path / "stopped"
+    monkeypatch.setattr(generate, "run_shard", interrupted_after_the_first)
+    with pytest.raises((SystemExit, KeyboardInterrupt)) as stopped:  # not pytest's
+        generate.main([*argv, "--out", str(out)])
+    assert stopped.type is SystemExit and stopped.value.code == 130
+    resume = ["python", "-m", "tasks.generate", *argv, "--out", str(out), "--resume"]
+    assert capsys.readouterr().err == (
+        f"python -m tasks.generate: interrupted: 1 of 2 shards finished are kept "
+        f"in {out}; resume with the same command plus --resume: {shlex.join(resume)}\n"
+    )
+    monkeypatch.setattr(generate, "run_shard", run_shard)
+    assert generate.main(resume[3:]).redone == (1,)
+    generate.main([*argv, "--out", str(tmp_path / "whole")])
+    for name in ("manifest.json", "shard-00000.npz", "shard-00001.npz"):
+        assert (out / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()
+
+
+def test_pool_workers_end_quietly_on_ctrl_c():
+    """Ctrl-C reaches every process in the terminal's group: an idle pool worker
+    printed a KeyboardInterrupt traceback; its handler now raises SystemExit,
+    which a process ends with silently (the caller reports the interruption)."""
+    with generate.executor_for(2, None) as pool:
+        handler = pool.submit(signal.getsignal, signal.SIGINT).result()
+    with pytest.raises((SystemExit, KeyboardInterrupt)) as ended:  # not pytest's
+        handler(signal.SIGINT, None)
+    assert ended.type is SystemExit and ended.value.code == 130
 
 
 def test_the_software_digest_does_not_depend_on_the_listing_order(monkeypatch):
