@@ -182,8 +182,22 @@ def remove_progress(directory: Path) -> None:
     (Path(directory) / PROGRESS).unlink(missing_ok=True)
 
 
+def flat_config(config: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """A manifest config with its nested mappings flattened: `{"distribution":
+    {"sigma": 0.1}}` gives `{"distribution.sigma": 0.1}`."""
+    flat: dict[str, Any] = {}
+    for key, value in config.items():
+        if isinstance(value, Mapping):
+            flat.update(flat_config(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
 def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
-    """Keys whose values differ between two manifest configs, as `key: old -> new`."""
+    """Keys whose values differ between two manifest configs, as `key: old -> new`,
+    sorted; a nested mapping's keys one by one (`distribution.sigma: ...`)."""
+    old, new = flat_config(old), flat_config(new)
     keys = sorted(set(old) | set(new))
     return [
         f"{k}: {old.get(k)!r} -> {new.get(k)!r}"

@@ -518,9 +518,13 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
         return fresh, [e["index"] for e in fresh["shards"]]
     differences = shards.config_differences(old["config"], fresh["config"])
     if differences:
+        advice = "choose another --out"
+        if config.resume:
+            made = _options(old["config"], fresh["config"])
+            advice = f"to resume it, pass the options it was made with ({made}), or "
+            advice += "choose another --out"
         raise ValueError(
-            f"{config.out} holds a different run ({'; '.join(differences)}); "
-            "choose another --out"
+            f"{config.out} holds a different run ({'; '.join(differences)}); {advice}"
         )
     layout = [(e["instances"], e["parameters"]) for e in old["shards"]]
     if layout != [(e["instances"], e["parameters"]) for e in fresh["shards"]]:
@@ -582,6 +586,38 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
     if todo:  # a finished run with a damaged shard is unfinished until it is redone
         old["complete"] = False
     return old, todo
+
+
+def _options(old: dict[str, Any], new: dict[str, Any]) -> str:
+    """The command-line options that give the manifest config `old` where it
+    differs from `new`: `--instances 48 --shard-size 4`, `without --max-steps`;
+    every `--vary` of `old` if one range differs."""
+    old, new = shards.flat_config(old), shards.flat_config(new)
+    given, without = [], []
+    for key in sorted(set(old) | set(new)):
+        name = key.removeprefix("distribution.")
+        if old.get(key) == new.get(key) or name.startswith("vary."):
+            continue
+        flag = "--" + {"kind": "distribution"}.get(name, name).replace("_", "-")
+        if old.get(key) in (None, False):
+            without.append(flag)
+        else:
+            given.append(flag if old[key] is True else f"{flag} {old[key]}")
+    if any(old.get(k) != new.get(k) for k in {*old, *new} if ".vary." in k):
+        prefix = "distribution.vary."
+        ranges = {k.removeprefix(prefix): v for k, v in old.items() if prefix in k}
+        default = DEFAULT_VARY.get(old.get("domain"), {})
+        if ranges == {name: list(bounds) for name, bounds in default.items()}:
+            without.append("--vary")
+        else:  # the manifest keeps no order: the parameters' own
+            fields = dataclasses.fields(get_domain(old["domain"]).params_type)
+            given += [
+                f"--vary {f.name}={ranges[f.name][0]!r}:{ranges[f.name][1]!r}"
+                for f in fields
+                if f.name in ranges
+            ]
+    parts = [" ".join(given)] if given else []
+    return "; ".join(parts + ([f"without {' '.join(without)}"] if without else []))
 
 
 def _software_change(recorded: dict | None, fresh: dict) -> str:

@@ -307,6 +307,37 @@ def test_a_progress_log_without_a_manifest_is_refused_untouched(tmp_path, capsys
         (["--episodes-per-instance", "2"], False, "episodes_per_instance: 3 -> 2"),
         (["--max-steps", "50", "--resume"], False, "max_steps: None -> 50"),
         (["--shard-size", "3", "--resume"], False, "shard_size: 2 -> 3"),
+        # resuming: the options the run was made with, not only another --out
+        (
+            ["--instances", "4", "--shard-size", "3", "--resume"],
+            False,
+            "holds a different run (instances: 6 -> 4; shard_size: 2 -> 3); to "
+            "resume it, pass the options it was made with (--instances 6 "
+            "--shard-size 2), or choose another --out",
+        ),
+        (
+            ["--max-steps", "50", "--book-inertia", "--domain", "acrobot", "--resume"],
+            False,
+            "pass the options it was made with (--domain cartpole; without "
+            "--book-inertia --max-steps --vary)",
+        ),
+        # a distribution's differing keys alone, sorted, not two whole dicts
+        (
+            [
+                "--distribution",
+                "relative-normal",
+                "--vary",
+                "pole_mass=0.1:0.5",
+                "--resume",
+            ],
+            False,
+            "holds a different run (distribution.kind: 'uniform' -> "
+            "'relative-normal'; distribution.sigma: None -> 0.1; "
+            "distribution.vary.pole_half_length: [0.25, 1.0] -> None; "
+            "distribution.vary.pole_mass: [0.05, 0.5] -> [0.1, 0.5]); to resume "
+            "it, pass the options it was made with (--distribution uniform; "
+            "without --sigma --vary)",
+        ),
     ],
 )
 def test_another_or_unfinished_run_is_refused_untouched(

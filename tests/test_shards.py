@@ -267,6 +267,13 @@ def test_config_differences_name_keys_on_either_side():
         "seed: 0 -> 1",
     ]
     assert shards.config_differences(old, dict(old)) == []
+    # a nested mapping (the distribution): its differing keys alone, sorted
+    old = {"distribution": {"sigma": 0.1, "kind": "uniform", "grid": None}}
+    new = {"distribution": {"kind": "uniform", "grid": 3, "sigma": 0.2}}
+    assert shards.config_differences(old, new) == [
+        "distribution.grid: None -> 3",
+        "distribution.sigma: 0.1 -> 0.2",
+    ]
 
 
 def test_verify_checks_every_shard(run, tmp_path):
