@@ -70,6 +70,7 @@ import numpy as np
 from tqdm import tqdm
 
 from hipmdp import shards
+from hipmdp.data import atomic_temporaries
 from tasks._common import parameter_matrix
 from tasks.acrobot import AcrobotParams, book_inertia_range, with_book_inertia
 from tasks.collect import DOMAINS, collect, collect_sarsa, get_domain
@@ -502,19 +503,21 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
             finished: nothing to do.)
     """
     check_folder_out(config.out, "--out")
-    fresh = plan(config)
     old = shards.read_manifest(config.out)
-    if old is None:
+    if old is None:  # a run writes its manifest before anything else
         if any(config.out.glob("shard-*.npz")):
             raise ValueError(
                 f"{config.out} holds shard files but no manifest; choose another --out"
             )
-        if (config.out / shards.PROGRESS).exists():  # a run writes its manifest first
+        if (config.out / shards.PROGRESS).exists():
             raise ValueError(
                 f"{config.out} holds a {shards.PROGRESS} that no run of "
                 "tasks.generate left (it has no manifest), which a run would "
                 "replace; choose another --out"
             )
+        _check_no_other_files(config.out)
+    fresh = plan(config)
+    if old is None:
         return fresh, [e["index"] for e in fresh["shards"]]
     differences = shards.config_differences(old["config"], fresh["config"])
     if differences:
@@ -618,6 +621,22 @@ def _options(old: dict[str, Any], new: dict[str, Any]) -> str:
             ]
     parts = [" ".join(given)] if given else []
     return "; ".join(parts + ([f"without {' '.join(without)}"] if without else []))
+
+
+def _check_no_other_files(out: Path) -> None:
+    """Raise ValueError if the folder `out`, which holds no manifest, holds
+    anything but what a run killed while writing its first manifest leaves."""
+    if not out.is_dir():
+        return
+    left = set(atomic_temporaries(out, shards.MANIFEST))
+    found = sorted(p.name for p in out.iterdir() if p not in left)
+    if found:
+        more = f" and {len(found) - 3} more" if len(found) > 3 else ""
+        listed = ", ".join(found[:3]) + more
+        raise ValueError(
+            f"{out} is not empty ({listed}) and holds no run of tasks.generate (no "
+            f"{shards.MANIFEST}); choose an empty or new folder for --out"
+        )
 
 
 def _software_change(recorded: dict | None, fresh: dict) -> str:

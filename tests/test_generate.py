@@ -356,6 +356,35 @@ def test_an_out_that_is_a_file_is_refused(tmp_path, capsys):
     assert out.read_text() == "mine" and sorted(tmp_path.iterdir()) == [out]
 
 
+def test_a_non_empty_out_that_holds_no_run_is_refused_untouched(tmp_path, capsys):
+    """`--out hipmdp` wrote a manifest and shards among the package's source:
+    a folder holding anything but a run is refused before any work, naming
+    what it holds; an empty folder, or one a run killed while writing its first
+    manifest left (a temporary file only), is used."""
+    argv = ["--domain", "acrobot", *TINY, *QUIET]
+    out = tmp_path / "source"
+    out.mkdir()
+    for name in ("b.py", "a.py", "c.txt", "d.md"):
+        (out / name).write_text("mine")
+    with pytest.raises(SystemExit) as stopped:
+        generate.main([*argv, "--out", str(out)])
+    assert stopped.value.code == 2
+    assert (
+        f"{out} is not empty (a.py, b.py, c.txt and 1 more) and holds no run of "
+        "tasks.generate (no manifest.json); choose an empty or new folder for --out"
+    ) in capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == ["a.py", "b.py", "c.txt", "d.md"]
+    empty, killed = tmp_path / "empty", tmp_path / "killed"
+    empty.mkdir()
+    killed.mkdir()
+    (killed / ".manifest.json.k1ll3d.tmp").write_text("{")
+    for folder in (empty, killed):
+        assert generate.main([*argv, "--out", str(folder)]).content["complete"]
+    assert sorted(p.name for p in killed.iterdir()) == sorted(
+        p.name for p in empty.iterdir()
+    )
+
+
 def test_help_describes_the_options(capsys):
     with pytest.raises(SystemExit) as stopped:
         generate.main(["--help"])
