@@ -306,15 +306,17 @@ class Dataset:
 
     def _read(self, entry: Mapping[str, Any]) -> bytes:
         path = self.directory / entry["file"]
+        resume = f"--resume (the command that made the run, --out {self.directory})"
         if entry.get("sha256") is None or not path.is_file():
             raise ValueError(
-                f"shard {entry['file']} is not finished; continue the run with --resume"
+                f"{self.directory}: shard {entry['file']} is not finished; continue "
+                f"it with {resume}"
             )
         data = path.read_bytes()
         if sha256(data) != entry["sha256"]:
             raise ValueError(
-                f"shard {entry['file']} does not match its checksum (corrupt or "
-                "truncated); redo it with --resume"
+                f"{self.directory}: shard {entry['file']} does not match its checksum "
+                f"(corrupt or truncated); redo it with {resume}"
             )
         return data
 

@@ -548,9 +548,11 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
                 "nominal count everywhere); choose another --out"
             )
         entry["sub_steps"] = steps
-    todo = []
+    todo, damaged = [], []  # damaged: recorded finished, but the file differs
     for entry in old["shards"]:
         if not shards.shard_is_valid(config.out, entry):
+            if entry["sha256"] is not None:
+                damaged.append(entry["file"])
             entry.update(sha256=None, counts=None, diverged=[])
             todo.append(entry["index"])
     recorded = old.get("software")  # None: a run from before 2026-12-04, made
@@ -583,8 +585,14 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
     if todo:  # what the shards still to do are made by
         old["software"] = fresh["software"]
     if todo and not config.resume:
+        bad = ""
+        if damaged:
+            more = f" and {len(damaged) - 5} more" if len(damaged) > 5 else ""
+            bad = "; damaged (missing, or not matching its checksum): "
+            bad += ", ".join(damaged[:5]) + more
         raise ValueError(
-            f"{config.out} holds this run, unfinished; pass --resume to continue it"
+            f"{config.out} holds this run, unfinished ({len(todo)} of "
+            f"{len(old['shards'])} shards to do{bad}); pass --resume to continue it"
         )
     if todo:  # a finished run with a damaged shard is unfinished until it is redone
         old["complete"] = False

@@ -229,7 +229,7 @@ def test_corrupt_truncated_and_missing_shards_are_detected_and_redone(
     dataset = shards.Dataset(run)
     with pytest.raises(ValueError, match="does not match its checksum"):
         dataset.load(instances=[2])
-    with pytest.raises(ValueError, match="is not finished"):
+    with pytest.raises(ValueError, match=f"{run}: shard shard-00002.npz is not fini"):
         dataset.load(instances=[4])
     resumed = generate.main([*RUN, "--out", str(run), "--resume"])
     assert resumed.redone == (0, 1, 2)
@@ -302,7 +302,14 @@ def test_a_progress_log_without_a_manifest_is_refused_untouched(tmp_path, capsys
     [
         (["--seed", "12"], False, "holds a different run (seed: 11 -> 12)"),
         (["--policy", "random", "--resume"], False, "policy: 'open-loop' -> 'random'"),
-        ([], True, "unfinished; pass --resume to continue"),
+        # which shards, and why: a finished run's shard was lost
+        (
+            [],
+            True,
+            "holds this run, unfinished (1 of 3 shards to do; damaged (missing, "
+            "or not matching its checksum): shard-00001.npz); pass --resume to "
+            "continue it",
+        ),
         # every option that changes the data is part of the run
         (["--episodes-per-instance", "2"], False, "episodes_per_instance: 3 -> 2"),
         (["--max-steps", "50", "--resume"], False, "max_steps: None -> 50"),

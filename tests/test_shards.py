@@ -282,8 +282,13 @@ def test_verify_checks_every_shard(run, tmp_path):
     shards.Dataset(copy).verify()
     last = copy / shards.shard_name(2)
     last.write_bytes(last.read_bytes()[:-1])
-    with pytest.raises(ValueError, match="shard-00002.npz does not match its checksum"):
+    with pytest.raises(ValueError) as damaged:
         shards.Dataset(copy).verify()
+    assert str(damaged.value) == (  # the folder too: which run's shard to redo
+        f"{copy}: shard {last.name} does not match its checksum (corrupt or "
+        f"truncated); redo it with --resume (the command that made the run, --out "
+        f"{copy})"
+    )
 
 
 def test_transitions_load_reads_a_run_directory_or_its_manifest(run):
