@@ -415,9 +415,24 @@ def plan(config: Config) -> dict[str, Any]:
     """Draw the instances and lay out the run's manifest (no shard finished)."""
     split = SPLITS.index(config.distribution.split)
     stream = np.random.SeedSequence(config.seed, spawn_key=(0, split))
+    bar = tqdm(  # shown at once: a million instances take half a minute
+        total=config.instances,  # a grid's count once drawn
+        desc=f"planning {config.domain} instances",
+        leave=False,
+        disable=not config.progress,
+    )
+    with bar:
+        return _plan(config, split, stream, bar)
+
+
+def _plan(
+    config: Config, split: int, stream: np.random.SeedSequence, bar: tqdm
+) -> dict[str, Any]:
+    """`plan`'s work, counting the instances laid out on `bar`."""
     drawn = draw(
         config.distribution, config.instances, rng=np.random.default_rng(stream)
     )
+    bar.total = len(drawn.params)
     spec = get_domain(config.domain)
     if config.book_inertia:
         booked = [with_book_inertia(p) for p in drawn.params]
@@ -441,6 +456,7 @@ def plan(config: Config) -> dict[str, Any]:
                 "diverged": [],
             }
         )
+        bar.update(stop - start)
     manifest = {
         "format": shards.FORMAT,
         # as read back: lists, exact floats (the entries are built so)

@@ -516,12 +516,16 @@ def test_a_scheduler_without_dask_installed_stops_before_anything(
 
 
 def test_progress_bar_shows_unless_no_progress(tmp_path, capsys):
-    """The bar (on stderr) names the domain's shards; `--no-progress` hides it."""
+    """The bars (on stderr) name the domain's instances planned and its shards;
+    `--no-progress` hides them."""
     argv = ["--domain", "acrobot", *TINY, "--shard-size", "2"]
     generate.main([*argv, "--out", str(tmp_path / "quiet"), "--no-progress"])
     assert capsys.readouterr().err == ""
     generate.main([*argv, "--out", str(tmp_path / "shown")])
-    assert "acrobot shards" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "acrobot shards" in err
+    # planning shows too (3,000,000 instances showed nothing for minutes)
+    assert "planning acrobot instances:   0%|          | 0/3 " in err
 
 
 def test_a_relative_normal_far_from_its_box_is_warned_about(tmp_path, capsys):
