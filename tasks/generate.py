@@ -52,13 +52,13 @@ import argparse
 import concurrent.futures as cf
 import contextlib
 import dataclasses
-import functools
 import hashlib
 import importlib.resources
 import importlib.util
 import json
 import math
 import multiprocessing
+import os
 import shlex
 import signal
 import sys
@@ -78,6 +78,7 @@ from tasks.distributions import KINDS, MAX_GRID_POINTS, SPLITS, Distribution, dr
 from tasks.experiment import (
     check_folder_out,
     check_integer,
+    exit_with,
     one_blas_thread,
     package_versions,
     path_argument,
@@ -751,13 +752,23 @@ def executor_for(workers: int, scheduler: str | None) -> Iterator[cf.Executor]:
         # they do too.
         context = multiprocessing.get_context("forkserver")
         context.set_forkserver_preload(["tasks.collect", "tasks.rollout"])
+        # And a worker ends when this process is gone (experiment.exit_with).
         ignored = signal.getsignal(signal.SIGINT) == signal.SIG_IGN
         action = signal.SIG_IGN if ignored else _exit_quietly
-        quiet = functools.partial(signal.signal, signal.SIGINT, action)
         with cf.ProcessPoolExecutor(
-            workers, mp_context=context, initializer=quiet
+            workers,
+            mp_context=context,
+            initializer=_init_worker,
+            initargs=(action, os.getpid()),
         ) as pool:
             yield pool
+
+
+def _init_worker(action: Any, owner: int) -> None:
+    """A pool worker's start: Ctrl-C handled by ``action``; the worker ends when
+    the process ``owner`` is gone (:func:`tasks.experiment.exit_with`)."""
+    signal.signal(signal.SIGINT, action)
+    exit_with(owner)
 
 
 def _exit_quietly(signum: int, frame: Any) -> None:

@@ -415,7 +415,8 @@ def test_a_failed_job_stops_the_pool_without_running_the_queued_ones(tmp_path, w
         assert ran == 0
 
 
-_OWNER = """
+_OWNERS = {
+    "pool_map": """
 import os, signal, sys, threading, time
 from pathlib import Path
 
@@ -438,7 +439,27 @@ def die():  # once both workers are in a job: SIGKILL, no shutdown of the pool
 if __name__ == "__main__":
     threading.Thread(target=die, daemon=True).start()
     pool_map(job, [0, 1, 2, 3], workers=2, desc="", progress=False)
-"""
+""",
+    # tasks.generate's pool (forkserver): ask for pids until both workers have
+    # answered, give each a minute's job, SIGKILL
+    "generate": """
+import os, signal, sys, time
+from pathlib import Path
+
+from tasks.generate import executor_for
+
+if __name__ == "__main__":
+    with executor_for(2, None) as pool:
+        pids = set()
+        while len(pids) < 2:
+            pids |= {f.result() for f in [pool.submit(os.getpid) for _ in range(4)]}
+        for pid in pids:
+            (Path(sys.argv[1]) / str(pid)).write_text("")
+        jobs = [pool.submit(time.sleep, 60) for _ in range(4)]
+        time.sleep(0.5)
+        os.kill(os.getpid(), signal.SIGKILL)
+""",
+}
 
 
 def _running(pid: int) -> bool:
@@ -452,17 +473,18 @@ def _running(pid: int) -> bool:
 
 
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
-def test_pool_workers_end_when_their_owner_is_killed(tmp_path):
-    """A pool_map owner killed by SIGKILL mid-job (no shutdown) left its two
-    workers running for ever: after their job, they wait on a pipe whose
-    writing end they hold themselves. exit_with ends them within its 0.5 s
-    polls; the bound of 30 s, against jobs of 60 s, only waits out a loaded
-    machine."""
+@pytest.mark.parametrize("pool", list(_OWNERS))
+def test_pool_workers_end_when_their_owner_is_killed(tmp_path, pool):
+    """An owner of a pool (pool_map's, or tasks.generate's forkserver pool)
+    killed by SIGKILL mid-job, with no shutdown, left its two workers running
+    for ever: after their job, they wait on a pipe whose writing end they hold
+    themselves. exit_with ends them within its 0.5 s polls; the bound of 30 s,
+    against jobs of 60 s, only waits out a loaded machine."""
     import subprocess
     import sys
 
     script, marks = tmp_path / "owner.py", tmp_path / "marks"
-    script.write_text(_OWNER)
+    script.write_text(_OWNERS[pool])
     marks.mkdir()
     owner = subprocess.run([sys.executable, str(script), str(marks)], timeout=60)
     assert owner.returncode == -9
