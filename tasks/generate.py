@@ -37,8 +37,9 @@ is left as it is), unless the run was started by other software (the manifest's
 `software`: package versions and a digest of the source; `--mixed-software`
 continues it all the same, listing in the manifest's `earlier_software` which
 shards each earlier software made); an `OUT` holding another
-run's manifest, or shards or a progress log without a manifest, is an error and
-nothing is overwritten.
+run's manifest, or shards or a progress log without a manifest, or anything
+else but no manifest, is an error and nothing is overwritten. Ctrl-C exits with
+status 130, printing the command that resumes the run.
 
 Execution (`concurrent.futures`): in-process (`--workers 1`), a local process pool
 (`--workers N`), or a Dask cluster (`--scheduler ADDRESS`, needs
