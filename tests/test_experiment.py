@@ -486,7 +486,15 @@ def test_pool_workers_end_when_their_owner_is_killed(tmp_path, pool):
     script, marks = tmp_path / "owner.py", tmp_path / "marks"
     script.write_text(_OWNERS[pool])
     marks.mkdir()
-    owner = subprocess.run([sys.executable, str(script), str(marks)], timeout=60)
+    # the code under test: a script's folder, not the current one, heads its
+    # sys.path, so without this it imports the installed tasks (another checkout)
+    source = str(Path(tasks.__file__).resolve().parents[1])
+    path = os.pathsep.join(filter(None, [source, os.environ.get("PYTHONPATH")]))
+    owner = subprocess.run(
+        [sys.executable, str(script), str(marks)],
+        env={**os.environ, "PYTHONPATH": path},
+        timeout=60,  # a guard against hanging, not a timing check
+    )
     assert owner.returncode == -9
     workers = [int(p.name) for p in marks.iterdir()]
     assert len(workers) == 2
