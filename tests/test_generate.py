@@ -622,12 +622,21 @@ def test_ctrl_c_keeps_the_finished_shards_and_says_how_to_resume(
 def test_pool_workers_end_quietly_on_ctrl_c():
     """Ctrl-C reaches every process in the terminal's group: an idle pool worker
     printed a KeyboardInterrupt traceback; its handler now raises SystemExit,
-    which a process ends with silently (the caller reports the interruption)."""
+    which a process ends with silently (the caller reports the interruption).
+    A caller that ignores Ctrl-C gets workers that ignore it too."""
     with generate.executor_for(2, None) as pool:
         handler = pool.submit(signal.getsignal, signal.SIGINT).result()
     with pytest.raises((SystemExit, KeyboardInterrupt)) as ended:  # not pytest's
         handler(signal.SIGINT, None)
     assert ended.type is SystemExit and ended.value.code == 130
+    # started in the background (Ctrl-C ignored): the workers ignore it too
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with generate.executor_for(2, None) as pool:
+            handler = pool.submit(signal.getsignal, signal.SIGINT).result()
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert handler == signal.SIG_IGN
 
 
 def test_the_software_digest_does_not_depend_on_the_listing_order(monkeypatch):
