@@ -356,17 +356,25 @@ def test_an_out_that_is_a_file_is_refused(tmp_path, capsys):
     assert out.read_text() == "mine" and sorted(tmp_path.iterdir()) == [out]
 
 
-def test_a_non_empty_out_that_holds_no_run_is_refused_untouched(tmp_path, capsys):
+def test_a_non_empty_out_that_holds_no_run_is_refused_untouched(
+    tmp_path, capsys, monkeypatch
+):
     """`--out hipmdp` wrote a manifest and shards among the package's source:
-    a folder holding anything but a run is refused before any work, naming
-    what it holds; an empty folder, or one a run killed while writing its first
-    manifest left (a temporary file only), is used."""
+    a folder holding anything but a run is refused before any work (the
+    instances are not even planned), naming what it holds; an empty folder, or
+    one a run killed while writing its first manifest left (a temporary file
+    only), is used."""
     argv = ["--domain", "acrobot", *TINY, *QUIET]
     out = tmp_path / "source"
     out.mkdir()
     for name in ("b.py", "a.py", "c.txt", "d.md"):
         (out / name).write_text("mine")
-    with pytest.raises(SystemExit) as stopped:
+
+    def plan(config):
+        raise AssertionError("planned before --out was checked")
+
+    with monkeypatch.context() as patched, pytest.raises(SystemExit) as stopped:
+        patched.setattr(generate, "plan", plan)
         generate.main([*argv, "--out", str(out)])
     assert stopped.value.code == 2
     assert (
