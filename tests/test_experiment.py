@@ -490,21 +490,21 @@ def test_pool_workers_end_when_their_owner_is_killed(tmp_path, pool):
     # sys.path, so without this it imports the installed tasks (another checkout)
     source = str(Path(tasks.__file__).resolve().parents[1])
     path = os.pathsep.join(filter(None, [source, os.environ.get("PYTHONPATH")]))
-    owner = subprocess.run(
-        [sys.executable, str(script), str(marks)],
-        env={**os.environ, "PYTHONPATH": path},
-        timeout=60,  # a guard against hanging, not a timing check
-    )
-    assert owner.returncode == -9
-    workers = [int(p.name) for p in marks.iterdir()]
-    assert len(workers) == 2
-    try:
+    try:  # the workers marked are killed whatever happens, a timeout too
+        owner = subprocess.run(
+            [sys.executable, str(script), str(marks)],
+            env={**os.environ, "PYTHONPATH": path},
+            timeout=60,  # a guard against hanging, not a timing check
+        )
+        assert owner.returncode == -9
+        workers = [int(p.name) for p in marks.iterdir()]
+        assert len(workers) == 2
         deadline = time.monotonic() + 30
         while any(map(_running, workers)) and time.monotonic() < deadline:
             time.sleep(0.1)
         assert not any(map(_running, workers))
     finally:
-        for pid in filter(_running, workers):
+        for pid in filter(_running, [int(p.name) for p in marks.iterdir()]):
             os.kill(pid, 9)
 
 
