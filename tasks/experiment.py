@@ -628,23 +628,42 @@ def exit_with(owner: int, every: float = 0.5) -> None:
     out-of-memory killer) left them idle for ever (a forkserver's workers kept
     the forkserver up too). A daemon thread checks every ``every`` seconds;
     a job that is running is cut short, as the owner will never read its
-    result.
+    result. Where ``/proc`` tells, an owner that is dead but not yet waited for
+    (a zombie, which ``os.kill(owner, 0)`` still reaches) is gone too, as is
+    another process given its pid (another start time).
     """
     parent = os.getppid()
+    started = _process_stat(owner)
+
+    def gone() -> bool:
+        try:
+            os.kill(owner, 0)
+        except (ProcessLookupError, PermissionError):  # PermissionError: its
+            return True  # pid now belongs to another user
+        if os.getppid() != parent:
+            return True
+        if started is None:  # no /proc: the signal's answer is all there is
+            return False
+        now = _process_stat(owner)
+        return now is None or now[0] in "ZX" or now[1] != started[1]
 
     def watch() -> None:
-        while True:
+        while not gone():
             time.sleep(every)
-            try:
-                os.kill(owner, 0)
-            except ProcessLookupError:
-                os._exit(1)
-            except PermissionError:  # its pid now belongs to another user
-                os._exit(1)
-            if os.getppid() != parent:
-                os._exit(1)
+        os._exit(1)
 
     threading.Thread(target=watch, name=f"exit-with-{owner}", daemon=True).start()
+
+
+def _process_stat(pid: int) -> tuple[str, str] | None:
+    """The state (``R``, ``S``, ``Z``...) and start time of process ``pid``
+    (``/proc/PID/stat``), or None where there is none to read."""
+    try:
+        text = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    fields = text[text.rindex(")") + 2 :].split()  # after the command's name
+    return fields[0], fields[19]  # stat's 3rd and 22nd fields
 
 
 def check_settings(config: Any, train: str, test: str, make, what: str) -> None:

@@ -465,11 +465,16 @@ if __name__ == "__main__":
 def _running(pid: int) -> bool:
     """Whether ``pid`` is a live process (a zombie, which a container's first
     process may never reap, is not)."""
+    return _state(pid) not in (None, "Z")
+
+
+def _state(pid: int) -> str | None:
+    """The state of process ``pid`` (``/proc``: ``R``, ``S``, ``Z``...), None if
+    there is none."""
     try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
     except FileNotFoundError:
-        return False
-    return state != "Z"
+        return None
 
 
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
@@ -506,6 +511,39 @@ def test_pool_workers_end_when_their_owner_is_killed(tmp_path, pool):
     finally:
         for pid in filter(_running, [int(p.name) for p in marks.iterdir()]):
             os.kill(pid, 9)
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
+@pytest.mark.parametrize("pool", list(_OWNERS))
+def test_pool_workers_end_when_their_owner_is_killed_and_not_yet_reaped(tmp_path, pool):
+    """A killed owner stays a zombie until its parent waits for it, and
+    ``os.kill(owner, 0)`` succeeds on a zombie: a parent reading the owner's
+    output to its end first (``subprocess.run(capture_output=True)``) waited
+    for ever on a pipe the forkserver's workers still held. They end while the
+    owner is a zombie."""
+    import subprocess
+    import sys
+
+    script, marks = tmp_path / "owner.py", tmp_path / "marks"
+    script.write_text(_OWNERS[pool])
+    marks.mkdir()
+    owner = subprocess.Popen([sys.executable, str(script), str(marks)])
+    workers: list[int] = []
+    try:
+        deadline = time.monotonic() + 60
+        while _state(owner.pid) != "Z" and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert _state(owner.pid) == "Z"  # killed, not reaped: never waited for
+        workers = [int(p.name) for p in marks.iterdir()]
+        assert len(workers) == 2
+        deadline = time.monotonic() + 30
+        while any(map(_running, workers)) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not any(map(_running, workers))
+    finally:
+        for pid in filter(_running, workers):
+            os.kill(pid, 9)
+        assert owner.wait(timeout=60) == -9
 
 
 @pytest.mark.parametrize(
