@@ -549,9 +549,12 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
         )
     layout = [(e["instances"], e["parameters"]) for e in old["shards"]]
     if layout != [(e["instances"], e["parameters"]) for e in fresh["shards"]]:
+        order = ""  # the draws follow the --vary order, which the manifest loses
+        if len(config.distribution.vary) > 1:
+            order = " or with the --vary in another order"
         raise ValueError(
             f"{config.out} holds this configuration but other instances (made by "
-            "another version of the code?); choose another --out"
+            f"another version of the code{order}?); choose another --out"
         )
     nominal = MODULES[config.domain].N_SUB_STEPS
     for entry, new in zip(old["shards"], fresh["shards"], strict=True):
@@ -628,7 +631,7 @@ def _options(old: dict[str, Any], new: dict[str, Any]) -> str:
         if old.get(key) == new.get(key) or name.startswith("vary."):
             continue
         flag = "--" + {"kind": "distribution"}.get(name, name).replace("_", "-")
-        if old.get(key) in (None, False):
+        if old.get(key) is None or old.get(key) is False:  # not 0 (seed 0)
             without.append(flag)
         else:
             given.append(flag if old[key] is True else f"{flag} {old[key]}")
@@ -645,6 +648,8 @@ def _options(old: dict[str, Any], new: dict[str, Any]) -> str:
                 for f in fields
                 if f.name in ranges
             ]
+            if len(ranges) > 1:  # but the draws follow the order given
+                given.append("(in the order they were first given)")
     parts = [" ".join(given)] if given else []
     return "; ".join(parts + ([f"without {' '.join(without)}"] if without else []))
 

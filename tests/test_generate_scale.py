@@ -362,6 +362,33 @@ def test_another_or_unfinished_run_is_refused_untouched(
     assert after == before
 
 
+def test_resume_advice_keeps_seed_0_and_says_the_vary_order_matters(tmp_path, capsys):
+    """A run made with --seed 0 is advised --seed 0 (0 is not an absent
+    option); its two --vary, whose order the draws follow and the manifest
+    does not keep, come with that caveat, as does the refusal of the same
+    ranges given in another order."""
+    run = tmp_path / "run"
+    base = [
+        "--domain", "cartpole", "--policy", "open-loop", "--instances", "2",
+        "--episodes-per-instance", "1", "--no-progress", "--out", str(run),
+    ]  # fmt: skip
+    vary = ["--vary", "pole_mass=0.1:0.2", "--vary", "cart_mass=0.5:1.5"]
+    generate.main([*base, *vary, "--seed", "0"])
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        generate.main([*base, "--seed", "3", "--resume"])
+    assert (
+        "pass the options it was made with (--seed 0 --vary cart_mass=0.5:1.5 "
+        "--vary pole_mass=0.1:0.2 (in the order they were first given)), or"
+    ) in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        generate.main([*base, *vary[2:], *vary[:2], "--seed", "0", "--resume"])
+    assert (
+        "other instances (made by another version of the code or with the --vary "
+        "in another order?)"
+    ) in capsys.readouterr().err
+
+
 def test_a_run_of_this_config_with_other_instances_is_refused_untouched(
     reference, tmp_path, capsys
 ):
