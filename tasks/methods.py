@@ -168,13 +168,12 @@ def is_policy(method: Any) -> bool:
     return callable(getattr(type(method), "agent", None))
 
 
-def load(spec: MethodSpec, build: bool = True) -> Any:
-    """Import ``spec.module`` and find ``spec.attribute``; with ``build``, call it
-    with no arguments and check that the result has ``fit`` and either ``adapt``
-    (a model) or ``agent`` (a policy), not both, each taking the arguments the
-    run will pass it (the keyword ``rng`` among them).
-    Raise ValueError, naming the spec, if any step fails. Returns the object
-    (with ``build``) or the class or function."""
+def load(spec: MethodSpec) -> Any:
+    """Import ``spec.module``, find ``spec.attribute``, call it with no arguments
+    and check that the result has ``fit`` and either ``adapt`` (a model) or
+    ``agent`` (a policy), not both, each taking the arguments the run will pass
+    it (the keyword ``rng`` among them).
+    Raise ValueError, naming the spec, if any step fails. Returns the object."""
     where = f"methods: {spec.name}={spec.module}:{spec.attribute}"
     try:
         module = importlib.import_module(spec.module)
@@ -194,8 +193,6 @@ def load(spec: MethodSpec, build: bool = True) -> Any:
             f"{where}: {spec.module}.{spec.attribute} is not callable (type "
             f"{type(factory).__name__}); expected a class or function"
         )
-    if not build:
-        return factory
     try:
         method = factory()
     except Exception as err:  # the user's code: say which call failed, keep the cause
@@ -470,16 +467,15 @@ class Added(NamedTuple):
 
 
 def load_all(
-    specs: Sequence[str], build: bool = True, policies: bool = False
+    specs: Sequence[str], policies: bool = False
 ) -> tuple[tuple[MethodSpec, Any], ...]:
-    """``(spec, load(spec, build))`` for every ``NAME=module:attribute`` of
-    ``specs``; raise ValueError if any is malformed or cannot be loaded
-    (:func:`load`). Experiments call it before any work. With ``build``, a
-    policy is refused unless ``policies`` is True (an experiment with transfer
-    trials); without, the kind of a method is not known yet."""
-    loaded = tuple((spec, load(spec, build)) for spec in check_specs(specs))
+    """``(spec, load(spec))`` for every ``NAME=module:attribute`` of ``specs``;
+    raise ValueError if any is malformed or cannot be loaded (:func:`load`), or
+    is a policy unless ``policies`` is True (an experiment with transfer
+    trials). Experiments call it before any work."""
+    loaded = tuple((spec, load(spec)) for spec in check_specs(specs))
     for spec, method in loaded:
-        if build and not policies and is_policy(method):
+        if not policies and is_policy(method):
             raise ValueError(
                 f"methods: {spec.name}={spec.module}:{spec.attribute} is a policy "
                 "(it has agent, not adapt): a prediction table needs a model's "
