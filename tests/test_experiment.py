@@ -478,13 +478,20 @@ def _state(pid: int) -> str | None:
 
 
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
+@pytest.mark.parametrize("reaped", [True, False], ids=["reaped", "zombie"])
 @pytest.mark.parametrize("pool", list(_OWNERS))
-def test_pool_workers_end_when_their_owner_is_killed(tmp_path, pool):
+def test_pool_workers_end_when_their_owner_is_killed(tmp_path, pool, reaped):
     """An owner of a pool (pool_map's, or tasks.generate's forkserver pool)
     killed by SIGKILL mid-job, with no shutdown, left its two workers running
     for ever: after their job, they wait on a pipe whose writing end they hold
-    themselves. exit_with ends them within its 0.5 s polls; the bound of 30 s,
-    against jobs of 60 s, only waits out a loaded machine."""
+    themselves. exit_with ends them within its 0.5 s polls, once the owner is
+    reaped, and while it is a zombie too: a killed owner stays one until its
+    parent waits for it, and ``os.kill(owner, 0)`` succeeds on a zombie (a
+    parent reading the owner's output to its end first, as
+    ``subprocess.run(capture_output=True)`` does, waited for ever on a pipe the
+    forkserver's workers still held). The bounds of 60 s (the owner's death)
+    and 30 s (the workers'), against jobs of 60 s, only wait out a loaded
+    machine."""
     import subprocess
     import sys
 
@@ -495,55 +502,30 @@ def test_pool_workers_end_when_their_owner_is_killed(tmp_path, pool):
     # sys.path, so without this it imports the installed tasks (another checkout)
     source = str(Path(tasks.__file__).resolve().parents[1])
     path = os.pathsep.join(filter(None, [source, os.environ.get("PYTHONPATH")]))
+    owner = subprocess.Popen(
+        [sys.executable, str(script), str(marks)],
+        env={**os.environ, "PYTHONPATH": path},
+    )
     try:  # the workers marked are killed whatever happens, a timeout too
-        owner = subprocess.run(
-            [sys.executable, str(script), str(marks)],
-            env={**os.environ, "PYTHONPATH": path},
-            timeout=60,  # a guard against hanging, not a timing check
-        )
-        assert owner.returncode == -9
+        if reaped:
+            assert owner.wait(timeout=60) == -9
+        else:
+            deadline = time.monotonic() + 60
+            while _state(owner.pid) != "Z" and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert _state(owner.pid) == "Z"  # killed, and not waited for
         workers = [int(p.name) for p in marks.iterdir()]
         assert len(workers) == 2
         deadline = time.monotonic() + 30
         while any(map(_running, workers)) and time.monotonic() < deadline:
             time.sleep(0.1)
         assert not any(map(_running, workers))
+        assert owner.wait(timeout=60) == -9  # the zombie too: its own SIGKILL
     finally:
         for pid in filter(_running, [int(p.name) for p in marks.iterdir()]):
             os.kill(pid, 9)
-
-
-@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
-@pytest.mark.parametrize("pool", list(_OWNERS))
-def test_pool_workers_end_when_their_owner_is_killed_and_not_yet_reaped(tmp_path, pool):
-    """A killed owner stays a zombie until its parent waits for it, and
-    ``os.kill(owner, 0)`` succeeds on a zombie: a parent reading the owner's
-    output to its end first (``subprocess.run(capture_output=True)``) waited
-    for ever on a pipe the forkserver's workers still held. They end while the
-    owner is a zombie."""
-    import subprocess
-    import sys
-
-    script, marks = tmp_path / "owner.py", tmp_path / "marks"
-    script.write_text(_OWNERS[pool])
-    marks.mkdir()
-    owner = subprocess.Popen([sys.executable, str(script), str(marks)])
-    workers: list[int] = []
-    try:
-        deadline = time.monotonic() + 60
-        while _state(owner.pid) != "Z" and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert _state(owner.pid) == "Z"  # killed, not reaped: never waited for
-        workers = [int(p.name) for p in marks.iterdir()]
-        assert len(workers) == 2
-        deadline = time.monotonic() + 30
-        while any(map(_running, workers)) and time.monotonic() < deadline:
-            time.sleep(0.1)
-        assert not any(map(_running, workers))
-    finally:
-        for pid in filter(_running, workers):
-            os.kill(pid, 9)
-        assert owner.wait(timeout=60) == -9
+        owner.kill()  # if it hangs; nothing if it is dead
+        owner.wait(timeout=60)
 
 
 @pytest.mark.parametrize(
