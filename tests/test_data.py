@@ -546,6 +546,16 @@ def test_a_changed_byte_is_refused_naming_the_file_and_the_array(tmp_path):
                     assert a is b or np.array_equal(a, b), (at, field)
 
 
+def test_the_loaders_know_every_array_a_dataset_file_can_hold():
+    """FILE_ARRAYS, which the loaders check members against, is every array
+    the file format writes: with every optional field given (rewards, dones,
+    dt, the table), no more, no fewer."""
+    from hipmdp.data import FILE_ARRAYS
+
+    t = make(n=6, dt=0.2)
+    assert set(t.arrays(table_for(t))) == FILE_ARRAYS
+
+
 def test_an_archive_in_memory_loads_as_its_file_does(tmp_path):
     t = make(n=10)
     t.save(tmp_path / "x.npz")
