@@ -307,6 +307,18 @@ class NpzArchive(Mapping):
         self.close()
 
 
+def _sharded(path: Any) -> Any:
+    """A :class:`hipmdp.shards.Dataset` if ``path`` names a run's folder or its
+    ``manifest.json``, else None (a file or an open file object)."""
+    if isinstance(path, str | os.PathLike):
+        path = Path(path)
+        if path.is_dir() or path.suffix == ".json":
+            from hipmdp.shards import Dataset  # shards builds on this module
+
+            return Dataset(path)
+    return None
+
+
 #: Every array a dataset file may hold (:meth:`Transitions.arrays`).
 FILE_ARRAYS = frozenset(
     ["format_version", "states", "actions", "next_states", "instances",
@@ -563,12 +575,9 @@ class ParameterTable:
         if it has none; or a sharded dataset's (its directory or
         ``manifest.json``: every planned instance's row, from the manifest,
         :attr:`hipmdp.shards.Dataset.parameters`)."""
-        if isinstance(path, str | os.PathLike):
-            path = Path(path)
-            if path.is_dir() or path.suffix == ".json":
-                from hipmdp.shards import Dataset  # shards builds on this module
-
-                return Dataset(path).parameters
+        dataset = _sharded(path)
+        if dataset is not None:
+            return dataset.parameters
         with load_npz(path) as f:
             _check_members(path, f)
             if "table_instances" not in f:
@@ -862,12 +871,9 @@ class Transitions:
             instances: only these instance ids; a sharded dataset then reads only
                 the shards that hold them (each checked against its checksum).
         """
-        if isinstance(path, str | os.PathLike):
-            path = Path(path)
-            if path.is_dir() or path.suffix == ".json":
-                from hipmdp.shards import Dataset  # shards builds on this module
-
-                return Dataset(path).load(instances=instances)
+        dataset = _sharded(path)
+        if dataset is not None:
+            return dataset.load(instances=instances)
         data = cls._load_file(path)
         if instances is None:
             return data
