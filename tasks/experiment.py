@@ -291,8 +291,9 @@ def run_dir(
     others = sorted(f.name for f in path.iterdir() if not f.name.startswith("."))
     if stale and others:
         print(
-            f"{path}: replaced the previous run's files; left {', '.join(others)}, "
-            "which belong to the previous run",
+            f"{path}: replaced the previous run's files; kept {', '.join(others)}"
+            ", which this run does not write (any made from the previous run "
+            "describe that run, not this one)",
             file=sys.stderr,
         )
     return path
