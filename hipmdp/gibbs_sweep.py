@@ -121,6 +121,16 @@ def logsumexp(x: Array) -> float:
     return top + float(np.log(np.sum(np.exp(x - top))))
 
 
+def softmax(x: Array) -> Array:
+    """exp(x) / Σ exp(x) for a 1-d array x, summing to 1 to round-off whatever
+    the scale of x. (``exp(x - logsumexp(x))`` does not: at |x| ~ 1e13, as a
+    new feature's log-likelihood ratios reach on noise-free data, the
+    subtraction loses ~1e-3 and the weights summed to 1 ± 2e-4, which
+    ``rng.choice`` refuses.)"""
+    p = np.exp(x - np.max(x))
+    return p / p.sum()
+
+
 def _log_ml(alg: Algebra, r: int, E: Array, k: int, priors: GibbsPriors, *, rng):
     """log L̂(k), the N_w-draw estimate, with its draws (mu, W) and per-draw llr."""
     mu, W = draw_new_weights(priors.n_w, E.shape[0], k, priors, rng=rng)
@@ -151,8 +161,7 @@ def new_feature_step(
     z, w, f, mu_w = z[keep], w[keep], f[keep], mu_w[keep]
     if k_new == 0:
         return z, w, f, mu_w
-    p = np.exp(llr - logsumexp(llr))
-    n = int(rng.choice(priors.n_w, p=p))  # importance resampling of one draw
+    n = int(rng.choice(priors.n_w, p=softmax(llr)))  # importance resampling
     z_add = np.zeros((k_new, N), dtype=bool)
     z_add[:, r] = True
     f_add = np.zeros((k_new,) + f.shape[1:])

@@ -50,6 +50,7 @@ from hipmdp.gibbs_sweep import (
     logsumexp,
     new_feature_step,
     remove_unused,
+    softmax,
     sweep,
     z_step_row,
 )
@@ -664,6 +665,45 @@ def test_new_feature_step_with_data_targets_the_posterior_of_k():
         batches = (ks == k).reshape(50, -1).mean(axis=1)
         se = batches.std(ddof=1) / np.sqrt(50)
         assert abs(np.mean(ks == k) - post[k]) < 4 * se, (k, np.mean(ks == k), post)
+
+
+def test_softmax_is_exp_over_its_sum_at_any_scale():
+    """softmax(x) is exp(x) / Σ exp(x) (the plain formula, where it does not
+    overflow), and is unchanged by a shift of x: at 1e13 + x, where
+    exp(x - logsumexp(x)) summed to 1 ± 1e-3, it gives the same weights, up to
+    the ulp of 1e13 (0.002) in x itself."""
+    x = np.array([0.0, -0.7, -3.0, 2.5, -50.0])
+    want = np.exp(x) / np.exp(x).sum()
+    np.testing.assert_allclose(softmax(x), want, rtol=1e-14)
+    big = softmax(1e13 + x)
+    assert abs(big.sum() - 1) < 1e-15 * len(x)
+    np.testing.assert_allclose(big, want, rtol=0.005)  # x rounded to 0.002
+
+
+def test_new_feature_step_takes_log_likelihood_ratios_of_any_size():
+    """On noise-free data a new feature's log-likelihood ratios reach ~1e13;
+    the importance weights of its draws must still sum to 1 for rng.choice
+    (``FitConfig(alpha=50)`` failed with numpy's "probabilities do not sum to
+    1"). The ratios here are the real algebra's plus 1e13: every proposal of
+    new features is accepted, and each step must add them without error."""
+
+    class Huge(fast.EigenAlgebra):
+        def new_llr(self, r, E, W):
+            return 1e13 + super().new_llr(r, E, W)
+
+    rng = np.random.default_rng(0)
+    B, m = 3, 3
+    Y = rng.normal(size=(1, B, m))
+    alg = Huge(prepare(GibbsData(Y, np.eye(m)[None], np.array([0.5]))))
+    priors = GibbsPriors(alpha=3.0, sigma_w=1.0, sigma_w0=1.0, n_w=50)
+    empty = (np.ones((1, 1), bool), np.ones((1, B)), np.zeros((1, 1, m)), np.zeros(1))
+    added = 0
+    for seed in range(20):
+        z, *_ = new_feature_step(
+            alg, 0, alg.Yc[0], empty, priors, rng=np.random.default_rng(seed)
+        )
+        added += z.shape[0] - 1
+    assert added > 20  # Poisson(3) proposals, all accepted: about 60
 
 
 def test_new_feature_prior_draws_have_the_hierarchical_moments():
