@@ -3,7 +3,10 @@
 Symbols: ``N`` transitions, ``D`` state dimensions, ``b`` instance id, ``a`` discrete
 action index. The state convention is the simulator's physics state ``s`` (for MuJoCo
 ``(qpos, qvel)``) with angle dimensions wrapped to (-π, π]; the model predicts
-``Δs = s' - s``.
+``Δs = s' - s``. ``Transitions`` neither wraps nor checks the angles of the
+states it is given (``Δs`` comes out the same either way, below): wrap them
+with :func:`wrap_angle` if your simulator does not, as the GPs over states see
+θ and θ + 2π as far apart unless ``FitConfig(periodic=True)``.
 
 Angle changes: a fast joint turns by more than π in one step (the acrobot's elbow
 reaches 30 rad/s, 6 rad per 0.2 s action), so wrapping ``θ' - θ`` to (-π, π] would
@@ -715,8 +718,21 @@ class Transitions:
     def take(self, index: Array) -> Transitions:
         """The transitions at ``index``: a boolean mask (N,) or integer indices."""
         mask = np.asarray(index)
-        if mask.dtype == bool and mask.shape != (len(self),):
-            raise ValueError(f"index: expected a mask of shape ({len(self)},)")
+        if mask.size == 0 and mask.ndim == 1:  # [] reads as float64
+            mask = mask.astype(np.int64)
+        if mask.dtype == bool:
+            if mask.shape != (len(self),):
+                raise ValueError(f"index: expected a mask of shape ({len(self)},)")
+        elif mask.dtype.kind not in "iu" or mask.ndim != 1:
+            raise ValueError(
+                f"index: expected a boolean mask or 1-d integer indices, got "
+                f"dtype {mask.dtype}, shape {mask.shape}"
+            )
+        elif mask.size and not -len(self) <= mask.min() <= mask.max() < len(self):
+            raise ValueError(
+                f"index: expected indices in [-{len(self)}, {len(self)}), got "
+                f"{mask.min()} to {mask.max()}"
+            )
         return Transitions(
             states=self.states[mask],
             actions=self.actions[mask],
@@ -755,7 +771,8 @@ class Transitions:
         return self.take(mask)
 
     def head(self, n: int) -> Transitions:
-        """The first ``n`` transitions."""
+        """The first ``n`` transitions (all of them if there are fewer)."""
+        check_integer("n", n, 0)
         return self.take(np.arange(min(n, len(self))))
 
     @classmethod

@@ -580,9 +580,38 @@ def test_take_by_mask_and_by_indices():
     mask = np.zeros(20, dtype=bool)
     mask[[0, 3, 7]] = True
     np.testing.assert_array_equal(t.take(mask).states, t.states[[0, 3, 7]])
-    assert len(t.head(5)) == 5 and len(t.head(50)) == 20
+    assert len(t.head(5)) == 5 and len(t.head(50)) == 20 and len(t.head(0)) == 0
+    assert len(t.take([])) == 0  # an empty list reads as float64
+    np.testing.assert_array_equal(t.take([-20, 19]).states, t.states[[0, 19]])
     with pytest.raises(ValueError, match="index: expected a mask"):
         t.take(np.ones(3, dtype=bool))
+
+
+@pytest.mark.parametrize(
+    "index, message",
+    [
+        ([20], r"indices in \[-20, 20\), got 20 to 20"),  # was numpy's IndexError
+        ([0, -21], r"indices in \[-20, 20\), got -21 to 0"),
+        ([1.0, 2.0], "1-d integer indices, got dtype float64"),  # was IndexError
+        (
+            np.zeros((2, 2), int),
+            r"1-d integer indices, got dtype int64, shape \(2, 2\)",
+        ),
+    ],
+)
+def test_take_names_a_bad_index(index, message):
+    with pytest.raises(ValueError, match=f"^index: expected .*{message}"):
+        make(n=20).take(index)
+
+
+@pytest.mark.parametrize(
+    "n, message",
+    [(2.5, "an integer >= 0, got 2.5"), (-5, ">= 0, got -5"), (True, ".*got True")],
+)
+def test_head_names_a_bad_count(n, message):
+    """head(2.5) was numpy's IndexError, head(-5) silently nothing."""
+    with pytest.raises(ValueError, match=f"^n: expected {message}"):
+        make(n=20).head(n)
 
 
 def test_save_is_byte_reproducible_and_world_readable(tmp_path, monkeypatch):
