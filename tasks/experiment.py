@@ -165,7 +165,7 @@ def describe_environment(env: dict[str, Any] | None) -> str:
         f"Machine: {env['cpu']}; numpy {pk['numpy']}, scipy {pk['scipy']}, "
         f"mujoco {pk['mujoco']}; BLAS {blas or 'not found'}; code "
         f"{commit[:12] + commit[40:] if commit else 'not a git checkout'}. The "
-        "learned models' returns depend on these through round-off "
+        "learned models' results depend on these through round-off "
         "(`environment` in metrics.json)."
     )
 

@@ -64,7 +64,7 @@ def recording_line(config, name: str) -> str:
     """A report's line on the recording ``name``: how to open it, or that the run
     wrote none."""
     if config.record:
-        return f"Recording: `rerun {name}`."
+        return f"Recording: `rerun {name}` (from this folder)."
     return "No recording (`--no-record` or `RERUN=off`)."
 
 

@@ -134,7 +134,10 @@ def test_recording_line_says_whether_there_is_a_recording():
     from tasks.acrobot_swingup import SwingupConfig
 
     config = SwingupConfig()
-    assert recording_line(config, "acrobot.rrd") == "Recording: `rerun acrobot.rrd`."
+    assert (
+        recording_line(config, "acrobot.rrd")
+        == "Recording: `rerun acrobot.rrd` (from this folder)."
+    )
     unrecorded = dataclasses.replace(config, record=False)
     assert recording_line(unrecorded, "acrobot.rrd").startswith("No recording")
 
