@@ -34,7 +34,8 @@ Identical configs and environments should give identical arrays and metrics
 likely cause: the fitted model parts by ~1e-10 and the learned models' control
 returns by as much as the swing-up's chaos allows, while data and the true
 simulator's returns stay identical. The comparison is also written as JSON with
-``--out FILE``.
+``--out FILE``. The exit status is diff's: 0 when the verdict is identical (where
+both runs have results), 1 when the results differ, 2 for a usage error.
 """
 
 from __future__ import annotations
@@ -512,7 +513,9 @@ def cli(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as err:
         parser.error(str(err))
     print(report(result, args.show))
-    return 0
+    # as diff's: 0 the same (where both runs have results), 1 they differ,
+    # 2 trouble (argparse's usage errors)
+    return 0 if result.identical or result.shared_identical else 1
 
 
 if __name__ == "__main__":

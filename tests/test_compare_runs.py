@@ -453,6 +453,10 @@ def test_cli_reports_and_rejects_a_folder_that_is_not_a_run(tmp_path, capsys):
     assert cli([str(a), str(tmp_path / "b"), "--out", str(out)]) == 0
     assert "identical results" in capsys.readouterr().out
     assert json.loads(out.read_text())["identical"] is True
+    # results that differ: status 1, as diff's (it was 0 whatever the verdict)
+    _run(tmp_path / "c", returns=np.arange(12.0).reshape(3, 4) + 1)
+    assert cli([str(a), str(tmp_path / "c")]) == 1
+    assert "the results differ" in capsys.readouterr().out
     with pytest.raises(SystemExit) as exit_info:
         cli([str(a), str(tmp_path)])
     assert exit_info.value.code == 2
