@@ -718,7 +718,7 @@ class Transitions:
     def take(self, index: Array) -> Transitions:
         """The transitions at ``index``: a boolean mask (N,) or integer indices."""
         mask = np.asarray(index)
-        if mask.size == 0 and mask.ndim == 1:  # [] reads as float64
+        if mask.shape == (0,) and mask.dtype.kind == "f":  # [] reads as float64
             mask = mask.astype(np.int64)
         if mask.dtype == bool:
             if mask.shape != (len(self),):

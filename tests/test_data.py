@@ -583,8 +583,9 @@ def test_take_by_mask_and_by_indices():
     assert len(t.head(5)) == 5 and len(t.head(50)) == 20 and len(t.head(0)) == 0
     assert len(t.take([])) == 0  # an empty list reads as float64
     np.testing.assert_array_equal(t.take([-20, 19]).states, t.states[[0, 19]])
-    with pytest.raises(ValueError, match="index: expected a mask"):
-        t.take(np.ones(3, dtype=bool))
+    for mask in (np.ones(3, dtype=bool), np.zeros(0, dtype=bool)):
+        with pytest.raises(ValueError, match="index: expected a mask"):
+            t.take(mask)  # an empty boolean mask too, unlike []
 
 
 @pytest.mark.parametrize(
