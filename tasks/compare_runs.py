@@ -513,9 +513,9 @@ def cli(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as err:
         parser.error(str(err))
     print(report(result, args.show))
-    # as diff's: 0 the same (where both runs have results), 1 they differ,
-    # 2 trouble (argparse's usage errors)
-    return 0 if result.identical or result.shared_identical else 1
+    # as diff's: 0 the same (where both runs have results, as identical ones
+    # are), 1 they differ, 2 trouble (argparse's usage errors)
+    return 0 if result.shared_identical else 1
 
 
 if __name__ == "__main__":

@@ -194,6 +194,7 @@ def test_a_run_with_an_added_method_is_compared_on_what_both_ran(tmp_path):
     text = report(result)
     assert "compared on the methods both ran; only the second ran ['d']" in text
     assert "verdict: identical where both runs have results" in text
+    assert cli([str(a), str(b)]) == 0  # the exit status: the same where both ran
     # the rows are matched by name, not position
     order = [2, 0, 1, 3]
     names = np.array(["a", "b", "c", "d"])[order]
