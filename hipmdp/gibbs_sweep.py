@@ -125,7 +125,7 @@ def softmax(x: Array) -> Array:
     """exp(x) / Σ exp(x) for a 1-d array x, summing to 1 to round-off whatever
     the scale of x. (``exp(x - logsumexp(x))`` does not: at |x| ~ 1e13, as a
     new feature's log-likelihood ratios reach on noise-free data, the
-    subtraction loses ~1e-3 and the weights summed to 1 ± 2e-4, which
+    subtraction loses ~1e-3 and the weights summed to 1 ± 1e-3, which
     ``rng.choice`` refuses.)"""
     p = np.exp(x - np.max(x))
     return p / p.sum()
