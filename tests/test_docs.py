@@ -115,6 +115,15 @@ def test_readmes_model_example_runs_as_written(tmp_path, monkeypatch):
     assert namespace["model"].weights.shape[1] == 2  # fitted on all but one
     assert namespace["mean"].shape == (50, 4)
     assert (tmp_path / "runs" / "model.npz").exists()
+    # and the planning example after it, on what the model example left
+    code = python_block(
+        ROOT / "README.md",
+        "snippet above. The task is yours: a reward and a terminal test on arrays of",
+    )
+    exec(compile(code, "README.md", "exec"), namespace)
+    result = namespace["result"]
+    assert result.steps.shape == (100,) and namespace["agent"].weights.shape[0] == 3
+    assert (result.steps <= 200).all()
 
 
 def test_readmes_dataset_example_runs_on_the_default_generate_run(
