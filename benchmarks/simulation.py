@@ -37,7 +37,11 @@ import numpy as np
 from benchmarks.timing import paired
 from tasks import acrobot, cartpole
 
-DOMAINS = {"acrobot": acrobot.swingup, "cartpole": cartpole.balance}
+#: Per domain: its environment factory and its module (`ACTIONS`, `N_SUB_STEPS`).
+DOMAINS = {
+    "acrobot": (acrobot.swingup, acrobot),
+    "cartpole": (cartpole.balance, cartpole),
+}
 
 
 def raw_steps_per_second(model, actions, n_steps, n_sub_steps, rng):
@@ -128,9 +132,8 @@ def main(argv=None) -> None:
     )
     header = f"{'domain':<9} {'sub':>3} {'raw mj_step/s':>14} {'raw ctrl/s':>11}"
     print(f"{header} {'env ctrl/s':>11} {'env/raw':>8} {'range':>11}")
-    for name, factory in DOMAINS.items():
+    for name, (factory, module) in DOMAINS.items():
         env = factory(seed=0)
-        module = acrobot if name == "acrobot" else cartpole
         n_sub = module.N_SUB_STEPS
         check_same_physics(env, module, args.steps, rng)
         raws, envs = paired_rates(env, module, args.steps, args.repeats, rng)

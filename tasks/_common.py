@@ -49,6 +49,12 @@ def _field_bounds(kind: type) -> tuple[tuple[str, float, float, str, str], ...]:
     leading space, or empty) and the start of its error message."""
     out = []
     for field in dataclasses.fields(kind):
+        if "bounds" not in field.metadata or "unit" not in field.metadata:
+            raise TypeError(
+                f"{kind.__name__}.{field.name}: declare it with "
+                "tasks._common.parameter(nominal, unit, low, high), which gives "
+                "its unit and bounds"
+            )
         low, high = field.metadata["bounds"]
         # "-" marks a dimensionless parameter: no unit in the message.
         unit = "" if field.metadata["unit"] == "-" else " " + field.metadata["unit"]

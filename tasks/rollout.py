@@ -1,8 +1,9 @@
 """Open-loop random action sequences on many instances at once with `mujoco.rollout`.
 
 Symbols: `b` instance, `E` episodes, `T` control steps per episode (the step limit),
-`n` MuJoCo steps per control step (the instance's: `N_SUB_STEPS`, or for a fast
-acrobot `tasks.acrobot.sub_steps`), `D` state dimension, `A` actions.
+`n` MuJoCo steps per control step (the instance's, the domain module's
+`sub_steps(params)`: `N_SUB_STEPS`, or a multiple of it for a fast instance),
+`D` state dimension, `A` actions.
 
 An open-loop episode is exactly what the domain's dm_control environment does with a
 fixed action sequence: it starts from `s₀` (drawn like the task does, `U[-c, c]^D`),
@@ -47,7 +48,7 @@ from tasks.collect import (
 Array = np.ndarray
 
 #: Per domain: its module (`make_model`, `ACTIONS`, `N_SUB_STEPS`, `sub_steps`,
-#: `INITIAL_NOISE`).
+#: `INITIAL_NOISE`, `DEFAULT_MAX_STEPS`).
 MODULES = {"acrobot": acrobot, "cartpole": cartpole}
 STATE_SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS
 #: Control steps per `mujoco.rollout` call.

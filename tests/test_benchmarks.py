@@ -415,8 +415,8 @@ def test_simulation_check_passes_on_the_environments(name):
     """The raw side is the environment's physics, bit for bit, over 60 steps:
     more than one cart-pole episode under random actions, so a reset is
     crossed."""
-    module = simulation.acrobot if name == "acrobot" else simulation.cartpole
-    env = simulation.DOMAINS[name](seed=0)
+    factory, module = simulation.DOMAINS[name]
+    env = factory(seed=0)
     simulation.check_same_physics(env, module, 60, np.random.default_rng(0))
 
 
@@ -435,7 +435,7 @@ def test_simulation_check_fails_when_the_raw_side_is_other_physics(change):
     """A raw side whose controls are off by a relative 1e-9, whose action table
     is reversed, or that takes one sub-step more or fewer than the environment
     is refused at the first step (the seed's first action is 2, control +1)."""
-    env = simulation.DOMAINS["acrobot"](seed=0)
+    env = simulation.DOMAINS["acrobot"][0](seed=0)
     m = simulation.acrobot
     other = SimpleNamespace(
         __name__="tasks.acrobot", ACTIONS=m.ACTIONS, N_SUB_STEPS=m.N_SUB_STEPS
@@ -471,8 +471,7 @@ def test_simulation_prints_env_over_raw(monkeypatch, capsys):
     rows = [line.split() for line in capsys.readouterr().out.splitlines()[2:]]
     assert [r[0] for r in rows] == ["acrobot", "cartpole"]
     for name, n_sub, raw_mj, raw, env, ratio, spread in rows:
-        module = simulation.acrobot if name == "acrobot" else simulation.cartpole
-        assert int(n_sub) == module.N_SUB_STEPS
+        assert int(n_sub) == simulation.DOMAINS[name][1].N_SUB_STEPS
         assert (float(raw_mj), float(raw), float(env)) == (200.0 * int(n_sub), 200, 50)
         assert (ratio, spread) == ("0.25", "0.25-0.25")
 

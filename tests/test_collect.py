@@ -140,7 +140,7 @@ def test_non_finite_state_is_dropped_and_reported(monkeypatch):
 @pytest.mark.parametrize(
     "kwargs, message",
     [
-        (dict(domain="pendulum"), "domain must be one of"),
+        (dict(domain="no_such_domain"), "domain must be one of"),
         (dict(instances=[]), "at least one"),
         (dict(instances=[CartpoleParams()]), "instances must be AcrobotParams"),
         (dict(instance_ids=[0, 0]), "instance_ids must be 2 distinct"),

@@ -198,7 +198,7 @@ def test_other_policies_write_chained_episodes(tmp_path, policy):
 @pytest.mark.parametrize(
     "argv, message",
     [
-        (["--domain", "pendulum"], "invalid choice"),
+        (["--domain", "no_such_domain"], "invalid choice"),
         (["--domain", "acrobot", "--instances", "0"], "(--instances): expected >= 1"),
         (
             ["--domain", "acrobot", "--episodes-per-instance", "0"],
@@ -307,7 +307,7 @@ def test_bad_options_stop_with_a_message_and_write_nothing(
         ("book_inertia", "yes", "book_inertia: expected True or False"),
         ("mixed_software", "no", "mixed_software: expected True or False"),
         ("progress", 1, "progress: expected True or False"),
-        ("domain", "pendulum", "domain must be one of"),
+        ("domain", "no_such_domain", "domain must be one of"),
         ("distribution", {"link_mass_1": (1, 2)}, "distribution: expected a tasks"),
     ],
 )

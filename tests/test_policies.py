@@ -295,8 +295,10 @@ def test_the_try_steps_once_or_on_an_empty_batch_only_ends_the_episode():
 
 
 def test_the_example_policy_refuses_an_unknown_domain():
-    with pytest.raises(ValueError, match="domain: expected one of .*, got 'pendulum'"):
-        SarsaPolicy("pendulum")
+    with pytest.raises(
+        ValueError, match="domain: expected one of .*, got 'no_such_domain'"
+    ):
+        SarsaPolicy("no_such_domain")
 
 
 def test_the_try_leaves_the_fitted_object_as_fit_left_it():

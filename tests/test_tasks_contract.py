@@ -382,3 +382,17 @@ def test_docstring_table_states_each_parameter_unit_nominal_and_bounds(name):
         assert unit == field.metadata["unit"]
         assert float(value) == getattr(nominal, field.name)
         assert " ".join(bounds) == f"[{low}, {high}]"
+
+
+def test_a_parameter_declared_without_its_bounds_is_named():
+    """A new domain's parameter dataclass field declared without
+    ``parameter(nominal, unit, low, high)`` was a bare KeyError: 'bounds'."""
+    from tasks._common import parameter, validate_parameters
+
+    @dataclasses.dataclass(frozen=True)
+    class Params:
+        mass: float = parameter(1.0, "kg", 0.1, 10.0)
+        length: float = 1.0
+
+    with pytest.raises(TypeError, match=r"^Params\.length: declare it with "):
+        validate_parameters(Params())
