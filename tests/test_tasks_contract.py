@@ -29,6 +29,49 @@ DOMAINS = {
 DOCUMENTED = {"acrobot": (0.1, 500), "cartpole": (0.05, 300)}
 
 
+def _registered() -> list[str]:
+    from tasks.collect import DOMAINS as registered
+
+    return sorted(registered)
+
+
+def test_every_table_of_domains_names_the_same_ones():
+    """A domain is registered in several tables (README, Development); one left
+    out fails only for the policy or command that reads it. And this file's
+    DOMAINS must name every one, so that the contract is checked for it."""
+    from benchmarks import simulation
+    from tasks import agents, generate, rollout
+
+    tables = {
+        "tasks.agents.DOMAINS": agents.DOMAINS,
+        "tasks.rollout.MODULES": rollout.MODULES,
+        "tasks.generate.DEFAULT_VARY": generate.DEFAULT_VARY,
+        "benchmarks.simulation.DOMAINS": simulation.DOMAINS,
+        "this file's DOMAINS": DOMAINS,
+        "this file's DOCUMENTED": DOCUMENTED,
+    }
+    for name, table in tables.items():
+        assert sorted(table) == _registered(), name
+
+
+@pytest.mark.parametrize("name", _registered())
+def test_the_step_is_the_same_in_every_table(name):
+    """One action is ``N_SUB_STEPS`` MuJoCo steps of the model's timestep:
+    the module's ``CONTROL_TIMESTEP``, the environment's control step and the
+    ``dt`` that transitions record (and unwrap angle changes with) must agree,
+    and a nominal instance takes ``N_SUB_STEPS`` (``sub_steps``)."""
+    from tasks.collect import DOMAINS as registered
+    from tasks.rollout import MODULES
+
+    module, factory, _ = DOMAINS[name]
+    assert MODULES[name] is module
+    step = module.make_model().opt.timestep * module.N_SUB_STEPS
+    assert step == pytest.approx(module.CONTROL_TIMESTEP, rel=1e-12)
+    assert registered[name].dt == module.CONTROL_TIMESTEP
+    assert factory(seed=0).control_timestep() == pytest.approx(step, rel=1e-12)
+    assert module.sub_steps() == module.N_SUB_STEPS
+
+
 def run(factory, params, seed, actions):
     """Observations of one episode (reset, then the actions until it ends)."""
     env = factory(params, seed=seed)
