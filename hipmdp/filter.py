@@ -20,7 +20,7 @@ every step adds a sum over rows, one update with n transitions equals n single u
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import linalg
@@ -35,10 +35,15 @@ class Belief:
     """Gaussian belief over the latent weights in information form.
 
     h: information vector Σ⁻¹ μ, shape (K - 1,); P: precision Σ⁻¹, shape (K - 1, K - 1).
+    model: which model's weights the belief is over (`HipMDP.basis_key`), set by
+    `HipMDP.prior` and kept by every update, so that a model refuses another's
+    belief of the same size; None for a belief built by hand (taken by any model
+    of its size).
     """
 
     h: Array
     P: Array
+    model: str | None = field(default=None, kw_only=True)
 
     def __post_init__(self) -> None:
         h = np.asarray(self.h, dtype=float)
@@ -59,6 +64,10 @@ class Belief:
                 raise ValueError(
                     "Belief: expected a positive-definite precision P"
                 ) from None
+        if self.model is not None and not isinstance(self.model, str):
+            raise ValueError(
+                f"Belief: expected model to be a str or None, got {self.model!r}"
+            )
         object.__setattr__(self, "h", read_only(h, float))
         object.__setattr__(self, "P", read_only(P, float))
 
@@ -82,10 +91,10 @@ class Belief:
         return linalg.cho_solve(linalg.cho_factor(self.P, lower=True), np.eye(self.dim))
 
 
-def prior_belief(mu_w: Array, sigma_w: float) -> Belief:
+def prior_belief(mu_w: Array, sigma_w: float, model: str | None = None) -> Belief:
     """Prior over an unseen instance's weights: P₀ = I/σ_w², h₀ = P₀ μ_w.
 
-    mu_w: μ_w[k] for k = 2..K, shape (K - 1,).
+    mu_w: μ_w[k] for k = 2..K, shape (K - 1,); model: the belief's `Belief.model`.
     """
     mu_w = np.asarray(mu_w, dtype=float)
     if mu_w.ndim != 1 or not np.all(np.isfinite(mu_w)):
@@ -93,7 +102,7 @@ def prior_belief(mu_w: Array, sigma_w: float) -> Belief:
     if not (is_real_number(sigma_w) and np.isfinite(sigma_w) and sigma_w > 0):
         raise ValueError(f"sigma_w: expected a finite number > 0, got {sigma_w!r}")
     P0 = np.eye(len(mu_w)) / sigma_w**2
-    return Belief(h=P0 @ mu_w, P=P0)
+    return Belief(h=P0 @ mu_w, P=P0, model=model)
 
 
 def _check_rows(belief: Belief, F: Array, **rows: Array) -> tuple[Array, ...]:
@@ -137,7 +146,7 @@ def update_belief(
     inv = 1.0 / noise_var
     h = belief.h + np.einsum("idk,id->k", F, innovation * inv)
     P = belief.P + np.einsum("idk,idj->kj", F * inv[..., None], F)
-    return Belief(h=h, P=0.5 * (P + P.T))
+    return Belief(h=h, P=0.5 * (P + P.T), model=belief.model)
 
 
 def predictive(

@@ -65,6 +65,7 @@ paper's filter (τ² = σ²).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from dataclasses import dataclass
@@ -146,6 +147,9 @@ class HipMDP:
             "prior_mean" (μ_w², module docstring) or "training" (mean_b w[k,b]²;
             see `hipmdp.FitConfig`). This field is what the filter uses;
             `info["config"]` records what `fit` was given.
+        basis_key: a digest of the basis functions (support, z, their GP
+            interpolation), set on construction: `prior` tags its belief with
+            it, and a belief tagged with another key is refused.
     """
 
     support: Array
@@ -241,6 +245,12 @@ class HipMDP:
         object.__setattr__(
             self, "_coef", interpolation_coefficients(self.support, self.hyper, self.f)
         )
+        digest = hashlib.sha256()  # what the basis functions are, so what w means
+        h = self.hyper
+        for part in (self.support, self.z, self._coef, h.lengthscales, h.signal_var):
+            digest.update(np.ascontiguousarray(part, dtype=float).tobytes())
+        digest.update(repr(tuple(h.periodic)).encode())
+        object.__setattr__(self, "basis_key", digest.hexdigest()[:16])
         object.__setattr__(self, "_factors", {})  # (a, d) -> Cholesky, on demand
 
     def _factor(self, a: int, d: int):
@@ -317,7 +327,7 @@ class HipMDP:
     # -- online filtering ------------------------------------------------------------
     def prior(self) -> Belief:
         """Belief over an unseen instance's weights k = 2..K: N(μ_w, σ_w² I)."""
-        return prior_belief(self.mu_w[1:], self.sigma_w)
+        return prior_belief(self.mu_w[1:], self.sigma_w, model=self.basis_key)
 
     def _check_belief(self, belief: Belief) -> None:
         if not isinstance(belief, Belief):
@@ -328,6 +338,13 @@ class HipMDP:
         if belief.dim != self.n_features - 1:
             raise ValueError(
                 f"belief: expected {self.n_features - 1} weights, got {belief.dim}"
+            )
+        if belief.model is not None and belief.model != self.basis_key:
+            raise ValueError(
+                f"belief: it is over another model's weights (basis {belief.model}, "
+                f"this model's {self.basis_key}); a weight means nothing without its "
+                "basis functions: start from this model's prior() (or, knowing that, "
+                "untag it: Belief(belief.h, belief.P))"
             )
 
     def update(

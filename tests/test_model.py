@@ -124,6 +124,7 @@ def test_new_instance_prediction_after_40_transitions(fitted):
 def test_mean_predictor_is_predict_mean_at_the_belief(fitted):
     rng = np.random.default_rng(5)
     belief = fitted.update(fitted.prior(), _instance(0, np.array([1.0, -0.5]), 30, rng))
+    belief = hipmdp.Belief(belief.h, belief.P)  # untagged: taken by `model` too
     S = rng.uniform(-2, 2, size=(25, D))
     acts = rng.integers(0, A, size=25)
     # fit leaves f = 0 where z is off; random basis values make the z mask count
@@ -433,6 +434,41 @@ def test_a_belief_is_filtered_on_one_instance(fitted):
             call(data)
 
 
+def test_a_belief_over_another_models_weights_is_refused(fitted, tmp_path):
+    """A weight means nothing without its basis functions: a belief from a model
+    of the same size but other basis functions is refused by every method that
+    takes one; the same model saved and loaded, or with other model-error terms,
+    and a belief built by hand are taken."""
+    rng = np.random.default_rng(3)
+    data = _instance(7, np.array([0.5, 0.5]), 5, rng)
+    other = dataclasses.replace(fitted, f=2.0 * fitted.f)
+    assert other.n_features == fitted.n_features
+    belief = other.update(other.prior(), data)
+    calls = (
+        lambda b: fitted.update(b, data),
+        lambda b: fitted.predict(data.states, data.actions, b),
+        lambda b: fitted.predict_mean(data.states, data.actions, b),
+        lambda b: fitted.mean_predictor(b),
+        lambda b: fitted.log_likelihood(data, b),
+    )
+    for call in calls:
+        with pytest.raises(ValueError, match="belief: it is over another model"):
+            call(belief)
+    fitted.save(tmp_path / "model.npz")
+    same = (
+        load(tmp_path / "model.npz"),
+        dataclasses.replace(fitted, residual_var=2.0 * fitted.residual_var),
+    )
+    for model in same:
+        b = fitted.update(fitted.prior(), data)
+        assert b.model == model.basis_key
+        model.predict(data.states, data.actions, model.update(b, data))
+    by_hand = hipmdp.Belief(belief.h, belief.P)
+    fitted.update(by_hand, data)
+    with pytest.raises(ValueError, match="model to be a str or None"):
+        hipmdp.Belief(belief.h, belief.P, model=1)
+
+
 @pytest.mark.parametrize(
     ("field", "value"),
     [
@@ -611,6 +647,7 @@ def test_periodic_model_is_periodic_and_its_fast_paths_agree(fitted, tmp_path):
     belief = periodic.update(
         periodic.prior(), _instance(0, np.array([1.0, -0.5]), 30, rng)
     )
+    belief = hipmdp.Belief(belief.h, belief.P)  # untagged: taken by every model here
     mean, var = periodic.predict(S, acts, belief)
     for x, y in zip(mean, periodic.predict(shifted, acts, belief)[0], strict=True):
         np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-12)
