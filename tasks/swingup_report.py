@@ -276,7 +276,9 @@ features inferred. {inertia}
 {transfer}
 
 "Near-optimal" is within 10% of the true model's final mean return ({target:.1f},
-its mean over the last {window}).
+its mean over the last {window}). "Episodes to near-optimal" is the first
+episode whose mean return reaches that line: one crossing, without an interval,
+so where a curve hovers around the line the margins below say more.
 Per trial, each method's return minus 10% below the true model's final return on
 the same trial (mean [95% interval] over trials; above 0: within 10%):
 
@@ -290,7 +292,8 @@ Each trial's return minus the other method's on the same instance and seeds;
 Its unit is the trial, so it answers for {these_settings};
 "setting as unit" is the same mean with an interval over the settings' means,
 which answers for new settings drawn like these (wider when the difference
-varies from setting to setting). Every interval is conditional on this run's one
+varies from setting to setting; with few settings it can come out narrower by
+chance). Every interval is conditional on this run's one
 batch and one fit.
 
 {paired_table}
@@ -335,6 +338,9 @@ Test log-likelihood over {config.mse_test} test transitions, HiP-MDP minus metho
 {unseen_text}
 
 ## Approximation floor (the same protocol on training settings)
+
+Not a lower bound for the table above: other transitions are scored, and with
+few settings one that reaches fast states can lead every method's error.
 
 {mse_table(metrics["approximation_floor"]) if metrics["approximation_floor"] else "—"}
 
