@@ -34,6 +34,7 @@ from hipmdp.data import (
     Transitions,
     check_angle_dims,
     check_integer,
+    check_rng,
     is_integer,
     wrap_angle,
 )
@@ -235,7 +236,31 @@ class PlanningTask:
     max_steps: int
 
     def __post_init__(self) -> None:
+        # a wrong signature failed at the first planning step, in the planner's
+        # frame, with Python's own "takes 1 positional argument but 3 were given"
+        for name, args in (("reward", "(states, actions, next_states)"),
+                           ("terminal", "(next_states)")):  # fmt: skip
+            _check_callable(f"task.{name}", getattr(self, name), args)
         check_integer("max_steps", self.max_steps, 1)
+
+
+def _check_callable(name: str, fn: Any, args: str) -> None:
+    """A ValueError naming ``name`` unless ``fn`` is callable with the positional
+    arguments ``args`` spells (``"(x, y)"``); a callable whose signature cannot
+    be read (some builtins) passes."""
+    if not callable(fn):
+        raise ValueError(f"{name}: expected a function {args}, got {type(fn).__name__}")
+    try:
+        signature = inspect.signature(fn)
+    except (TypeError, ValueError):
+        return
+    n = args.count(",") + 1
+    try:
+        signature.bind(*range(n))
+    except TypeError:
+        raise ValueError(
+            f"{name}: expected a function {args}, got one with signature {signature}"
+        ) from None
 
 
 class StepResult(NamedTuple):
@@ -434,6 +459,8 @@ def plan(
     Returns:
         :class:`PlanResult` with the updated agent and per-episode statistics.
     """
+    _check_plan_arguments(state, basis, config, model, task)
+    check_rng(rng)
     s0 = np.asarray(start_states, dtype=np.float64)
     if s0.ndim != 2 or s0.shape[0] < 1 or s0.shape[1] != basis.state_dim:
         raise ValueError(
@@ -469,6 +496,46 @@ def plan(
         np.array(sum(returns, []), dtype=np.float64),
         np.array(sum(reached, []), dtype=bool),
     )
+
+
+def _check_plan_arguments(
+    state: Any, basis: Any, config: Any, model: Any, task: Any
+) -> None:
+    """A ValueError naming the argument of :func:`plan` that is not of its kind
+    (passed in another order, they failed as AttributeErrors deep in the loop),
+    and for a model whose ``predict`` needs a belief (a bare HiP-MDP) or whose
+    action count differs from the agent's."""
+    for name, value, kind in (
+        ("state", state, SarsaState), ("basis", basis, FourierBasis),
+        ("config", config, SarsaConfig), ("task", task, PlanningTask),
+    ):  # fmt: skip
+        if not isinstance(value, kind):
+            raise ValueError(
+                f"{name}: expected a {kind.__name__}, got {type(value).__name__}"
+            )
+    predict = getattr(model, "predict", None)
+    if not callable(predict):
+        raise ValueError(
+            f"model: expected a DynamicsModel, with predict(states, actions), got "
+            f"{type(model).__name__}"
+        )
+    try:
+        inspect.signature(predict).bind(0, 0)
+    except TypeError:
+        raise ValueError(
+            f"model: {type(model).__name__}.predict does not take (states, "
+            "actions); wrap a model of Δs that needs a belief as "
+            "hipmdp.LearnedModel(model, belief)"
+        ) from None
+    except ValueError:  # a signature that cannot be read
+        pass
+    inner = model.model if isinstance(model, LearnedModel) else model
+    n_actions = getattr(inner, "n_actions", None)
+    if is_integer(n_actions) and n_actions != state.weights.shape[0]:
+        raise ValueError(
+            f"state.weights: the agent has {state.weights.shape[0]} actions, the "
+            f"model {int(n_actions)}"
+        )
 
 
 def open_loop_errors(

@@ -449,3 +449,59 @@ def test_open_loop_errors_reject_bad_input() -> None:
     shuffled = data.take(np.array([0, 2, 1, 3, 4]))
     with pytest.raises(ValueError, match="time order"):
         open_loop_errors(model, shuffled, [1])
+
+
+def test_plan_names_an_argument_of_the_wrong_kind() -> None:
+    """Arguments in another order, an int seed or a bare model of Δs failed as
+    AttributeErrors or TypeErrors inside the planning loop."""
+    basis = FourierBasis(1, np.zeros(1), np.ones(1))
+    state, config = init_state(2, basis.n_features), SarsaConfig()
+    s0 = np.zeros((1, 1))
+
+    def call(*args, rng=None):
+        rng = np.random.default_rng(0) if rng is None else rng
+        return plan(*args, s0, 1, rng=rng)
+
+    for args, match in [
+        ((basis, state, config, Corridor(), CORRIDOR_TASK), "state: expected a Sarsa"),
+        ((state, basis, Corridor(), config, CORRIDOR_TASK), "config: expected a Sarsa"),
+        ((state.weights, basis, config, Corridor(), CORRIDOR_TASK), "state: expected"),
+        ((state, basis, config, Corridor(), CORRIDOR_TASK.reward), "task: expected"),
+        ((state, basis, config, object(), CORRIDOR_TASK), "model: expected a Dyn"),
+        ((state, basis, config, BeliefModel(), CORRIDOR_TASK), "LearnedModel"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            call(*args)
+    with pytest.raises(ValueError, match="rng: expected a numpy Generator"):
+        call(state, basis, config, Corridor(), CORRIDOR_TASK, rng=0)
+
+
+def test_plan_refuses_an_agent_with_another_number_of_actions_than_the_model():
+    """An agent with fewer actions than the model planned without a word, never
+    trying the others."""
+
+    class ThreeActions(PlainModel):
+        n_actions = 3
+
+    basis = FourierBasis(1, np.zeros(1), np.ones(1))
+    for model in (ThreeActions(), LearnedModel(ThreeActions())):
+        with pytest.raises(ValueError, match="agent has 2 actions, the model 3"):
+            plan(init_state(2, basis.n_features), basis, SarsaConfig(), model,
+                 CORRIDOR_TASK, np.zeros((1, 1)), 1,
+                 rng=np.random.default_rng(0))  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "reward, terminal, match",
+    [
+        (lambda s2: s2[:, 0], CORRIDOR_TASK.terminal, "task.reward: expected a func"),
+        (lambda s, a: s[:, 0], CORRIDOR_TASK.terminal, "task.reward: expected a func"),
+        (-1.0, CORRIDOR_TASK.terminal, r"task.reward: expected a function"),
+        (CORRIDOR_TASK.reward, lambda s, a, s2: s2[:, 0] > 1, "task.terminal: exp"),
+        (CORRIDOR_TASK.reward, None, "task.terminal: expected a function"),
+    ],
+)
+def test_planning_task_checks_its_functions_signatures(reward, terminal, match):
+    with pytest.raises(ValueError, match=match):
+        PlanningTask(reward, terminal, 10)
+    PlanningTask(lambda *args: args[0][:, 0], lambda s2, extra=0: s2[:, 0] > 1, 10)
