@@ -110,6 +110,10 @@ class GPBaseline:
 
     def log_likelihood(self, data: Transitions) -> float:
         """Σ_i Σ_d log N(Δ[i,d]; mean[i,d], var[i,d]) under `predict`."""
+        if not isinstance(data, Transitions):  # an AttributeError on .states
+            raise ValueError(
+                f"data: expected hipmdp.Transitions, got {type(data).__name__}"
+            )
         mean, var = self.predict(data.states, data.actions)
         return gaussian_loglik(data.deltas, mean, var)
 

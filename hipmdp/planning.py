@@ -134,6 +134,11 @@ class LearnedModel:
     )
 
     def __post_init__(self) -> None:
+        if not callable(getattr(self.model, "predict", None)):  # e.g. (belief, model)
+            raise ValueError(
+                f"model: expected a model of Δs with predict, got "
+                f"{type(self.model).__name__} (LearnedModel(model, belief))"
+            )
         d = _state_dim(self.model)
         object.__setattr__(self, "angle_dims", self._checked_angle_dims(d))
         if hasattr(self.model, "mean_predictor"):

@@ -198,6 +198,15 @@ def test_bad_queries(states, actions, match):
         model.predict(states, actions)
 
 
+def test_log_likelihood_refuses_what_is_not_transitions():
+    """Arrays where Transitions belong failed with an AttributeError on .states
+    (the HiP-MDP's log_likelihood named the argument)."""
+    batch = _batch(np.random.default_rng(7))
+    model = batch_only(batch, rng=np.random.default_rng(7))
+    with pytest.raises(ValueError, match="data: expected hipmdp.Transitions, got tup"):
+        model.log_likelihood((batch.states, batch.actions, batch.next_states))
+
+
 def test_periodic_baseline_fast_path_and_options():
     # dimension 1 declared an angle: the fitted GPs carry it, mean_predictor agrees
     # with predict_mean and both see a 2π shift of s_1 as the same state

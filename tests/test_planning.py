@@ -148,6 +148,9 @@ def test_learned_model_checks_angles_and_belief_when_built() -> None:
     with pytest.raises(ValueError, match="belief: the model's mean_predictor takes"):
         LearnedModel(Average(), "b")
     assert LearnedModel(Average(), None, (5,)).angle_dims == (5,)  # no state_dim
+    # a model and belief passed the other way round failed at the first predict
+    with pytest.raises(ValueError, match="model: expected a model of Δs with predict"):
+        LearnedModel("b", Fitted())
 
 
 def test_learned_model_checks_angles_against_what_knows_the_state_dimension():
