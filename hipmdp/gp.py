@@ -193,9 +193,9 @@ def fit_hyperparameters(
         warnings.warn(
             "fit_hyperparameters: the search stopped at its starting point, where "
             "its first steps met kernel matrices that were not positive definite "
-            f"({len(failed)} of its evaluations). Inputs far from 0 on the scale "
-            "of their spread lose precision in the kernel's distances: centre the "
-            "states (subtract their mean) before fitting.",
+            f"({len(failed)} of its evaluations): the hyperparameters returned "
+            "are the start, not an optimum. Check the inputs for near-duplicates "
+            "and the targets' scale.",
             RuntimeWarning,
             stacklevel=2,
         )

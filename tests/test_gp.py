@@ -231,27 +231,43 @@ def test_hyper_set_refuses_bad_input_before_fitting(change, match):
         )  # fmt: skip
 
 
-def test_a_search_stuck_at_its_start_by_lost_precision_warns():
-    """Inputs 100 spreads from 0 lose the kernel distances' precision at the
-    search's short length scales; it stopped at its starting point silently.
-    The same data centred fit without a warning."""
+def test_inputs_far_from_0_fit_as_centred_ones():
+    """Inputs 100 spreads from 0 lost the kernel distances' precision at the
+    search's short length scales: it stopped at its starting point (it warned).
+    The kernels now centre such inputs, so they fit as the centred data do."""
     rng = np.random.default_rng(0)
     X = rng.uniform(0, 1, size=(200, 1))
     y = np.sin(6 * X[:, 0]) + 1e-3 * rng.normal(size=200)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         centred = fit_hyperparameters([(X - 0.5, y)])
-    with pytest.warns(RuntimeWarning, match="centre the states"):
         shifted = fit_hyperparameters([(X + 100.0, y)])
     start = gp._bounds([(X + 100.0, y)])[0]
-    np.testing.assert_array_equal(shifted.to_theta(), start)
+    assert np.abs(centred.to_theta() - start).max() > 0.1  # it moved
+    np.testing.assert_allclose(shifted.to_theta(), centred.to_theta(), atol=1e-4)
+
+
+def test_a_search_stuck_at_its_start_warns(monkeypatch):
+    """Kernel matrices that are not positive definite at every θ the search
+    tries: it returns its start, and says so."""
+    rng = np.random.default_rng(0)
+    X = rng.uniform(0, 1, size=(50, 1))
+    y = np.sin(6 * X[:, 0])
+
+    def fails(*args, **kwargs):
+        raise np.linalg.LinAlgError("not positive definite")
+
+    monkeypatch.setattr(gp, "neg_log_marginal_likelihood", fails)
+    with pytest.warns(RuntimeWarning, match="the start, not an optimum"):
+        stuck = fit_hyperparameters([(X, y)])
+    start = gp._bounds([(X, y)])[0]
+    np.testing.assert_allclose(stuck.to_theta(), start, rtol=1e-12)
     # the documented start: ℓ = std(X), σ_f² = mean(y²), σ_n² = mean(y²) / 100
-    np.testing.assert_allclose(shifted.lengthscales, X.std(0), rtol=1e-12)
+    np.testing.assert_allclose(stuck.lengthscales, X.std(0), rtol=1e-12)
     scale = np.mean(y * y)
     np.testing.assert_allclose(
-        [shifted.signal_var, shifted.noise_var], [scale, scale / 100], rtol=1e-12
+        [stuck.signal_var, stuck.noise_var], [scale, scale / 100], rtol=1e-12
     )
-    assert np.abs(centred.to_theta() - start).max() > 0.1  # it moved
 
 
 def _hyper_set_args():

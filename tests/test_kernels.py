@@ -54,18 +54,65 @@ def test_bad_parameters_raise():
 
 
 def test_scaled_distances_are_never_negative():
-    """Points 3000-10000 length scales from the origin (|a|² ≈ 1.4e8): the
-    expanded form |a|² + |b|² - 2 a·b of a point's distance to itself is
-    round-off of ~1.4e8·2e-16 ≈ 3e-8, of either sign (5 of these 40 negative
-    when written); it is clipped at 0. The distances between points (~10-1000)
-    are the direct formula's to 1e-4, over a thousand times that round-off."""
+    """The expanded form |a|² + |b|² - 2 a·b of a point's distance to itself is
+    round-off of either sign; it is clipped at 0."""
     rng = np.random.default_rng(0)
-    X = rng.normal(size=(40, 3)) + 1e3
+    X = rng.normal(size=(40, 3)) * [1.0, 3.0, 0.5]
     ell = np.array([0.1, 0.2, 0.3])
     d2 = kernels.scaled_sqdist(X, X, ell)
     assert np.all(d2 >= 0.0)
     direct = (((X[:, None] - X[None]) / ell) ** 2).sum(-1)
-    np.testing.assert_allclose(d2, direct, atol=1e-4)
+    np.testing.assert_allclose(d2, direct, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("offset", [0.0, 30.0, 1e3, 1e6])
+def test_distances_do_not_depend_on_where_the_inputs_lie(offset):
+    """Inputs of spread ~0.3 offset from 0 (an altitude in metres, a position on a
+    long track): the expanded form alone lost ~offset²/0.3² of the distances'
+    relative precision (at 1e3, r² off by ~1e-4 of the 1e-2..10 the direct
+    formula gives; a user's fit failed at 3e3). Centred first, every distance
+    is the direct formula's to 1e-12, and the angle columns (chords) too."""
+    rng = np.random.default_rng(4)
+    X1 = 0.3 * rng.normal(size=(30, 3)) + [offset, -offset, 0.0]
+    X2 = 0.3 * rng.normal(size=(20, 3)) + [offset, -offset, 0.0]
+    ell = np.array([0.2, 0.5, 0.7])
+    for periodic in ((), (2,)):
+        delta = X1[:, None] - X2[None]
+        if periodic:
+            delta[..., 2] = 2 * np.sin(delta[..., 2] / 2)
+        direct = ((delta / ell) ** 2).sum(-1)
+        got = kernels.scaled_sqdist(X1, X2, ell, periodic)
+        np.testing.assert_allclose(got, direct, rtol=1e-12, atol=1e-12)
+        # one row in X2: the centre is taken from X1
+        one = kernels.scaled_sqdist(X1, X2[:1], ell, periodic)
+        np.testing.assert_allclose(one, direct[:, :1], rtol=1e-12, atol=1e-12)
+    coef = [rng.normal(size=(1, 20))]
+    means = KernelMeans([X2], ell[None, None], np.ones((1, 1)), coef)
+    want = np.exp(-0.5 * (((X1[:, None] - X2[None]) / ell) ** 2).sum(-1)) @ coef[0][0]
+    got = means(X1, np.zeros(30, dtype=int))[:, 0]
+    np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
+
+
+def test_inputs_near_zero_are_not_centred():
+    """Every experiment's states lie within a few standard deviations of 0: their
+    distances are the plain expanded form, bit for bit, so no reported number
+    moves with the centring."""
+    rng = np.random.default_rng(5)
+    X1 = rng.normal(size=(30, 3)) + [3.0, -2.0, 0.0]  # 3 sd from 0
+    X2 = rng.normal(size=(20, 3))
+    ell = np.array([0.2, 0.5, 0.7])
+    A, B = X1 / ell, X2 / ell
+    plain = (A * A).sum(1)[:, None] + (B * B).sum(1)[None, :] - 2.0 * (A @ B.T)
+    got = kernels.scaled_sqdist(X1, X2, ell)
+    np.testing.assert_array_equal(got, np.maximum(plain, 0.0))
+    assert kernels.centre(X2, np.arange(3)) is None
+    far = X2 + [0.0, 9.0 * X2[:, 1].std() - X2[:, 1].mean(), 0.0]  # 9 sd from 0
+    np.testing.assert_allclose(
+        kernels.centre(far, np.arange(3)), [0, far[:, 1].mean(), 0]
+    )
+    # an angle's cos/sin columns are never centred; nor is a set of one row
+    assert kernels.centre(np.full((5, 1), 0.99), np.array([0]), periodic=(0,)) is None
+    assert kernels.centre(far[:1], np.arange(3)) is None
 
 
 def test_kernel_means_are_the_per_output_kernel_sums(monkeypatch):

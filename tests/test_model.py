@@ -434,6 +434,32 @@ def test_a_belief_is_filtered_on_one_instance(fitted):
             call(data)
 
 
+def test_states_far_from_0_fit_as_the_same_states_near_0(fitted):
+    """States 1000 from 0 on dimension 0 (an altitude in metres, a long track's
+    position): the kernels' expanded distances lost their precision there and
+    the fit failed (a kernel matrix not positive semi-definite); it now gives
+    the fit of the same states near 0, up to round-off."""
+
+    def shifted(t):
+        return dataclasses.replace(
+            t, states=t.states + [1e3, 0.0], next_states=t.next_states + [1e3, 0.0]
+        )
+
+    far = fit(shifted(_batch()), CONFIG, rng=np.random.default_rng(1))
+    np.testing.assert_array_equal(far.z, fitted.z)
+    rng = np.random.default_rng(3)
+    data = _instance(7, np.array([0.5, -0.5]), 80, rng)
+    first, rest = data.head(40), data.take(np.arange(40, 80))
+    got = far.predict(
+        shifted(rest).states, rest.actions, far.update(far.prior(), shifted(first))
+    )
+    want = fitted.predict(
+        rest.states, rest.actions, fitted.update(fitted.prior(), first)
+    )
+    for x, y in zip(got, want, strict=True):
+        np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-9)
+
+
 def test_a_belief_over_another_models_weights_is_refused(fitted, tmp_path):
     """A weight means nothing without its basis functions: a belief from a model
     of the same size but other basis functions is refused by every method that
