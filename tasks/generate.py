@@ -844,9 +844,11 @@ def generate(
                 while queue and len(pending) < in_flight:
                     pending.add(pool.submit(run_shard, queue.pop()))
                 done, pending = cf.wait(pending, return_when=cf.FIRST_COMPLETED)
-                # the finished shards first: a failed one's error (Ctrl-C in the
-                # inline executor) is raised once they are kept
-                for future in sorted(done, key=lambda f: f.exception() is not None):
+                # the finished shards first: a failed or cancelled one's error
+                # (Ctrl-C in the inline executor, a lost Dask scheduler) is
+                # raised once they are kept (`exception()` of a cancelled future
+                # raises, so `cancelled()` is asked first)
+                for future in sorted(done, key=_failed):
                     result = future.result()
                     entry = entries[result.index]
                     entry["sha256"] = shards.write_shard(out, result.index, result.data)
@@ -862,6 +864,11 @@ def generate(
     shards.write_manifest(out, manifest)
     shards.remove_progress(out)
     return Generated(path, manifest, tuple(todo))
+
+
+def _failed(future: cf.Future) -> bool:
+    """Whether a finished future holds no result: cancelled or failed."""
+    return future.cancelled() or future.exception() is not None
 
 
 def main(argv: Sequence[str] | None = None) -> Generated:
@@ -886,6 +893,13 @@ def main(argv: Sequence[str] | None = None) -> Generated:
             result = generate(config, prepared=prepared)
         except OSError as error:  # a scheduler that cannot be reached, a full disk
             parser.exit(1, f"{parser.prog}: error: {error}\n")
+        except cf.CancelledError:  # Dask cancels every task when it loses the scheduler
+            stopped = _interrupted(config, argv, started=True, what="stopped")
+            parser.exit(
+                1,
+                f"{parser.prog}: error: shards were cancelled (on a Dask cluster: "
+                f"the scheduler was lost); {stopped}\n",
+            )
     except KeyboardInterrupt:
         stopped = _interrupted(config, argv, started=started)
         parser.exit(130, f"{parser.prog}: {stopped}\n")
@@ -901,18 +915,21 @@ def main(argv: Sequence[str] | None = None) -> Generated:
     return result
 
 
-def _interrupted(config: Config, argv: list[str], *, started: bool) -> str:
-    """What a run stopped by Ctrl-C leaves, and the command that continues it."""
+def _interrupted(
+    config: Config, argv: list[str], *, started: bool, what: str = "interrupted"
+) -> str:
+    """What a run stopped by Ctrl-C (or, `what`, otherwise) leaves, and the
+    command that continues it."""
     command = ["python", "-m", "tasks.generate", *argv]
     manifest = shards.read_manifest(config.out) if started else None
     if manifest is None:  # stopped before the run wrote anything
-        return f"interrupted before the run began; run again: {shlex.join(command)}"
+        return f"{what} before the run began; run again: {shlex.join(command)}"
     entries = manifest["shards"]
     kept = sum(e["sha256"] is not None for e in entries)  # as a resume finds them
     plus = "" if config.resume else " plus --resume"
     resume = shlex.join(command + ([] if config.resume else ["--resume"]))
     return (
-        f"interrupted: {kept} of {len(entries)} shards finished are kept in "
+        f"{what}: {kept} of {len(entries)} shards finished are kept in "
         f"{config.out}; resume with the same command{plus}: {resume}"
     )
 

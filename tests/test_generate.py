@@ -627,6 +627,50 @@ def test_ctrl_c_keeps_the_finished_shards_and_says_how_to_resume(
         assert (out / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()
 
 
+@pytest.mark.parametrize("cancelled", [0, 1])
+def test_cancelled_shards_keep_the_finished_ones_and_say_how_to_resume(
+    tmp_path, capsys, monkeypatch, cancelled
+):
+    """A Dask client that loses its scheduler cancels every task: the run ended
+    with a traceback of `CancelledError` raised while sorting the finished
+    futures (`exception()` of a cancelled one raises), before the finished
+    shards among them were kept. Now they are kept, and one line says how to
+    resume; the resumed run has the bytes of an uninterrupted one."""
+    import concurrent.futures as cf
+    import contextlib
+
+    argv = ["--domain", "acrobot", "--seed", "3", *TINY, *QUIET]
+
+    class Cancels(generate.InlineExecutor):
+        def submit(self, fn, /, *args, **kwargs):
+            if args[0].index != cancelled:
+                return super().submit(fn, *args, **kwargs)
+            future: cf.Future = cf.Future()
+            future.cancel()
+            future.set_running_or_notify_cancel()  # as a cancelled task's is
+            return future
+
+    out = tmp_path / "stopped"
+    monkeypatch.setattr(
+        generate, "executor_for", lambda *a: contextlib.nullcontext(Cancels())
+    )
+    with pytest.raises(SystemExit) as stopped:
+        generate.main([*argv, "--out", str(out)])
+    assert stopped.value.code == 1
+    resume = ["python", "-m", "tasks.generate", *argv, "--out", str(out), "--resume"]
+    assert capsys.readouterr().err == (
+        "python -m tasks.generate: error: shards were cancelled (on a Dask "
+        "cluster: the scheduler was lost); stopped: 1 of 2 shards finished are "
+        f"kept in {out}; resume with the same command plus --resume: "
+        f"{shlex.join(resume)}\n"
+    )
+    monkeypatch.undo()
+    assert generate.main(resume[3:]).redone == (cancelled,)
+    generate.main([*argv, "--out", str(tmp_path / "whole")])
+    for name in ("manifest.json", "shard-00000.npz", "shard-00001.npz"):
+        assert (out / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()
+
+
 def test_pool_workers_end_quietly_on_ctrl_c():
     """Ctrl-C reaches every process in the terminal's group: an idle pool worker
     printed a KeyboardInterrupt traceback; its handler now raises SystemExit,
