@@ -324,6 +324,7 @@ def _validate(args: argparse.Namespace) -> Config:
     if args.scheduler is not None and args.workers == 1:
         if importlib.util.find_spec("distributed") is None:
             raise ValueError('--scheduler needs Dask: pip install -e ".[dask]"')
+        _check_scheduler_address(args.scheduler)
     names = [f.name for f in dataclasses.fields(spec.params_type)]
     vary = dict(DEFAULT_VARY[args.domain])
     if args.vary:
@@ -367,6 +368,30 @@ def _validate(args: argparse.Namespace) -> Config:
         mixed_software=args.mixed_software,
         progress=not args.no_progress,
         book_inertia=args.book_inertia,
+    )
+
+
+def _check_scheduler_address(address: str) -> None:
+    """Raise ValueError for a `--scheduler` that is no scheduler address (a port
+    alone, the dashboard's http:// URL): Dask's own errors were tracebacks."""
+    from distributed.comm import get_address_host_port, parse_address
+    from distributed.comm.registry import get_backend
+
+    try:
+        scheme, _ = parse_address(address)
+        get_backend(scheme)  # an unknown scheme (http) raises
+        if scheme not in ("tcp", "tls", "ws", "wss"):  # inproc: a test's cluster
+            return
+        _, port = get_address_host_port(address)
+    except ValueError as error:
+        reason = str(error)
+    else:
+        if 0 < port < 65536:
+            return
+        reason = f"port {port} is out of range"
+    raise ValueError(
+        f"--scheduler {address!r}: {reason}; expected the scheduler's address, "
+        "tcp://HOST:PORT (port 8786 by default; not the dashboard's http:// one)"
     )
 
 

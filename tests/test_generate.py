@@ -502,6 +502,35 @@ def test_instances_are_accepted_up_to_the_limit(tmp_path):
         dataclasses.replace(config, instances=MAX_GRID_POINTS + 1)
 
 
+@pytest.mark.parametrize(
+    "address, reason",
+    [
+        ("8786", "missing port number"),
+        ("", "missing port number"),
+        ("http://127.0.0.1:8787", "unknown address scheme 'http'"),
+        ("tcp://127.0.0.1:99999", "port 99999 is out of range"),
+        ("tcp://host:port", "invalid literal"),
+    ],
+)
+def test_a_scheduler_address_that_is_none_is_a_usage_error(
+    tmp_path, capsys, address, reason
+):
+    """A port alone or the dashboard's URL ended in a traceback of Dask's (a
+    port out of range, in the connect timeout): a usage error now, before
+    anything is written."""
+    pytest.importorskip("distributed")
+    out = tmp_path / "run"
+    with pytest.raises(SystemExit) as stopped:
+        generate.main(
+            ["--domain", "acrobot", "--scheduler", address, "--out", str(out)]
+        )
+    assert stopped.value.code == 2
+    err = capsys.readouterr().err
+    assert f"--scheduler {address!r}: " in err and reason in err
+    assert "expected the scheduler's address, tcp://HOST:PORT" in err
+    assert not out.exists()
+
+
 def test_a_scheduler_without_dask_installed_stops_before_anything(
     tmp_path, capsys, monkeypatch
 ):
