@@ -307,10 +307,15 @@ class Dataset:
     def _read(self, entry: Mapping[str, Any]) -> bytes:
         path = self.directory / entry["file"]
         resume = f"--resume (the command that made the run, --out {self.directory})"
-        if entry.get("sha256") is None or not path.is_file():
+        if entry.get("sha256") is None:
             raise ValueError(
                 f"{self.directory}: shard {entry['file']} is not finished; continue "
                 f"it with {resume}"
+            )
+        if not path.is_file():  # finished, then deleted or not copied
+            raise ValueError(
+                f"{self.directory}: shard {entry['file']} is missing (the manifest "
+                f"lists it as finished); redo it with {resume}"
             )
         data = path.read_bytes()
         if sha256(data) != entry["sha256"]:
