@@ -655,7 +655,9 @@ class Transitions:
             dt = float(dt)
             if not (np.isfinite(dt) and dt > 0):
                 raise ValueError(f"dt: expected a finite number > 0, got {self.dt}")
-            if d % 2 or any(i >= d // 2 for i in angles):
+            # dt unwraps angle changes with their velocities; without angles it is
+            # only recorded (a fitted model checks it), whatever the layout
+            if angles and (d % 2 or any(i >= d // 2 for i in angles)):
                 raise ValueError(
                     f"dt: needs the (qpos, qvel) layout, an even state dimension with"
                     f" angles in the first half; got D = {d}, angle_dims {angles}"

@@ -118,6 +118,8 @@ class LearnedModel:
         belief: the weight belief passed to ``model.predict``, or ``None`` to call
             it without one. Planning "with the posterior-mean weights" is the
             HiP-MDP's ``predict`` with the current belief (its mean prediction).
+            The adapter keeps this belief: after ``model.update``, build a new
+            ``LearnedModel`` with the updated one.
         angle_dims: state dimensions that are angles; for a model that records
             the angles it was fitted with (``info["angle_dims"]``, as a fitted
             HiP-MDP does), the same ones, or a ValueError says they differ. They
@@ -210,7 +212,16 @@ class StepwiseModel:
         s, a = _check_batch(states, actions)
         out = np.empty_like(s)
         for n in range(s.shape[0]):
-            s2 = np.asarray(self.step(s[n], int(a[n])), dtype=np.float64)
+            s2 = self.step(s[n], int(a[n]))
+            # a tuple holding an array: numpy's error was "inhomogeneous shape"
+            # (a tuple of numbers is a state)
+            if isinstance(s2, tuple) and any(np.ndim(x) for x in s2):
+                raise ValueError(
+                    f"step: expected the next state alone, got a tuple of "
+                    f"{len(s2)} for row {n} (a gym-style (state, reward, done, ...)? "
+                    "the task's reward and terminal give those)"
+                )
+            s2 = np.asarray(s2, dtype=np.float64)
             if s2.shape != s.shape[1:]:
                 raise ValueError(
                     f"step: expected a next state of shape (D,) = {s.shape[1:]}, got "
@@ -280,16 +291,19 @@ class StepResult(NamedTuple):
 
 def _checked_rows(name: str, value: Any, n: int, kind: str) -> Array:
     """A task's answer for ``n`` rows: shape ``(n,)``, finite numbers (``kind``
-    ``"f"``) or booleans (``"b"``); a scalar reward was spread over every
-    episode, and a float terminal of 0.5 counted as reached."""
+    ``"f"``) or booleans (``"b"``; 0/1 integers too, as `Transitions` dones); a
+    scalar reward was spread over every episode, and a float terminal of 0.5
+    counted as reached."""
     out = np.asarray(value)
+    if kind == "b" and out.dtype.kind in "iu" and np.isin(out, (0, 1)).all():
+        out = out.astype(bool)
     ok = out.shape == (n,) and (
         out.dtype.kind == "b"
         if kind == "b"
         else out.dtype.kind in "iuf" and bool(np.all(np.isfinite(out)))
     )
     if not ok:
-        what = "booleans" if kind == "b" else "finite numbers"
+        what = "booleans (or 0/1)" if kind == "b" else "finite numbers"
         raise ValueError(
             f"{name}: expected {what} of shape ({n},), one per active episode, got "
             f"{out.dtype} {out.shape}"

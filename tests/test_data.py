@@ -707,6 +707,8 @@ def test_dt_is_kept_by_selection_files_and_checked(tmp_path):
         make(d=3, dt=0.1, angle_dims=(0,))
     with pytest.raises(ValueError, match=r"dt: needs the \(qpos, qvel\) layout"):
         make(d=4, dt=0.1, angle_dims=(2,))  # a velocity as an angle
+    # without angles dt is only recorded: any state dimension (3 was refused)
+    assert make(d=3, dt=0.1, angle_dims=()).dt == 0.1
 
 
 def test_negative_indices_are_refused():

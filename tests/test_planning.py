@@ -216,6 +216,11 @@ def test_stepwise_model_requires_one_finite_next_state_per_row() -> None:
             rf"got shape {got}",
         ):
             StepwiseModel(step).predict(states, actions)
+    gym = StepwiseModel(lambda s, a: (s, -1.0, False))  # gym's (state, reward, done)
+    with pytest.raises(ValueError, match="step: expected the next state alone, got a"):
+        gym.predict(states, actions)
+    as_tuple = StepwiseModel(lambda s, a: (s[0] + a, s[1]))  # a state, as numbers
+    np.testing.assert_array_equal(as_tuple.predict(states, actions)[:, 0], [1, 2, 3])
     model = StepwiseModel(lambda s, a: s / (a - 1))  # action 1 divides by zero
     with np.errstate(divide="ignore"):
         with pytest.raises(ValueError, match=r"finite next state.* row 1 \(action 1\)"):
@@ -337,9 +342,9 @@ def test_simulated_episodes_take_exactly_one_integer_action_per_episode() -> Non
         (dataclasses.replace(CORRIDOR_TASK, reward=lambda s, a, s2: s[:, 0] * np.nan),
          r"task.reward: expected finite numbers"),
         (dataclasses.replace(CORRIDOR_TASK, terminal=lambda s2: s2[:, 0] * 0 + 0.5),
-         r"task.terminal: expected booleans of shape \(2,\)"),
+         r"task.terminal: expected booleans \(or 0/1\) of shape \(2,\)"),
         (dataclasses.replace(CORRIDOR_TASK, terminal=lambda s2: False),
-         r"task.terminal: expected booleans of shape \(2,\)"),
+         r"task.terminal: expected booleans \(or 0/1\) of shape \(2,\)"),
     ],
 )  # fmt: skip
 def test_a_tasks_answer_must_be_one_per_active_episode(task, match) -> None:
@@ -348,6 +353,21 @@ def test_a_tasks_answer_must_be_one_per_active_episode(task, match) -> None:
     episodes = SimulatedEpisodes(Corridor(), task, np.zeros((2, 1)))
     with pytest.raises(ValueError, match=match):
         episodes.step(np.array([1, 0]))
+
+
+def test_a_terminal_of_0_1_integers_is_taken_as_booleans() -> None:
+    """As `Transitions` takes 0/1 dones (it was refused as not booleans)."""
+    ints = dataclasses.replace(
+        CORRIDOR_TASK, terminal=lambda s2: CORRIDOR_TASK.terminal(s2).astype(int)
+    )
+    runs = [
+        SimulatedEpisodes(Corridor(), t, np.zeros((2, 1)))
+        for t in (CORRIDOR_TASK, ints)
+    ]
+    for _ in range(12):  # the end is 10 steps away
+        a, b = (r.step(np.array([1, 1])) for r in runs)
+        np.testing.assert_array_equal(a.terminal, b.terminal)
+    assert runs[1].reached.any()  # the corridor's end was reached, and counted
 
 
 def test_non_finite_model_output_is_an_error() -> None:
