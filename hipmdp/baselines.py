@@ -242,6 +242,15 @@ def batch_plus_train(
     """One GP on batch and train data together; every train transition is kept
     (kwargs: see fit_gp_baseline, but `name` and `keep`)."""
     _own(kwargs, "name", "keep")
+    if not isinstance(train, Transitions):
+        raise ValueError(f"train: expected hipmdp.Transitions, got {type(train)}")
+    # the two passed the other way round kept the whole batch: a GP on all of it
+    if train.instance_ids.size > 1:
+        raise ValueError(
+            f"train: expected one new instance's transitions, got instances "
+            f"{train.instance_ids.tolist()[:10]} (batch_plus_train takes (batch, "
+            "train))"
+        )
     both = Transitions.concatenate([batch, train])
     keep = np.concatenate([np.zeros(len(batch), bool), np.ones(len(train), bool)])
     return fit_gp_baseline(both, rng=rng, keep=keep, name="batch + train", **kwargs)

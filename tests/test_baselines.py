@@ -114,6 +114,9 @@ def test_subset_of_data_and_kept_train_points():
         # every training state of action a is among the conditioning points
         hits = (X[None, :, :] == train.states[train.actions == a][:, None, :]).all(-1)
         assert hits.any(1).sum() == n_train_a
+    # the two the other way round: the whole batch kept, beyond n_max, refused
+    with pytest.raises(ValueError, match=r"train: expected one new instance's"):
+        batch_plus_train(train, batch, rng=np.random.default_rng(3), n_max=30)
 
 
 def test_train_only_beats_batch_only_on_a_shifted_instance():
