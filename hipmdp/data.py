@@ -235,6 +235,7 @@ _DIGEST_DTYPES = {"f": "<f8", "i": "<i8", "u": "<i8", "b": "|b1"}
 _DAMAGED = (
     zipfile.BadZipFile, zlib.error, EOFError, ValueError, NotImplementedError,
     OSError,  # e.g. a seek to a damaged offset (the file itself opened)
+    RuntimeError,  # zipfile: a member flagged encrypted (one bit of its header)
 )  # fmt: skip
 
 
@@ -591,11 +592,14 @@ class ParameterTable:
                     f"{path}: an incomplete parameter table (missing "
                     f"{', '.join(missing)})"
                 )
-            return cls(
-                instances=f["table_instances"],
-                names=tuple(str(s) for s in f["table_names"]),
-                values=f["table_values"],
-            )
+            try:
+                return cls(
+                    instances=f["table_instances"],
+                    names=tuple(str(s) for s in f["table_names"]),
+                    values=f["table_values"],
+                )
+            except ValueError as err:  # a damaged array: name the file too
+                raise ValueError(f"{path}: {err}") from None
 
 
 @dataclass(frozen=True, eq=False)
@@ -923,13 +927,17 @@ class Transitions:
                     f"{path}: not a complete hipmdp Transitions file (missing "
                     f"{', '.join(missing)})"
                 )
-            return cls(
-                states=f["states"],
-                actions=f["actions"],
-                next_states=f["next_states"],
-                instances=f["instances"],
-                rewards=f["rewards"] if "rewards" in f else None,
-                dones=f["dones"] if "dones" in f else None,
-                angle_dims=f["angle_dims"].tolist(),  # checked as integers
-                dt=_scalar_dt(path, f["dt"]) if "dt" in f else None,
-            )
+            arrays = {
+                "states": f["states"],
+                "actions": f["actions"],
+                "next_states": f["next_states"],
+                "instances": f["instances"],
+                "rewards": f["rewards"] if "rewards" in f else None,
+                "dones": f["dones"] if "dones" in f else None,
+                "angle_dims": f["angle_dims"].tolist(),  # checked as integers
+                "dt": _scalar_dt(path, f["dt"]) if "dt" in f else None,
+            }
+        try:
+            return cls(**arrays)
+        except ValueError as err:  # a damaged array: name the file too
+            raise ValueError(f"{path}: {err}") from None

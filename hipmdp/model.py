@@ -108,6 +108,8 @@ _ARRAYS = (
     "mu_w",
     "instance_ids",
 )
+#: The arrays a model file may hold besides ``_ARRAYS`` (written when set).
+_OPTIONAL_ARRAYS = ("residual_var", "interp_var_scale", "periodic")
 
 
 def interpolation_coefficients(support: Array, hyper: HyperSet, f: Array) -> Array:
@@ -510,6 +512,16 @@ def load(path: str | os.PathLike) -> HipMDP:
         missing = [k for k in (*_ARRAYS, "meta_json") if k not in npz.files]
         if missing:
             raise ValueError(f"{path}: not a HiP-MDP model file, missing {missing}")
+        # a renamed optional array (a damaged member name: zipfile checks the
+        # data's CRC, not the central directory's names) would read as absent,
+        # and the model would load without its calibrated error or periodicity
+        known = {*_ARRAYS, *_OPTIONAL_ARRAYS, "meta_json"}
+        unknown = sorted(set(npz.files) - known)
+        if unknown:
+            raise ValueError(
+                f"{path}: holds arrays no HiP-MDP model file has "
+                f"({', '.join(unknown)}): a damaged member name, or not a model file"
+            )
         arr = {k: npz[k] for k in _ARRAYS}
         optional = {
             k: npz[k] if k in npz.files else None
@@ -538,7 +550,7 @@ def load(path: str | os.PathLike) -> HipMDP:
         return HipMDP(
             support=arr["support"],
             hyper=hyper,
-            z=arr["z"].astype(bool),
+            z=arr["z"],  # checked: booleans, or 0/1 (2 or 0.5 is not a flag)
             f=arr["f"],
             weights=arr["weights"],
             mu_w=arr["mu_w"],

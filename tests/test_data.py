@@ -850,3 +850,51 @@ def test_temporaries_are_matched_by_the_whole_file_name(tmp_path):
     with atomic_folder(tmp_path / "out") as tmp:
         (tmp / "x").write_bytes(b"x")
     assert (tmp_path / ".out.abcd1234.tmp").read_bytes() == b"not a folder"
+
+
+def _flag_first_member_encrypted(path):
+    """Set bit 0 (encrypted) of the first central-directory entry's flags: one
+    bit, on which zipfile raises RuntimeError ("password required")."""
+    raw = bytearray(path.read_bytes())
+    end = raw.rfind(b"PK\x05\x06")
+    directory = int.from_bytes(raw[end + 16 : end + 20], "little")
+    raw[directory + 8] ^= 1
+    path.write_bytes(bytes(raw))
+
+
+def test_a_member_flagged_encrypted_is_refused_by_name(tmp_path):
+    """One flipped bit can mark a member encrypted; zipfile's RuntimeError is
+    reported as a damaged file, naming it and the array (``load_npz``, which
+    every loader reads through)."""
+    path = make(n=10).save(tmp_path / "x.npz")
+    _flag_first_member_encrypted(path)
+    with pytest.raises(ValueError, match=f"{path}: array .* encrypted"):
+        Transitions.load(path)
+
+
+@pytest.mark.parametrize(
+    ("name", "value", "match"),
+    [
+        ("states", lambda x: np.where(x == x[0, 0], np.nan, x), "states: non-finite"),
+        ("actions", lambda x: x[:-1], r"actions: expected shape"),
+        ("instances", lambda x: x + 0.5, "instances: expected integers"),
+        ("table_values", lambda x: x[:, :1], r"values: expected shape"),
+    ],
+)
+def test_load_names_the_file_of_an_invalid_array(tmp_path, name, value, match):
+    """An array that reads but fails the checks (a hand-edited or foreign file)
+    is refused naming the file as well as the field."""
+    from hipmdp.data import ParameterTable
+
+    data = make(n=10)
+    table = ParameterTable(
+        data.instance_ids, ("m", "l"), np.ones((len(data.instance_ids), 2))
+    )
+    path = data.save(tmp_path / "x.npz", table)
+    with np.load(path, allow_pickle=False) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    arrays[name] = value(arrays[name])
+    np.savez(path, **arrays)
+    loader = ParameterTable.load if name.startswith("table_") else Transitions.load
+    with pytest.raises(ValueError, match=f"{path}: {match}"):
+        loader(path)

@@ -759,3 +759,34 @@ def test_periodic_interpolation_variance_is_the_dense_formula(fitted):
             want = g.signal_var - k @ np.linalg.solve(K + g.noise_var * np.eye(m), k)
             # round-off of a solve with K + σ² I (condition ≤ σ_f²/σ² ~ 1e6 here)
             np.testing.assert_allclose(v[i, d], max(want, 0.0), rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.parametrize("member", ["residual_var", "interp_var_scale", "periodic"])
+def test_load_refuses_a_renamed_optional_array(fitted, tmp_path, member):
+    """An optional array whose member name is damaged (the central directory's
+    names have no checksum) would read as absent, and the model would load
+    without it: refused, naming the file and the unknown array."""
+    path = fitted.save(tmp_path / "model.npz")
+    with np.load(path, allow_pickle=False) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    arrays.setdefault("periodic", np.array([0]))  # as a periodic model's file
+    arrays.setdefault("residual_var", np.ones(arrays["signal_var"].shape))
+    arrays.setdefault("interp_var_scale", np.ones(arrays["signal_var"].shape))
+    arrays[member[:-1] + member[-1].upper()] = arrays.pop(member)
+    np.savez(path, **arrays)
+    with pytest.raises(ValueError, match="model.npz: holds arrays no HiP-MDP model"):
+        load(path)
+
+
+@pytest.mark.parametrize("value", [2, -1, 0.5])
+def test_load_refuses_a_z_that_is_not_flags(fitted, tmp_path, value):
+    """z in a file is checked as the constructor checks it (booleans or 0/1),
+    not cast to bool first, which read 2, -1 or 0.5 as True."""
+    path = fitted.save(tmp_path / "model.npz")
+    with np.load(path, allow_pickle=False) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    arrays["z"] = np.where(arrays["z"], value, 0)
+    arrays["z"][0] = 1
+    np.savez(path, **arrays)
+    with pytest.raises(ValueError, match="model.npz: z: expected booleans"):
+        load(path)
