@@ -510,8 +510,8 @@ def cli(argv: list[str] | None = None) -> int:
         parser.error(f"--show: expected >= 1, got {args.show}")
     try:
         result = main(args.run_a, args.run_b, out=args.out)
-    except (ValueError, FileNotFoundError) as err:
-        parser.error(str(err))
+    except (ValueError, OSError) as err:  # OSError: e.g. a file that is a folder
+        parser.error(str(err))  # (status 2: a traceback's 1 would read "differ")
     print(report(result, args.show))
     # as diff's: 0 the same (where both runs have results, as identical ones
     # are), 1 they differ, 2 trouble (argparse's usage errors)

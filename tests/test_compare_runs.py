@@ -479,3 +479,22 @@ def test_the_report_says_how_many_more_rows_only_when_there_are_more(tmp_path):
     assert len(result.config) == 2
     assert "more (--show N" not in report(result, limit=2)
     assert "  … and 1 more (--show N, or --out FILE)" in report(result, limit=1)
+
+
+@pytest.mark.parametrize("damage", ["a folder", "a symlink loop"])
+def test_cli_an_unreadable_file_is_a_usage_error_not_a_difference(
+    tmp_path, capsys, damage
+):
+    """A run file that cannot be opened (a folder, a symlink loop) is status 2
+    with the file named, not a traceback, whose status 1 reads as "differ"."""
+    a = _run(tmp_path / "a")
+    b = shutil.copytree(a, tmp_path / "b")
+    (b / "trials.npz").unlink()
+    if damage == "a folder":
+        (b / "trials.npz").mkdir()
+    else:
+        (b / "trials.npz").symlink_to(b / "trials.npz")
+    with pytest.raises(SystemExit) as exit_info:
+        cli([str(a), str(b)])
+    assert exit_info.value.code == 2
+    assert "trials.npz" in capsys.readouterr().err
