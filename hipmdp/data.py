@@ -132,6 +132,47 @@ def check_empty_folder(path: str | os.PathLike, name: str = "path") -> Path:
     return path
 
 
+def _lock_folder(path: Path) -> int | None:
+    """An open descriptor of the folder ``path`` holding an exclusive
+    ``flock`` on it, released when it is closed or the process dies (a SIGKILL
+    included); None where folders cannot be opened or locked (not POSIX)."""
+    try:
+        import fcntl
+    except ImportError:
+        return None
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+    except OSError:
+        os.close(fd)
+        return None
+    return fd
+
+
+def _locked(path: Path) -> bool:
+    """Whether a live process holds :func:`_lock_folder`'s lock on ``path``."""
+    try:
+        import fcntl
+    except ImportError:
+        return False
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    except OSError:
+        return False
+    finally:
+        os.close(fd)
+    return False
+
+
 def _folder_temporaries(path: Path) -> list[Path]:
     """The temporary folders :func:`atomic_folder` made for ``path`` (exactly
     ``tempfile.mkdtemp``'s names: 8 random characters, never a dot, so those of
@@ -165,13 +206,18 @@ def atomic_folder(path: str | os.PathLike):
     made = _make_parents(path)
     try:
         for stale in _folder_temporaries(path):  # a killed writer's
-            shutil.rmtree(stale)
+            # a live writer (another process on the same path) holds a lock on
+            # its own: removing it under that writer made it recreate the
+            # folders it wrote into and rename an incomplete folder into place
+            if not _locked(stale):
+                shutil.rmtree(stale)
         tmp = Path(
             tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
         )
     except BaseException:
         _remove_empty(made)
         raise
+    lock = _lock_folder(tmp)
     try:
         yield tmp
         os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp's 0700 -> what mkdir would give
@@ -192,6 +238,9 @@ def atomic_folder(path: str | os.PathLike):
         shutil.rmtree(tmp, ignore_errors=True)
         _remove_empty(made)
         raise
+    finally:
+        if lock is not None:
+            os.close(lock)
     fsync_folder(path.parent)
 
 

@@ -898,3 +898,22 @@ def test_load_names_the_file_of_an_invalid_array(tmp_path, name, value, match):
     loader = ParameterTable.load if name.startswith("table_") else Transitions.load
     with pytest.raises(ValueError, match=f"{path}: {match}"):
         loader(path)
+
+
+def test_atomic_folder_leaves_a_live_writers_temporary_folder_alone(tmp_path):
+    """A second writer of the same path (another export to the same --out)
+    removed the first's temporary folder as a killed writer's while the first
+    was writing into it; the first then recreated the folders it wrote into
+    and renamed an incomplete folder into place. A live writer's is left."""
+    from hipmdp.data import atomic_folder
+
+    out = tmp_path / "run"
+    with pytest.raises(OSError):  # out is the second's by then: the first fails
+        with atomic_folder(out) as first:
+            (first / "a.txt").write_text("first")
+            with atomic_folder(out) as second:
+                left_alone = (first / "a.txt").exists()
+                (second / "b.txt").write_text("second")
+    assert left_alone
+    assert [p.name for p in out.iterdir()] == ["b.txt"]
+    assert [p.name for p in tmp_path.iterdir()] == ["run"]
