@@ -132,10 +132,15 @@ def check_empty_folder(path: str | os.PathLike, name: str = "path") -> Path:
     return path
 
 
-def _lock_folder(path: Path) -> int | None:
+def lock_folder(path: Path, *, wait: bool = True) -> int | None:
     """An open descriptor of the folder ``path`` holding an exclusive
     ``flock`` on it, released when it is closed or the process dies (a SIGKILL
-    included); None where folders cannot be opened or locked (not POSIX)."""
+    included); None where folders cannot be opened or locked (not POSIX).
+
+    Raises:
+        BlockingIOError: if ``wait`` is False and another open of the folder
+            (another process's, or another of this one's) holds the lock.
+    """
     try:
         import fcntl
     except ImportError:
@@ -145,7 +150,10 @@ def _lock_folder(path: Path) -> int | None:
     except OSError:
         return None
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
+        fcntl.flock(fd, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
+    except BlockingIOError:
+        os.close(fd)
+        raise
     except OSError:
         os.close(fd)
         return None
@@ -153,7 +161,7 @@ def _lock_folder(path: Path) -> int | None:
 
 
 def _locked(path: Path) -> bool:
-    """Whether a live process holds :func:`_lock_folder`'s lock on ``path``."""
+    """Whether a live process holds :func:`lock_folder`'s lock on ``path``."""
     try:
         import fcntl
     except ImportError:
@@ -217,7 +225,7 @@ def atomic_folder(path: str | os.PathLike):
     except BaseException:
         _remove_empty(made)
         raise
-    lock = _lock_folder(tmp)
+    lock = lock_folder(tmp)
     try:
         yield tmp
         os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp's 0700 -> what mkdir would give

@@ -53,6 +53,7 @@ from tasks.experiment import (
     one_blas_thread,
     paired_difference,
     pool_map,
+    releases_run_folders,
     run_dir,
     to_jsonable,
     trial_seeds,
@@ -337,6 +338,7 @@ def prediction_table(config, hip, average, batch, ss, added=()) -> dict[str, Any
 
 
 @one_blas_thread
+@releases_run_folders
 def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results:
     """Run the whole experiment and write its artefacts; see the module docstring."""
     from tasks import swingup_report

@@ -46,6 +46,7 @@ from tasks.experiment import (
     common_parser,
     environment,
     one_blas_thread,
+    releases_run_folders,
     run_dir,
     to_jsonable,
     write_json,
@@ -171,6 +172,7 @@ class Results(NamedTuple):
 
 
 @one_blas_thread
+@releases_run_folders
 def main(config: PredictionConfig, out: str | os.PathLike | None = None) -> Results:
     """Run the experiment and write its artefacts; see the module docstring."""
     from tasks import prediction_report

@@ -38,7 +38,7 @@ from scipy import stats
 from threadpoolctl import threadpool_info, threadpool_limits
 
 import hipmdp
-from hipmdp.data import atomic_temporaries, atomic_write, check_integer
+from hipmdp.data import atomic_temporaries, atomic_write, check_integer, lock_folder
 
 Array = np.ndarray
 
@@ -261,6 +261,47 @@ def save_figure(fig, path: str | os.PathLike) -> Path:
         plt.close(fig)
 
 
+#: The run folders this process holds the lock of (`run_dir`): descriptors by path.
+_RUN_LOCKS: dict[Path, int] = {}
+
+
+def _busy_message(path: Path) -> str:
+    return (
+        f"out: another run is writing to {path}; wait for it to end, or choose "
+        "another folder (two runs in one folder mix their files)"
+    )
+
+
+def _busy(path: Path) -> bool:
+    """Whether another process holds ``path``'s run lock (:func:`run_dir`)."""
+    if not path.is_dir() or path.resolve() in _RUN_LOCKS:
+        return False
+    try:
+        fd = lock_folder(path, wait=False)
+    except BlockingIOError:
+        return True
+    if fd is not None:
+        os.close(fd)
+    return False
+
+
+def releases_run_folders(fn: Callable) -> Callable:
+    """Release, when ``fn`` returns or raises, the run-folder locks that
+    :func:`run_dir` took during the call (an experiment's ``main``); a process
+    that ends releases them too, however it ends."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        held = set(_RUN_LOCKS)
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            for path in set(_RUN_LOCKS) - held:
+                os.close(_RUN_LOCKS.pop(path))
+
+    return wrapper
+
+
 def run_dir(
     out: str | os.PathLike | None, name: str, artefacts: Sequence[str] = ()
 ) -> Path:
@@ -275,14 +316,26 @@ def run_dir(
     :func:`hipmdp.data.atomic_write`'s, the recording's). Other files (a check's
     JSON on the previous run, say) are left, and named on stderr.
 
+    The run holds an exclusive lock on the folder (``flock``) until the
+    experiment's ``main`` ends (:func:`releases_run_folders`) or its process
+    dies: two runs into one folder at once left one run's config beside the
+    other's metrics.
+
     Raises:
         ValueError: before anything is deleted or written, if ``out`` exists and
             is not a folder, or holds files named like the artefacts without a
             ``config.json`` of a ``name`` run (a folder that is not this
-            experiment's run folder).
+            experiment's run folder), or another run is writing to it.
     """
     path, stale = check_out(out, name, artefacts)
     path.mkdir(parents=True, exist_ok=True)
+    if path.resolve() not in _RUN_LOCKS:
+        try:
+            fd = lock_folder(path, wait=False)
+        except BlockingIOError:
+            raise ValueError(_busy_message(path)) from None
+        if fd is not None:
+            _RUN_LOCKS[path.resolve()] = fd
     for file in stale:
         file.unlink()
     for pattern in artefacts:  # what a killed run's atomic writes left behind
@@ -307,6 +360,8 @@ def check_out(
     :func:`run_dir`."""
     path = _out_path(out, "folder") if out is not None else Path("runs") / name
     check_folder_out(path)
+    if _busy(path):
+        raise ValueError(_busy_message(path))
     stale = sorted({f for pattern in artefacts for f in path.glob(pattern)})
     if stale and _run_name(path / "config.json") != name:
         raise ValueError(

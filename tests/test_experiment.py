@@ -20,7 +20,8 @@ from scipy import stats
 from threadpoolctl import threadpool_info, threadpool_limits
 
 import tasks
-from tasks import acrobot_swingup, cartpole_prediction
+from hipmdp.data import lock_folder
+from tasks import acrobot_swingup, cartpole_prediction, experiment
 from tasks.experiment import (
     RUN_FILES,
     check_counts,
@@ -42,6 +43,7 @@ from tasks.experiment import (
     path_argument,
     pool_map,
     read_json_object,
+    releases_run_folders,
     run_dir,
     to_jsonable,
     trial_seeds,
@@ -598,6 +600,54 @@ def test_run_dir_refuses_a_folder_that_is_not_its_run(tmp_path, config):
     file = tmp_path / "report.md"
     with pytest.raises(ValueError, match="exists and is not a folder"):
         run_dir(file, "exp")
+
+
+def _holder(folder: Path):
+    """Another process holding ``folder``'s run lock until its stdin closes."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; from hipmdp.data import lock_folder; "
+        f"fd = lock_folder({str(folder)!r}); print('held', flush=True); "
+        "sys.stdin.read()"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+        text=True,
+    )  # fmt: skip
+    assert proc.stdout.readline().strip() == "held"
+    return proc
+
+
+def test_a_run_folder_another_run_writes_to_is_refused(tmp_path):
+    """Two runs into one folder at once left one run's config beside the
+    other's metrics: while another process holds the folder, the command line's
+    check and run_dir refuse it, before anything is deleted; once it ends, it is
+    taken. In one process, a main's lock is released when the main ends."""
+    out = tmp_path / "run"
+    out.mkdir()
+    write_json(out / "config.json", {"name": "exp"})
+    (out / "metrics.json").write_text("the other run's")
+    proc = _holder(out)
+    try:
+        for call in (experiment.check_out, run_dir):
+            with pytest.raises(ValueError, match="^out: another run is writing to"):
+                call(out, "exp", ("config.json", "metrics.json"))
+        assert (out / "metrics.json").read_text() == "the other run's"
+    finally:
+        proc.stdin.close()
+        proc.wait()
+
+    @releases_run_folders
+    def main():
+        run_dir(out, "exp", ("config.json", "metrics.json"))
+        run_dir(out, "exp", ("config.json", "metrics.json"))  # its own: taken
+        with pytest.raises(BlockingIOError):  # held while the main runs
+            os.close(lock_folder(out, wait=False))
+
+    main()
+    os.close(lock_folder(out, wait=False))  # and released when it ends
 
 
 @pytest.mark.parametrize("make", [run_dir, lambda out, *a: check_out_file(out)])
