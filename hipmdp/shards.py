@@ -123,7 +123,64 @@ def read_manifest(directory: Path) -> dict[str, Any] | None:
     for index, record in progress.items():
         if index < len(entries):
             entries[index].update(record)
+    _check_manifest(path, manifest)
     return manifest
+
+
+def _check_manifest(path: Path, manifest: Mapping[str, Any]) -> None:
+    """Raise ValueError naming the field of `manifest` (read from `path`) that
+    the readers use and that is missing or of the wrong kind (they failed as
+    KeyErrors and TypeErrors, and "complete": "no" read as complete)."""
+
+    def bad(field: str, expected: str) -> ValueError:
+        return ValueError(f"{path}: {field}: expected {expected}")
+
+    def is_int(x: Any) -> bool:
+        return isinstance(x, int) and not isinstance(x, bool)
+
+    if not isinstance(manifest.get("complete"), bool):
+        raise bad("complete", "true or false")
+    names = manifest.get("parameter_names")
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise bad("parameter_names", "a list of names")
+    if not isinstance(manifest.get("config"), dict):
+        raise bad("config", "an object")
+    for i, entry in enumerate(manifest["shards"]):
+        where = f"shards[{i}]"
+        if entry.get("file") != shard_name(i):
+            raise bad(f"{where}.file", repr(shard_name(i)))
+        ids = entry.get("instances")
+        if not isinstance(ids, list) or not all(is_int(b) and b >= 0 for b in ids):
+            raise bad(f"{where}.instances", "a list of instance ids")
+        rows = entry.get("parameters")
+        if not (
+            isinstance(rows, list)
+            and len(rows) == len(ids)
+            and all(
+                isinstance(r, list)
+                and len(r) == len(names)
+                and all(
+                    isinstance(x, int | float) and not isinstance(x, bool) for x in r
+                )
+                for r in rows
+            )
+        ):
+            raise bad(
+                f"{where}.parameters",
+                f"one row of {len(names)} numbers per instance ({len(ids)})",
+            )
+        digest = entry.get("sha256")
+        if digest is not None and not (isinstance(digest, str) and len(digest) == 64):
+            raise bad(f"{where}.sha256", "null or a SHA-256 in hex")
+        counts = entry.get("counts")
+        if counts is not None and not (
+            isinstance(counts, dict)
+            and is_int(counts.get("transitions"))
+            and counts["transitions"] >= 0
+        ):
+            raise bad(
+                f"{where}.counts", "null or an object with a count of transitions"
+            )
 
 
 def _identity(path: Path) -> tuple[int, int]:
@@ -322,6 +379,22 @@ class Dataset:
             raise ValueError(
                 f"{self.directory}: shard {entry['file']} does not match its checksum "
                 f"(corrupt or truncated); redo it with {resume}"
+            )
+        # the manifest has no checksum: its instances and parameters must be the
+        # shard's own (an edited one read other instances, or none, silently)
+        table = ParameterTable.load(io.BytesIO(data))
+        rows = np.array(entry["parameters"], dtype=float)
+        if not (
+            table is not None
+            and table.instances.tolist() == entry["instances"]
+            and list(table.names) == list(self.manifest["parameter_names"])
+            and rows.shape == table.values.shape
+            and np.array_equal(rows, table.values)
+        ):
+            raise ValueError(
+                f"{self.directory}: {MANIFEST} does not match shard {entry['file']} "
+                "(its instances or parameters differ from the shard's own table); "
+                "the manifest was edited or damaged"
             )
         return data
 

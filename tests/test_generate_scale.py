@@ -229,7 +229,7 @@ def test_corrupt_truncated_and_missing_shards_are_detected_and_redone(
     dataset = shards.Dataset(run)
     with pytest.raises(ValueError, match="does not match its checksum"):
         dataset.load(instances=[2])
-    with pytest.raises(ValueError, match=f"{run}: shard shard-00002.npz is not fini"):
+    with pytest.raises(ValueError, match=f"{run}: shard shard-00002.npz is missing"):
         dataset.load(instances=[4])
     resumed = generate.main([*RUN, "--out", str(run), "--resume"])
     assert resumed.redone == (0, 1, 2)

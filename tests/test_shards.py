@@ -291,6 +291,67 @@ def test_verify_checks_every_shard(run, tmp_path):
     )
 
 
+def _edited(run, tmp_path, edit):
+    """A copy of ``run`` whose manifest ``edit(manifest)`` changed."""
+    copy = tmp_path / "copy"
+    shutil.copytree(run, copy)
+    manifest = json.loads((copy / shards.MANIFEST).read_text())
+    edit(manifest)
+    (copy / shards.MANIFEST).write_text(json.dumps(manifest))
+    return copy
+
+
+def test_a_manifest_that_disagrees_with_its_shards_is_refused(run, tmp_path):
+    """The manifest has no checksum: with two shards' instance lists swapped,
+    load(instances=[0]) gave no transitions and no error; with a parameter
+    changed, verify() passed. A shard read now checks the manifest's instances
+    and parameters against its own table."""
+
+    def swap(m):
+        a, b = m["shards"][0], m["shards"][1]
+        a["instances"], b["instances"] = b["instances"], a["instances"]
+
+    def nudge(m):
+        m["shards"][1]["parameters"][0][1] += 0.1
+
+    for edit in (swap, nudge):
+        copy = _edited(run, tmp_path / edit.__name__, edit)
+        with pytest.raises(ValueError, match=r"manifest.json does not match shard"):
+            shards.Dataset(copy).verify()
+        with pytest.raises(ValueError, match=r"manifest.json does not match shard"):
+            shards.Dataset(copy).load(instances=[0, 2])
+
+
+@pytest.mark.parametrize(
+    ("edit", "field"),
+    [
+        (lambda m: m.update(complete="no"), "complete"),
+        (lambda m: m.pop("parameter_names"), "parameter_names"),
+        (lambda m: m.update(config=[]), "config"),
+        (lambda m: m["shards"][1].pop("file"), r"shards\[1\].file"),
+        (lambda m: m["shards"][0].update(instances="0, 1"), r"shards\[0\].instances"),
+        (
+            lambda m: m["shards"][0].update(instances=[0, True]),
+            r"shards\[0\].instances",
+        ),
+        (lambda m: m["shards"][2]["parameters"].pop(), r"shards\[2\].parameters"),
+        (
+            lambda m: m["shards"][0]["parameters"][0].append(1.0),
+            r"shards\[0\].parameters",
+        ),
+        (lambda m: m["shards"][0].update(sha256=7), r"shards\[0\].sha256"),
+        (lambda m: m["shards"][0].update(counts={"n": 3}), r"shards\[0\].counts"),
+    ],
+)
+def test_a_manifest_missing_a_field_names_it(run, tmp_path, edit, field):
+    """Each was a KeyError or TypeError in a reader, or ("complete": "no") read
+    as complete."""
+    copy = _edited(run, tmp_path, edit)
+    for read in (shards.Dataset, ParameterTable.load, Transitions.load):
+        with pytest.raises(ValueError, match=rf"manifest.json: {field}: expected"):
+            read(copy)
+
+
 def test_transitions_load_reads_a_run_directory_or_its_manifest(run):
     everything = shards.Dataset(run).load()
     np.testing.assert_array_equal(Transitions.load(run).states, everything.states)
