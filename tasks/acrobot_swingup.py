@@ -130,6 +130,11 @@ def run_test_instances(config: dict[str, Any]) -> list[AcrobotParams]:
     return [setting_params(*mm, book) for mm in config["test_masses"]]
 
 
+#: The most trials per method a run takes, over its test settings (a trial takes
+#: seconds; the paper preset runs 480).
+MAX_TRIALS = 100_000
+
+
 @dataclasses.dataclass(frozen=True)
 class SwingupConfig:
     """Everything a run depends on (written to config.json).
@@ -221,6 +226,12 @@ class SwingupConfig:
         ))  # fmt: skip
         check_split(self.split)
         check_specs(self.methods)
+        n = len(self.test_masses) * self.n_trials
+        if n > MAX_TRIALS:  # hung seeding them, after the batch data and fit
+            raise ValueError(
+                f"n_trials: expected at most {MAX_TRIALS:,} trials per method over "
+                f"the {len(self.test_masses)} test settings, got {n:,}"
+            )
         if self.final_window > self.transfer.n_episodes:
             raise ValueError(
                 f"final_window: expected <= transfer.n_episodes "

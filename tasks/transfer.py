@@ -62,6 +62,10 @@ METHODS = ("true", "average", "hipmdp")
 LABELS = {"true": "true model", "average": "average model", "hipmdp": "HiP-MDP"}
 
 
+#: The most real episodes per trial a TransferConfig takes (the paper: 20).
+MAX_EPISODES = 10_000
+
+
 @dataclass(frozen=True)
 class TransferConfig:
     """Sizes of the protocol.
@@ -98,6 +102,11 @@ class TransferConfig:
         check_positive(
             self, ("n_episodes", "n_start_states", "max_steps", "planning_max_steps")
         )
+        if self.n_episodes > MAX_EPISODES:  # failed allocating, after the fit
+            raise ValueError(
+                f"n_episodes: expected at most {MAX_EPISODES:,} real episodes per "
+                f"trial, got {self.n_episodes:,}"
+            )
         for name in (
             "planning_episodes",
             "initial_planning_episodes",

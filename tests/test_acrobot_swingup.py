@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import fnmatch
 import json
+import re
 import shutil
 
 import numpy as np
@@ -312,6 +313,17 @@ def test_cli_presets_and_bad_options(capsys):
         SwingupConfig(test_masses=((0.0, 1.0),))
     with pytest.raises(ValueError, match="final_window: expected <= "):
         SwingupConfig(final_window=50)
+    # absurd counts: refused here, not after the batch data and the fit (10**12
+    # trials hung seeding them, 10**12 episodes failed allocating)
+    for args, match in [
+        (["--trials", str(10**12)], r"--trials \(n_trials\): expected at most 100,000"),
+        (["--trials", "25001"], r"at most 100,000 .* got 100,004"),
+        (["--episodes", str(10**12)], r"--episodes \(n_episodes\): expected at most"),
+    ]:
+        with pytest.raises(SystemExit):
+            parse_args(args)
+        assert re.search(match, capsys.readouterr().err)
+    assert parse_args(["--trials", "25000"])[0].n_trials == 25000
     assert parse_args(["--split", "time"])[0].split == "time"
     assert PRESETS["quick"].split == PRESETS["paper"].split == "random"
     # the flag changes only that field of the fit
