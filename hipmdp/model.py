@@ -527,9 +527,15 @@ def load(path: str | os.PathLike) -> HipMDP:
             k: npz[k] if k in npz.files else None
             for k in ("residual_var", "interp_var_scale")
         }
-        periodic = (
-            tuple(int(j) for j in npz["periodic"]) if "periodic" in npz.files else ()
-        )
+        periodic = ()
+        if "periodic" in npz.files:  # [0.5] loaded as (0,), a 0-d array failed
+            p = npz["periodic"]
+            if p.ndim != 1 or not np.issubdtype(p.dtype, np.integer):
+                raise ValueError(
+                    f"{path}: periodic: expected a list of dimensions, got dtype "
+                    f"{p.dtype} and shape {p.shape}"
+                )
+            periodic = tuple(int(j) for j in p)
         raw = str(npz["meta_json"])  # a damaged array: the archive's error
         try:
             meta = json.loads(raw)
@@ -543,6 +549,14 @@ def load(path: str | os.PathLike) -> HipMDP:
     missing = [k for k in ("sigma_w", "info") if k not in meta]
     if missing:
         raise ValueError(f"{path}: meta_json lacks {missing}")
+    # a string "0.001" or true loaded as a number, a list as info
+    sigma_w = meta["sigma_w"]
+    if not is_real_number(sigma_w):
+        raise ValueError(f"{path}: sigma_w: expected a number, got {sigma_w!r}")
+    if not isinstance(meta["info"], dict):
+        raise ValueError(
+            f"{path}: info: expected an object, got {type(meta['info']).__name__}"
+        )
     try:
         hyper = HyperSet(
             arr["lengthscales"], arr["signal_var"], arr["noise_var"], periodic
@@ -554,7 +568,7 @@ def load(path: str | os.PathLike) -> HipMDP:
             f=arr["f"],
             weights=arr["weights"],
             mu_w=arr["mu_w"],
-            sigma_w=float(meta["sigma_w"]),
+            sigma_w=float(sigma_w),
             instance_ids=arr["instance_ids"],
             info=meta["info"],
             # files written before the field existed filtered at μ_w

@@ -192,7 +192,12 @@ def read_run(run: Path) -> tuple[dict, dict, dict | None]:
     metrics = _read_json(run, "metrics.json", required="refit" not in config)
     env = metrics.pop("environment", None)
     if "refit" in config:
+        if not isinstance(config["refit"], dict):
+            raise ValueError(f"{run / 'config.json'}: refit: expected an object")
         env = config["refit"].pop("environment", env)
+    if env is not None and not isinstance(env, dict):  # was an AttributeError
+        where = "config.json: refit." if "refit" in config else "metrics.json: "
+        raise ValueError(f"{run / where}environment: expected an object")
     if env and isinstance(env.get("blas"), list):  # a run before the order was fixed
         env["blas"] = sort_blas(env["blas"])
     for key in IGNORED_METRICS:

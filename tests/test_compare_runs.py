@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import numpy as np
@@ -498,3 +499,24 @@ def test_cli_an_unreadable_file_is_a_usage_error_not_a_difference(
         cli([str(a), str(b)])
     assert exit_info.value.code == 2
     assert "trials.npz" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("config", "env", "match"),
+    [
+        (None, [1], r"metrics.json: environment: expected an object"),
+        ({"seed": 0, "refit": 3}, ENV, r"config.json: refit: expected an object"),
+        ({"seed": 0, "refit": {"environment": 2}}, None,
+         r"config.json: refit.environment: expected an object"),
+    ],
+)  # fmt: skip
+def test_cli_a_run_file_of_the_wrong_shape_is_a_usage_error(
+    tmp_path, capsys, config, env, match
+):
+    """Each was an AttributeError traceback, whose status 1 reads as "differ"."""
+    a = _run(tmp_path / "a")
+    b = _run(tmp_path / "b", config=config, env=env)
+    with pytest.raises(SystemExit) as exit_info:
+        cli([str(a), str(b)])
+    assert exit_info.value.code == 2
+    assert re.search(match, capsys.readouterr().err)

@@ -382,8 +382,14 @@ def _last_nan(x):
          "expected format_version 1, got None"),
         ("meta_json", lambda x: _meta(x, sigma_w=...),
          r"meta_json lacks \['sigma_w'\]"),
-        # float(None), a TypeError, names the file as the ValueErrors do
-        ("meta_json", lambda x: _meta(x, sigma_w=None), r"float\(\) argument"),
+        ("meta_json", lambda x: _meta(x, sigma_w=None), r"sigma_w: expected a number"),
+        # a string and a bool loaded as 0.001 and 1.0, a list as info
+        ("meta_json", lambda x: _meta(x, sigma_w="0.001"), r"sigma_w: expected a num"),
+        ("meta_json", lambda x: _meta(x, sigma_w=True), r"sigma_w: expected a number"),
+        ("meta_json", lambda x: _meta(x, info=[1]), r"info: expected an object"),
+        # a fraction loaded as dimension 0; a 0-d array was a TypeError
+        ("periodic", lambda x: np.array([0.5]), r"periodic: expected a list of dim"),
+        ("periodic", lambda x: np.array(0), r"periodic: expected a list of dim"),
     ],
 )  # fmt: skip
 def test_load_names_the_field_of_a_damaged_file(fitted, tmp_path, name, edit, match):
@@ -393,7 +399,7 @@ def test_load_names_the_field_of_a_damaged_file(fitted, tmp_path, name, edit, ma
     path = fitted.save(tmp_path / "model.npz")
     with np.load(path, allow_pickle=False) as npz:
         arrays = {k: npz[k] for k in npz.files}
-    arrays[name] = edit(arrays[name])
+    arrays[name] = edit(arrays.get(name, np.array([0])))  # periodic: absent
     np.savez(path, **arrays)
     with pytest.raises(ValueError, match=f"model.npz: .*{match}"):
         load(path)
