@@ -362,6 +362,11 @@ def check_out(
     check_folder_out(path)
     if _busy(path):
         raise ValueError(_busy_message(path))
+    if (path / "manifest.json").is_file():  # a run wrote beside the data's shards
+        raise ValueError(
+            f"out: {path} holds a tasks.generate dataset (manifest.json); choose a "
+            "new or empty folder"
+        )
     stale = sorted({f for pattern in artefacts for f in path.glob(pattern)})
     if stale and _run_name(path / "config.json") != name:
         raise ValueError(

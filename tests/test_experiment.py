@@ -650,6 +650,14 @@ def test_a_run_folder_another_run_writes_to_is_refused(tmp_path):
     os.close(lock_folder(out, wait=False))  # and released when it ends
 
 
+def test_a_generated_datasets_folder_is_no_run_folder(tmp_path):
+    """An experiment wrote its files beside a dataset's manifest and shards."""
+    (tmp_path / "manifest.json").write_text("{}")
+    with pytest.raises(ValueError, match="holds a tasks.generate dataset"):
+        run_dir(tmp_path, "exp", ("config.json",))
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["manifest.json"]
+
+
 @pytest.mark.parametrize("make", [run_dir, lambda out, *a: check_out_file(out)])
 def test_outputs_that_cannot_be_written_are_refused_before_any_work(tmp_path, make):
     """An empty path (the working directory, as a Path) and a path through a
