@@ -143,8 +143,16 @@ def scaled_sqdist(
     shift = centre(E2 if len(E2) >= 2 else E1, col, periodic)
     if shift is not None:
         E1, E2 = E1 - shift, E2 - shift
-    A = E1 / lengthscales[col]
-    Bm = E2 / lengthscales[col]
+    return expanded_sqdist(E1, E2, lengthscales[col])
+
+
+def expanded_sqdist(E1: Array, E2: Array, scales: Array) -> Array:
+    """``Σ_c ((e1_c - e2_c) / scales_c)²`` of embedded inputs E1 (n1, C) and E2
+    (n2, C) as the expanded form |a|² + |b|² - 2 a·b, clipped at 0, with no
+    centring: for inputs already embedded and centred as `scaled_sqdist` does
+    (`embed`, then `centre` with the embedding's columns and angles)."""
+    A = E1 / scales
+    Bm = E2 / scales
     d2 = (A * A).sum(1)[:, None] + (Bm * Bm).sum(1)[None, :] - 2.0 * (A @ Bm.T)
     return np.maximum(d2, 0.0)
 

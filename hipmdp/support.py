@@ -34,7 +34,14 @@ from tqdm.auto import tqdm
 
 from hipmdp.data import check_integer, check_rng
 from hipmdp.gp import HyperSet, subsample
-from hipmdp.kernels import check_periodic, embed, se_kernel
+from hipmdp.kernels import (
+    _check_params,
+    centre,
+    check_periodic,
+    embed,
+    expanded_sqdist,
+    se_kernel,
+)
 
 Array = np.ndarray
 
@@ -82,8 +89,16 @@ def greedy_support(
     n = X.shape[0]
     if not 1 <= m <= n:
         raise ValueError(f"m: expected 1 <= m <= {n} (number of candidates), got {m}")
-    # embedded once: the plain kernel of E with ℓ[dims] is the periodic kernel of X
-    E, dims = embed(X, check_periodic(periodic, X.shape[1]))
+    # embedded once: the plain kernel of E with ℓ[dims] is the periodic kernel of X;
+    # centred once as the kernels centre X (never the angles' cos/sin columns,
+    # which se_kernel of E would take for plain ones)
+    periodic = check_periodic(periodic, X.shape[1])
+    E, dims = embed(X, periodic)
+    shift = centre(E, dims, periodic)
+    if shift is not None:
+        E = E - shift
+    for ell, sf2, _ in kernels:  # as se_kernel checked them
+        _check_params(ell, sf2, X.shape[1])
     R = len(kernels)
     C = np.zeros(
         (R, m, n)
@@ -100,7 +115,7 @@ def greedy_support(
         for r, (ell, sf2, sn2) in enumerate(kernels):
             cp = C[r, :j, p]
             diag = np.sqrt(max(sf2 + sn2 - cp @ cp, 1e-300))
-            kp = se_kernel(E, E[p : p + 1], ell[dims], sf2)[:, 0]
+            kp = sf2 * np.exp(-0.5 * expanded_sqdist(E, E[p : p + 1], ell[dims]))[:, 0]
             col = (kp - cp @ C[r, :j]) / diag
             C[r, j] = col
             var[r] -= col * col

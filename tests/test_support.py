@@ -107,3 +107,38 @@ def test_greedy_support_takes_1_to_n_distinct_points():
     for m in (0, 4):
         with pytest.raises(ValueError, match=r"m: expected 1 <= m <= 3"):
             greedy_support(X, kernels, m)
+
+
+def test_concentrated_angles_are_not_centred(monkeypatch):
+    """A pole near upright (angle spread 0.05 about 0): the angle's cos column
+    lies hundreds of its spreads from 0, but the kernels never centre cos/sin
+    columns, so states near 0 are computed as without centring, bit for bit.
+    greedy_support embedded the states itself and passed them on as plain
+    inputs, which were then centred (errors off by ~1e-13)."""
+    from hipmdp import kernels
+
+    rng = np.random.default_rng(4)
+    X = np.c_[rng.uniform(-2, 2, size=300), 0.05 * rng.normal(size=300)]
+    kernels_ = _kernels(_hyper())
+    got = greedy_support(X, kernels_, 40, periodic=(1,))
+    monkeypatch.setattr(kernels, "CENTRE_RATIO", np.inf)  # never centre
+    plain = greedy_support(X, kernels_, 40, periodic=(1,))
+    np.testing.assert_array_equal(got.index, plain.index)
+    np.testing.assert_array_equal(got.errors, plain.errors)
+
+
+@pytest.mark.parametrize("periodic", [(), (1,)])
+def test_states_far_from_0_select_as_near_0(periodic):
+    """A plain dimension offset by 1e4 (spread ~1): its candidates are centred
+    once, so the errors are those of the same states near 0 and the dense
+    reference's, to round-off."""
+    rng = np.random.default_rng(5)
+    X = rng.uniform(-2, 2, size=(150, 2))
+    far = X + [1e4, 0.0]
+    kernels_ = _kernels(_hyper())
+    near = greedy_support(X, kernels_, 25, periodic=periodic)
+    got = greedy_support(far, kernels_, 25, periodic=periodic)
+    dense = greedy_support_dense(far, kernels_, 25, periodic=periodic)
+    np.testing.assert_array_equal(got.index, near.index)
+    np.testing.assert_array_equal(got.index, dense.index)
+    np.testing.assert_allclose(got.errors, near.errors, atol=1e-9)
