@@ -149,9 +149,9 @@ class HipMDP:
             "prior_mean" (μ_w², module docstring) or "training" (mean_b w[k,b]²;
             see `hipmdp.FitConfig`). This field is what the filter uses;
             `info["config"]` records what `fit` was given.
-        basis_key: a digest of the basis functions (support, z, their GP
-            interpolation), set on construction: `prior` tags its belief with
-            it, and a belief tagged with another key is refused.
+        basis_key: a digest of what defines the basis functions (support, z,
+            f and the GPs' hyperparameters), set on construction: `prior` tags
+            its belief with it, and a belief tagged with another key is refused.
     """
 
     support: Array
@@ -247,10 +247,23 @@ class HipMDP:
         object.__setattr__(
             self, "_coef", interpolation_coefficients(self.support, self.hyper, self.f)
         )
-        digest = hashlib.sha256()  # what the basis functions are, so what w means
+        # what the basis functions are, so what w means: from the stored arrays
+        # that define them (with their shapes), not from _coef, whose round-off
+        # depends on the BLAS and its thread count (the same file loaded in two
+        # processes gave two keys)
+        digest = hashlib.sha256()
         h = self.hyper
-        for part in (self.support, self.z, self._coef, h.lengthscales, h.signal_var):
-            digest.update(np.ascontiguousarray(part, dtype=float).tobytes())
+        for part in (
+            self.support,
+            self.z,
+            self.f,
+            h.lengthscales,
+            h.signal_var,
+            h.noise_var,
+        ):
+            part = np.ascontiguousarray(part, dtype=float)
+            digest.update(repr(part.shape).encode())
+            digest.update(part.tobytes())
         digest.update(repr(tuple(h.periodic)).encode())
         object.__setattr__(self, "basis_key", digest.hexdigest()[:16])
         object.__setattr__(self, "_factors", {})  # (a, d) -> Cholesky, on demand

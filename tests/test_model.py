@@ -796,3 +796,28 @@ def test_load_refuses_a_z_that_is_not_flags(fitted, tmp_path, value):
     np.savez(path, **arrays)
     with pytest.raises(ValueError, match="model.npz: z: expected booleans"):
         load(path)
+
+
+def test_basis_key_does_not_depend_on_round_off(fitted, monkeypatch):
+    """The key names the basis functions, not the bits of one solve: the same
+    model whose interpolation coefficients differ by round-off (another BLAS
+    thread count: up to ~1e-7 here on 2 threads against 1) keeps its key, so a
+    belief from one process's copy is taken by another's; a model with other
+    hyperparameters (other basis functions) gets another key."""
+    from hipmdp import model as model_module
+
+    exact = model_module.interpolation_coefficients
+
+    def off_by_round_off(*args):
+        c = exact(*args)
+        return c * (1 + 1e-15)
+
+    monkeypatch.setattr(model_module, "interpolation_coefficients", off_by_round_off)
+    again = dataclasses.replace(fitted)
+    assert not np.array_equal(again._coef, fitted._coef)
+    assert again.basis_key == fitted.basis_key
+    h = fitted.hyper
+    noisier = dataclasses.replace(
+        fitted, hyper=HyperSet(h.lengthscales, h.signal_var, 2 * h.noise_var)
+    )
+    assert noisier.basis_key != fitted.basis_key
