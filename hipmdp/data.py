@@ -218,7 +218,9 @@ def atomic_folder(path: str | os.PathLike):
             # its own: removing it under that writer made it recreate the
             # folders it wrote into and rename an incomplete folder into place
             if not _locked(stale):
-                shutil.rmtree(stale)
+                # another writer of this path may be removing it too
+                with contextlib.suppress(FileNotFoundError):
+                    shutil.rmtree(stale)
         tmp = Path(
             tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
         )

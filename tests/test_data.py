@@ -917,3 +917,30 @@ def test_atomic_folder_leaves_a_live_writers_temporary_folder_alone(tmp_path):
     assert left_alone
     assert [p.name for p in out.iterdir()] == ["b.txt"]
     assert [p.name for p in tmp_path.iterdir()] == ["run"]
+
+
+def test_atomic_folder_takes_a_killed_writers_temporary_removed_meanwhile(
+    tmp_path, monkeypatch
+):
+    """Two writers of one path that both find a killed writer's temporary folder:
+    the other removes it between this one's check and its removal. This one
+    goes on (its removal raised FileNotFoundError)."""
+    import shutil
+
+    from hipmdp import data
+
+    stale = tmp_path / ".run.abcd1234.tmp"
+    stale.mkdir()
+    (stale / "a.txt").write_text("killed")
+    locked = data._locked
+
+    def other_removes_it_first(path):
+        free = locked(path)
+        shutil.rmtree(path)
+        return free
+
+    monkeypatch.setattr(data, "_locked", other_removes_it_first)
+    with data.atomic_folder(tmp_path / "run") as tmp:
+        (tmp / "b.txt").write_text("this one")
+    assert [p.name for p in tmp_path.iterdir()] == ["run"]
+    assert [p.name for p in (tmp_path / "run").iterdir()] == ["b.txt"]
