@@ -111,9 +111,10 @@ def centre(E: Array, col: Array, periodic: tuple[int, ...] = ()) -> Array | None
     their spread, and nearly noise-free GPs magnify the loss: a user's states
     offset by 75 times their spread made a fit's held-out MSE 70 times worse, and
     larger offsets made the fit fail. So each plain column of ``E`` (n, D + P)
-    whose mean is more than `CENTRE_RATIO` standard deviations from 0 is centred
-    on its mean; the others, the angle embedding's cos/sin (bounded by 1) and
-    sets of fewer than 2 rows are left (shift 0). Inputs near 0, as every
+    whose mean is more than `CENTRE_RATIO` standard deviations from 0 (so also a
+    constant column other than 0) is centred on its mean; the others, the angle
+    embedding's cos/sin (bounded by 1) and sets of fewer than 2 rows are left
+    (shift 0). Inputs near 0, as every
     experiment's here, are therefore computed exactly as without this step.
     """
     if len(E) < 2:
@@ -135,12 +136,13 @@ def scaled_sqdist(
     (δ_j the chord on `periodic` dimensions, module docstring). X1: (n1, D); X2:
     (n2, D); lengthscales: ℓ, (D,). Returns (n1, n2), clipped at 0 (the expanded form
     |a|² + |b|² - 2 a·b can go slightly negative by round-off). Inputs far from 0
-    are first shifted by the point `centre` takes from X2 (from X1 if X2 has one
-    row), which leaves the distances as they are.
+    are first shifted by the point `centre` takes from X2 alone (as `KernelMeans`
+    takes it from its inputs, so the two agree, and a query's distances do not
+    depend on the other queries), which leaves the distances as they are.
     """
     E1, col = embed(X1, periodic)
     E2, _ = embed(X2, periodic)
-    shift = centre(E2 if len(E2) >= 2 else E1, col, periodic)
+    shift = centre(E2, col, periodic)
     if shift is not None:
         E1, E2 = E1 - shift, E2 - shift
     return expanded_sqdist(E1, E2, lengthscales[col])
