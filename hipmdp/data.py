@@ -202,9 +202,11 @@ def atomic_folder(path: str | os.PathLike):
     removes the temporary folder, and the parent folders this call made for it
     while they are empty, and leaves ``path`` as it was. A kill leaves at most a
     hidden ``.<name>.<random>.tmp`` folder beside it, which the next
-    ``atomic_folder`` on the same ``path`` removes (so two writers of one ``path``
-    must not run at once). A symbolic link is followed: the folder is made where
-    it points.
+    ``atomic_folder`` on the same ``path`` removes. A live writer holds an
+    ``flock`` on its temporary folder, which is left alone: of two writers of one
+    ``path`` at once, the second to finish fails at the rename (``path`` exists),
+    and neither leaves a part-written ``path``. A symbolic link is followed: the
+    folder is made where it points.
 
     Raises:
         ValueError: before anything is written, if ``path`` exists and is not an
