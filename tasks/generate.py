@@ -43,7 +43,11 @@ status 130, printing the command that resumes the run.
 
 Execution (`concurrent.futures`): in-process (`--workers 1`), a local process pool
 (`--workers N`), or a Dask cluster (`--scheduler ADDRESS`, needs
-`pip install -e ".[dask]"`). Read the result with
+`pip install -e ".[dask]"`). Every shard carries the client's `software`
+record, and a worker running other software (another package version, an edited
+source) refuses it, naming its host and what differs; on a cluster, the workers
+connected at the start are asked first. The run then stops, keeping the finished
+shards. Read the result with
 `hipmdp.Transitions.load(OUT, instances=...)` or `hipmdp.shards.Dataset(OUT)`.
 """
 
@@ -53,6 +57,7 @@ import argparse
 import concurrent.futures as cf
 import contextlib
 import dataclasses
+import functools
 import hashlib
 import importlib.resources
 import importlib.util
@@ -62,6 +67,7 @@ import multiprocessing
 import os
 import shlex
 import signal
+import socket
 import sys
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -207,6 +213,9 @@ class ShardJob(NamedTuple):
     max_steps: int | None
     entropy: int
     spawn_key: tuple[int, ...]  # instance g's stream: spawn_key + (g,)
+    # the client's `software()`: a worker running other code refuses the shard
+    # (`check_software`); None: unchecked
+    software: dict[str, Any] | None = None
 
 
 class ShardOutput(NamedTuple):
@@ -216,6 +225,11 @@ class ShardOutput(NamedTuple):
     data: bytes
     counts: dict[str, int]
     diverged: list[dict[str, Any]]
+
+
+class OtherSoftwareError(RuntimeError):
+    """A worker runs other software than the client (`check_software`): its
+    shards would differ from the client's, with a manifest that does not say so."""
 
 
 class Generated(NamedTuple):
@@ -535,6 +549,88 @@ def source_files(root: Path) -> list[tuple[str, Path]]:
     return sorted((f.relative_to(root).as_posix(), f) for f in root.rglob("*.py"))
 
 
+@functools.cache
+def local_software() -> dict[str, Any]:
+    """This process's `software()`, computed once (it reads every source file,
+    ~12 ms): what a worker compares each shard's `ShardJob.software` with."""
+    return software()
+
+
+def check_software(expected: dict[str, Any] | None) -> None:
+    """Raise OtherSoftwareError, naming this worker's host and what differs,
+    unless this process runs the software `expected` (the client's); None
+    checks nothing."""
+    if expected is None:
+        return
+    own = local_software()
+    if own != expected:
+        raise OtherSoftwareError(
+            f"{_this_worker()} runs other software than the client "
+            f"({software_difference(expected, own)}); its shards would differ from "
+            "the client's: run the workers from the client's code and packages"
+        )
+
+
+def _this_worker() -> str:
+    """This process as a worker: a Dask worker's address, or its pid; and host."""
+    host = socket.gethostname()
+    if "distributed" in sys.modules:  # a pool worker need not import it
+        from distributed import get_worker
+
+        with contextlib.suppress(ValueError):  # not in a Dask worker
+            return f"the Dask worker {get_worker().address} on host {host}"
+    return f"the worker process {os.getpid()} on host {host}"
+
+
+def software_difference(client: dict[str, Any], worker: dict[str, Any]) -> str:
+    """What differs between the `software()` records of the client and a worker:
+    `numpy 2.1.0 on the client, 2.0.2 on the worker; the source of ...`."""
+    differences = [
+        f"{name} {client['packages'].get(name)} on the client, "
+        f"{worker['packages'].get(name)} on the worker"
+        for name in sorted(set(client["packages"]) | set(worker["packages"]))
+        if client["packages"].get(name) != worker["packages"].get(name)
+    ]
+    if client.get("source_sha256") != worker.get("source_sha256"):
+        differences.append(
+            "the source of hipmdp, tasks or the MJCF models (SHA-256 "
+            f"{str(client.get('source_sha256'))[:12]}... on the client, "
+            f"{str(worker.get('source_sha256'))[:12]}... on the worker)"
+        )
+    return "; ".join(differences) or "its software record"
+
+
+def _worker_software(dask_worker: Any) -> dict[str, Any]:
+    """`local_software()`, run on the Dask worker `dask_worker` by `client.run`."""
+    return local_software()
+
+
+def check_cluster_software(client: Any, expected: dict[str, Any]) -> None:
+    """Raise OtherSoftwareError if a worker connected to the Dask `client` runs
+    other software than `expected`, or cannot tell (it runs code older than
+    `local_software`): an early, clear error before any shard is submitted.
+    Workers that join later are checked by each shard (`run_shard`)."""
+    answers = client.run(_worker_software, on_error="return")
+    wrong = []
+    for address, answer in sorted(answers.items()):
+        if isinstance(answer, BaseException):
+            wrong.append(
+                f"the Dask worker {address} cannot tell its software "
+                f"({type(answer).__name__}: {answer}; older code?)"
+            )
+        elif answer != expected:
+            wrong.append(
+                f"the Dask worker {address} runs other software than the client "
+                f"({software_difference(expected, answer)})"
+            )
+    if wrong:
+        more = f"; and {len(wrong) - 3} more" if len(wrong) > 3 else ""
+        raise OtherSoftwareError(
+            "; ".join(wrong[:3]) + more + "; its shards would differ from the "
+            "client's: run the workers from the client's code and packages"
+        )
+
+
 def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
     """The manifest to continue from and the shards still to do; writes nothing.
 
@@ -716,7 +812,9 @@ def _software_change(recorded: dict | None, fresh: dict) -> str:
 def run_shard(job: ShardJob) -> ShardOutput:
     """Gather one shard's transitions (runs in a worker, in-process, forkserver or
     Dask alike: at one BLAS thread, so a Sarsa policy's data do not depend on
-    where it runs)."""
+    where it runs). A worker that runs other software than `job.software`, the
+    client's, refuses the shard (OtherSoftwareError)."""
+    check_software(job.software)
     spec = get_domain(job.domain)
     params = [spec.params_type(*row) for row in job.values]
     streams = [
@@ -758,8 +856,12 @@ class InlineExecutor(cf.Executor):
 
 
 @contextlib.contextmanager
-def executor_for(workers: int, scheduler: str | None) -> Iterator[cf.Executor]:
-    """In-process for one worker, a process pool for several, or a Dask cluster."""
+def executor_for(
+    workers: int, scheduler: str | None, software: dict[str, Any] | None = None
+) -> Iterator[cf.Executor]:
+    """In-process for one worker, a process pool for several, or a Dask cluster;
+    on a cluster, the workers connected must run `software` (if given), or
+    OtherSoftwareError is raised before any shard is submitted."""
     if scheduler is not None:
         try:
             import distributed
@@ -768,6 +870,8 @@ def executor_for(workers: int, scheduler: str | None) -> Iterator[cf.Executor]:
                 '--scheduler needs Dask: pip install -e ".[dask]"'
             ) from None
         with distributed.Client(scheduler) as client:
+            if software is not None:
+                check_cluster_software(client, software)
             yield client.get_executor()
     elif workers == 1:
         yield InlineExecutor()
@@ -840,13 +944,14 @@ def generate(
             config.max_steps,
             config.seed,
             (INSTANCE_STREAMS, split),
+            manifest.get("software"),  # what makes the shards to do: this client
         )
         for k in todo
     ]
     context = (
         contextlib.nullcontext(executor)
         if executor is not None
-        else executor_for(config.workers, config.scheduler)
+        else executor_for(config.workers, config.scheduler, manifest.get("software"))
     )
     bar = tqdm(
         total=len(entries),
@@ -918,6 +1023,9 @@ def main(argv: Sequence[str] | None = None) -> Generated:
             result = generate(config, prepared=prepared)
         except OSError as error:  # a scheduler that cannot be reached, a full disk
             parser.exit(1, f"{parser.prog}: error: {error}\n")
+        except OtherSoftwareError as error:  # a worker runs other code
+            stopped = _interrupted(config, argv, started=True, what="stopped")
+            parser.exit(1, f"{parser.prog}: error: {error}; {stopped}\n")
         except cf.CancelledError:  # Dask cancels every task when it loses the scheduler
             stopped = _interrupted(config, argv, started=True, what="stopped")
             parser.exit(

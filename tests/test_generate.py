@@ -764,3 +764,89 @@ def test_book_inertia_takes_a_box_that_reaches_the_shape_bounds_exactly(tmp_path
     rows = [row for e in generate.plan(config)["shards"] for row in e["parameters"]]
     shapes = sorted(AcrobotParams(*row).link_shape_1 for row in rows)
     np.testing.assert_allclose(shapes, [0.7, 1.5], rtol=1e-12)
+
+
+def other_software(real: dict) -> dict:
+    """`real` (a `software()` record) as a worker with an edited source and
+    another numpy would report it."""
+    packages = real["packages"] | {"numpy": "0.0.1"}
+    return {"packages": packages, "source_sha256": "0" * 64}
+
+
+def test_a_worker_running_other_software_refuses_its_shard(
+    tmp_path, capsys, monkeypatch
+):
+    """Workers compared nothing: one started from a checkout with an edited line
+    made other data than the client, under a manifest recording the client's
+    software. Each shard now carries the client's `software()`, and a worker
+    whose own differs refuses it, naming its host and what differs; the run
+    stops with one line, keeping the shard a matching worker made, and the
+    resumed run has the bytes of an uninterrupted one. (Here the second shard
+    runs on other software.)"""
+    import socket
+
+    argv = ["--domain", "acrobot", "--seed", "3", *TINY, *QUIET]
+    real = generate.software()
+    calls = []
+
+    def changing():  # the first shard matches, the second does not
+        calls.append(None)
+        return real if len(calls) == 1 else other_software(real)
+
+    monkeypatch.setattr(generate, "local_software", changing)
+    out = tmp_path / "stopped"
+    with pytest.raises(SystemExit) as stopped:
+        generate.main([*argv, "--out", str(out)])
+    assert stopped.value.code == 1
+    err = capsys.readouterr().err
+    resume = ["python", "-m", "tasks.generate", *argv, "--out", str(out), "--resume"]
+    numpy = real["packages"]["numpy"]
+    assert err == (
+        f"python -m tasks.generate: error: the worker process {generate.os.getpid()} "
+        f"on host {socket.gethostname()} runs other software than the client "
+        f"(numpy {numpy} on the client, 0.0.1 on the worker; the source of hipmdp, "
+        f"tasks or the MJCF models (SHA-256 {real['source_sha256'][:12]}... on the "
+        f"client, 000000000000... on the worker)); its shards would differ from the "
+        "client's: run the workers from the client's code and packages; stopped: 1 "
+        f"of 2 shards finished are kept in {out}; resume with the same command plus "
+        f"--resume: {shlex.join(resume)}\n"
+    )
+    monkeypatch.undo()
+    assert generate.main(resume[3:]).redone == (1,)
+    generate.main([*argv, "--out", str(tmp_path / "whole")])
+    for name in ("manifest.json", "shard-00000.npz", "shard-00001.npz"):
+        assert (out / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()
+
+
+def test_a_dask_worker_running_other_software_stops_the_run_before_any_file(
+    tmp_path, capsys, monkeypatch
+):
+    """The workers connected when the run starts are asked for their software
+    (`client.run`): one that runs other software stops the run before anything
+    is written, naming its address and what differs."""
+    distributed = pytest.importorskip("distributed")
+    real = generate.software()
+    out = tmp_path / "run"
+    with distributed.Client(
+        processes=False, n_workers=2, threads_per_worker=1, dashboard_address=None
+    ) as client:
+        odd = sorted(client.scheduler_info()["workers"])[1]
+
+        def per_worker(dask_worker):  # in-process: one process, two workers
+            return other_software(real) if dask_worker.address == odd else real
+
+        monkeypatch.setattr(generate, "_worker_software", per_worker)
+        with pytest.raises(SystemExit) as stopped:
+            generate.main(
+                ["--domain", "acrobot", *TINY, *QUIET, "--out", str(out),
+                 "--scheduler", client.scheduler.address]
+            )  # fmt: skip
+    assert stopped.value.code == 1
+    err = capsys.readouterr().err
+    assert err.startswith(
+        f"python -m tasks.generate: error: the Dask worker {odd} runs other "
+        f"software than the client (numpy {real['packages']['numpy']} on the "
+        "client, 0.0.1 on the worker; the source of hipmdp"
+    )
+    assert "stopped before the run began; run again: " in err
+    assert err.count("\n") == 1 and not out.exists()
