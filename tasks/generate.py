@@ -1068,4 +1068,9 @@ def _interrupted(
 
 
 if __name__ == "__main__":
-    main()
+    # Run as `tasks.generate`, not as `__main__`: a Dask client pickles the
+    # functions and classes of `__main__` by value, so a worker ran the client's
+    # `run_shard` with its own other modules (and could not find
+    # `local_software`, which is pickled by name); named by module, a worker runs
+    # its own code, which `check_software` compares with the client's.
+    importlib.import_module("tasks.generate").main()

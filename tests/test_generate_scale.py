@@ -254,6 +254,29 @@ def test_dask_cluster_gives_the_same_bytes(reference, tmp_path):
     assert files(tmp_path) == files(reference)
 
 
+def test_the_command_on_a_tcp_cluster_gives_the_same_bytes(reference, tmp_path):
+    """`python -m tasks.generate --scheduler` sends its functions to the workers
+    named by module (`tasks.generate.run_shard`), not pickled by value from
+    `__main__`: a worker runs its own code, the code its software check is about
+    (by value, the check could not find `local_software` on the worker, and a
+    worker ran the client's `run_shard` with its own other modules). The
+    workers are this process's threads; the client is the command."""
+    distributed = pytest.importorskip("distributed")
+    with distributed.Client(
+        processes=False, n_workers=1, threads_per_worker=1, protocol="tcp",
+        host="127.0.0.1", dashboard_address=None,
+    ) as client:  # fmt: skip
+        run = subprocess.run(
+            [sys.executable, "-m", "tasks.generate", *RUN, "--out", str(tmp_path),
+             "--scheduler", client.scheduler.address],
+            capture_output=True,
+            text=True,
+            timeout=300,  # a guard against hanging, not a timing check
+        )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    assert files(tmp_path) == files(reference)
+
+
 def test_a_scheduler_that_does_not_answer_stops_the_run_before_any_file(
     tmp_path, capsys
 ):
