@@ -39,7 +39,11 @@ continues it all the same, listing in the manifest's `earlier_software` which
 shards each earlier software made); an `OUT` holding another
 run's manifest, or shards or a progress log without a manifest, or anything
 else but no manifest, is an error and nothing is overwritten. Ctrl-C exits with
-status 130, printing the command that resumes the run.
+status 130 and SIGTERM (a batch system's stop) with 143, printing how many shards
+are kept and the command that resumes the run; a shard being written then is
+finished first. Any other error once the run has begun exits with status 1 and
+the same line (with the traceback, unless it is a failure of the machines: a
+killed pool process or Dask worker, a full disk, a worker running other code).
 
 Execution (`concurrent.futures`): in-process (`--workers 1`), a local process pool
 (`--workers N`), or a Dask cluster (`--scheduler ADDRESS`, needs
@@ -69,6 +73,7 @@ import shlex
 import signal
 import socket
 import sys
+import threading
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -884,7 +889,9 @@ def executor_for(
         # Ctrl-C reaches the workers too: an idle one ends without a traceback
         # (SystemExit), a busy one's shard fails, and the caller reports it;
         # unless the caller ignores Ctrl-C (started in the background), then
-        # they do too.
+        # they do too. SIGTERM keeps its default, ending a worker at once: the
+        # pool terminates its workers so when one dies, and one blocked writing
+        # a large result no one reads would never handle a signal in Python.
         context = multiprocessing.get_context("forkserver")
         context.set_forkserver_preload(["tasks.collect", "tasks.rollout"])
         # And a worker ends when this process is gone (experiment.exit_with).
@@ -909,6 +916,67 @@ def _init_worker(action: Any, owner: int) -> None:
 def _exit_quietly(signum: int, frame: Any) -> None:
     """A pool worker's Ctrl-C: end without a traceback (as SystemExit does)."""
     raise SystemExit(128 + signum)
+
+
+class Terminated(BaseException):
+    """SIGTERM (what batch systems send to stop a job) while `main` runs: what
+    KeyboardInterrupt is to Ctrl-C (a BaseException, as it is)."""
+
+
+class _Deferral:
+    """While `depth` > 0 a stop signal is held in `pending` (`_signals_deferred`)."""
+
+    depth = 0
+    pending: BaseException | None = None
+
+
+def _raise_stop(signum: int, frame: Any) -> None:
+    """`main`'s handler of Ctrl-C and SIGTERM: raise KeyboardInterrupt or
+    Terminated, at once or, while a finished shard is written, once it is."""
+    error = Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+    if _Deferral.depth:
+        _Deferral.pending = _Deferral.pending or error
+        return
+    raise error
+
+
+@contextlib.contextmanager
+def _stop_signals() -> Iterator[None]:
+    """Within: SIGTERM raises Terminated and Ctrl-C KeyboardInterrupt, each held
+    back while a finished shard is written (`_signals_deferred`). A signal that
+    is ignored (a run started in the background, under nohup) or handled by the
+    caller is left as it is; so is every signal outside the main thread."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {}
+    for signum, default in [
+        (signal.SIGINT, signal.default_int_handler),
+        (signal.SIGTERM, signal.SIG_DFL),
+    ]:
+        if signal.getsignal(signum) is default:
+            previous[signum] = signal.signal(signum, _raise_stop)
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        _Deferral.depth, _Deferral.pending = 0, None
+
+
+@contextlib.contextmanager
+def _signals_deferred() -> Iterator[None]:
+    """Within: a stop signal (`_stop_signals`) waits, and is raised on leaving,
+    so that a finished shard is written whole and recorded, no temporary file
+    left behind."""
+    _Deferral.depth += 1
+    try:
+        yield
+    finally:
+        _Deferral.depth -= 1
+    if not _Deferral.depth and _Deferral.pending is not None:
+        error, _Deferral.pending = _Deferral.pending, None
+        raise error
 
 
 def generate(
@@ -969,26 +1037,37 @@ def generate(
         in_flight = 2 * max(config.workers, 1) if config.scheduler is None else 64
         pending: set[cf.Future] = set()
         queue = list(reversed(jobs))
+
+        def keep(future: cf.Future) -> None:
+            """Write a finished shard and record it (raises a failed one's
+            error); a stop signal waits until it is written and recorded."""
+            result = future.result()
+            with _signals_deferred():
+                entry = entries[result.index]
+                entry["sha256"] = shards.write_shard(out, result.index, result.data)
+                entry["counts"] = result.counts
+                entry["diverged"] = result.diverged
+                shards.append_progress(out, entry)
+                bar.update()
+
         try:
             while queue or pending:
                 while queue and len(pending) < in_flight:
                     pending.add(pool.submit(run_shard, queue.pop()))
-                done, pending = cf.wait(pending, return_when=cf.FIRST_COMPLETED)
+                done, _ = cf.wait(pending, return_when=cf.FIRST_COMPLETED)
                 # the finished shards first: a failed or cancelled one's error
                 # (Ctrl-C in the inline executor, a lost Dask scheduler) is
                 # raised once they are kept (`exception()` of a cancelled future
                 # raises, so `cancelled()` is asked first)
                 for future in sorted(done, key=_failed):
-                    result = future.result()
-                    entry = entries[result.index]
-                    entry["sha256"] = shards.write_shard(out, result.index, result.data)
-                    entry["counts"] = result.counts
-                    entry["diverged"] = result.diverged
-                    shards.append_progress(out, entry)
-                    bar.update()
-        except BaseException:  # interrupted: the shards not started are not run
+                    pending.discard(future)
+                    keep(future)
+        except BaseException:  # stopped: the shards not started are not run ...
             for future in pending:
                 future.cancel()
+            for future in pending:  # ... and those finished meanwhile are kept
+                if future.done() and not _failed(future):
+                    keep(future)
             raise
     manifest["complete"] = True
     shards.write_manifest(out, manifest)
@@ -1004,38 +1083,53 @@ def _failed(future: cf.Future) -> bool:
 def main(argv: Sequence[str] | None = None) -> Generated:
     """Command-line entry point; returns what was written.
 
-    Ctrl-C stops it with status 130 and one line on stderr: how many shards
-    are finished (kept) and the command that resumes the run."""
+    Ctrl-C stops it with status 130, SIGTERM with 143, each with one line on
+    stderr: how many shards are finished (kept) and the command that resumes
+    the run. So does any error once the run has begun, with status 1: one line
+    for a worker or cluster that failed (`_cluster_failure`), the line and the
+    traceback for anything else (a bug)."""
     parser = build_parser()
     argv = sys.argv[1:] if argv is None else list(argv)
     config = parse_config(argv)
     started = False
     try:
-        try:
-            prepared = prepare(config)  # a bad --out stops here, before any writing
-        except ValueError as error:
-            parser.error(str(error))
-        for warning in config.distribution.far_from_nominal():
-            print(f"{parser.prog}: warning: {warning}", file=sys.stderr)
-        finished = prepared[0]["complete"] and not prepared[1]
-        started = True
-        try:
+        with _stop_signals():
+            try:
+                prepared = prepare(config)  # a bad --out stops here, before writing
+            except ValueError as error:
+                parser.error(str(error))
+            for warning in config.distribution.far_from_nominal():
+                print(f"{parser.prog}: warning: {warning}", file=sys.stderr)
+            finished = prepared[0]["complete"] and not prepared[1]
+            started = True
             result = generate(config, prepared=prepared)
-        except OSError as error:  # a scheduler that cannot be reached, a full disk
-            parser.exit(1, f"{parser.prog}: error: {error}\n")
-        except OtherSoftwareError as error:  # a worker runs other code
-            stopped = _interrupted(config, argv, started=True, what="stopped")
-            parser.exit(1, f"{parser.prog}: error: {error}; {stopped}\n")
-        except cf.CancelledError:  # Dask cancels every task when it loses the scheduler
-            stopped = _interrupted(config, argv, started=True, what="stopped")
-            parser.exit(
-                1,
-                f"{parser.prog}: error: shards were cancelled (on a Dask cluster: "
-                f"the scheduler was lost); {stopped}\n",
-            )
     except KeyboardInterrupt:
         stopped = _interrupted(config, argv, started=started)
         parser.exit(130, f"{parser.prog}: {stopped}\n")
+    except Terminated:
+        stopped = _interrupted(config, argv, started=started, what="terminated")
+        parser.exit(143, f"{parser.prog}: {stopped}\n")
+    except cf.CancelledError:  # Dask cancels every task when it loses the scheduler
+        stopped = _interrupted(config, argv, started=True, what="stopped")
+        parser.exit(
+            1,
+            f"{parser.prog}: error: shards were cancelled (on a Dask cluster: "
+            f"the scheduler was lost); {stopped}\n",
+        )
+    except Exception as error:
+        if not started:
+            raise
+        stopped = _interrupted(config, argv, started=True, what="stopped")
+        if isinstance(error, OSError) and stopped.startswith("stopped before"):
+            # a scheduler that cannot be reached: nothing written
+            parser.exit(1, f"{parser.prog}: error: {error}\n")
+        if _cluster_failure(error):  # a full disk, a killed worker, other code
+            parser.exit(1, f"{parser.prog}: error: {_describe(error)}; {stopped}\n")
+        print(
+            f"{parser.prog}: error: the run stopped on the error below; {stopped}",
+            file=sys.stderr,
+        )
+        raise
     counts = [e["counts"] for e in result.content["shards"]]
     done = "nothing to do: already finished," if finished else "wrote"
     print(
@@ -1046,6 +1140,25 @@ def main(argv: Sequence[str] | None = None) -> Generated:
         f"({len(result.redone)} shards generated now)"
     )
     return result
+
+
+def _cluster_failure(error: BaseException) -> bool:
+    """Whether `error` is a failure of the machines, not of this code: said in
+    one line, no traceback. An OSError (a scheduler lost, a full disk), a
+    worker that runs other software, a pool's process that died (killed, out of
+    memory), a task whose Dask workers died (KilledWorker)."""
+    if isinstance(error, OSError | OtherSoftwareError | cf.BrokenExecutor):
+        return True
+    dask = sys.modules.get("distributed.scheduler")
+    return dask is not None and isinstance(error, dask.KilledWorker)
+
+
+def _describe(error: BaseException) -> str:
+    """`error` as a line: its message, named by its kind where the message does
+    not say what happened."""
+    if isinstance(error, OSError | OtherSoftwareError):
+        return str(error)
+    return f"{type(error).__name__}: {str(error).rstrip('.')}"
 
 
 def _interrupted(

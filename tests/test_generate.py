@@ -850,3 +850,95 @@ def test_a_dask_worker_running_other_software_stops_the_run_before_any_file(
     )
     assert "stopped before the run began; run again: " in err
     assert err.count("\n") == 1 and not out.exists()
+
+
+def killed_worker() -> BaseException:
+    """What Dask raises for a task whose workers died while running it."""
+    from types import SimpleNamespace
+
+    distributed = pytest.importorskip("distributed")
+    worker = SimpleNamespace(address="tcp://10.0.0.7:4000")
+    return distributed.scheduler.KilledWorker(
+        "run_shard-1", worker, 3
+    )  # 3 allowed: 4 died
+
+
+def broken_pool() -> BaseException:
+    from concurrent.futures.process import BrokenProcessPool
+
+    return BrokenProcessPool("A process died")
+
+
+@pytest.mark.parametrize(
+    "error, said",
+    [
+        # a pool's process killed (the out-of-memory killer)
+        (broken_pool, "BrokenProcessPool: A process died"),
+        (
+            killed_worker,
+            "KilledWorker: Attempted to run task 'run_shard-1' on 4 different",
+        ),
+        (lambda: OSError(28, "No space left on device"), "[Errno 28] No space left"),
+    ],
+)
+def test_a_failed_worker_keeps_the_finished_shards_and_says_how_to_resume(
+    tmp_path, capsys, monkeypatch, error, said
+):
+    """A pool process killed, a task whose Dask workers died, a full disk: once
+    the run had begun, each ended in a traceback with no word of the shards
+    kept or of how to resume. One line says both now (status 1)."""
+    argv = ["--domain", "acrobot", "--seed", "3", *TINY, *QUIET]
+    failure = error()
+
+    class Fails(generate.InlineExecutor):
+        def submit(self, fn, /, *args, **kwargs):
+            if args[0].index == 0:
+                return super().submit(fn, *args, **kwargs)
+            future: generate.cf.Future = generate.cf.Future()
+            future.set_exception(failure)
+            return future
+
+    out = tmp_path / "stopped"
+    monkeypatch.setattr(generate, "executor_for", lambda *a: _context(Fails()))
+    with pytest.raises(SystemExit) as stopped:
+        generate.main([*argv, "--out", str(out)])
+    assert stopped.value.code == 1
+    resume = ["python", "-m", "tasks.generate", *argv, "--out", str(out), "--resume"]
+    err = capsys.readouterr().err
+    assert err.startswith(f"python -m tasks.generate: error: {said}")
+    assert err.endswith(
+        "; stopped: 1 of 2 shards finished are kept in "
+        f"{out}; resume with the same command plus --resume: {shlex.join(resume)}\n"
+    )
+    assert err.count("\n") == 1
+
+
+def test_a_bug_once_the_run_began_says_how_to_resume_above_its_traceback(
+    tmp_path, capsys, monkeypatch
+):
+    """Any other error (a bug's) is raised with its traceback, after the line
+    naming the shards kept and the command that resumes."""
+    argv = ["--domain", "acrobot", "--seed", "3", *TINY, *QUIET]
+    run_shard = generate.run_shard
+
+    def buggy(job):
+        if job.index == 1:
+            raise ZeroDivisionError("a bug")
+        return run_shard(job)
+
+    out = tmp_path / "stopped"
+    monkeypatch.setattr(generate, "run_shard", buggy)
+    with pytest.raises(ZeroDivisionError, match="a bug"):
+        generate.main([*argv, "--out", str(out)])
+    resume = ["python", "-m", "tasks.generate", *argv, "--out", str(out), "--resume"]
+    assert capsys.readouterr().err == (
+        "python -m tasks.generate: error: the run stopped on the error below; "
+        f"stopped: 1 of 2 shards finished are kept in {out}; resume with the same "
+        f"command plus --resume: {shlex.join(resume)}\n"
+    )
+
+
+def _context(executor):
+    import contextlib
+
+    return contextlib.nullcontext(executor)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shlex
 import shutil
 import signal
 import socket
@@ -213,6 +214,67 @@ def test_killed_run_resumes_to_the_bytes_of_an_uninterrupted_run(tmp_path):
     assert set(resumed.redone) == set(range(24)) - set(finished)
     generate.main([*argv, "--out", str(tmp_path / "whole")])
     assert files(killed) == files(tmp_path / "whole")  # and no progress log left
+
+
+# A generation process sent SIGTERM (as a batch system stops a job) halfway
+# through writing its second shard file: at a chosen point, not raced.
+_TERMINATE_WHILE_WRITING_SECOND_SHARD = """
+import os, signal, sys
+from tasks import generate
+atomic_write, files = generate.shards.atomic_write, []
+def write_and_terminate(path, write):
+    if path.name.startswith("shard-"):
+        files.append(path.name)
+    if len(files) != 2 or path.name != files[1]:
+        return atomic_write(path, write)
+    print(path.name, flush=True)  # the shard being written when SIGTERM comes
+    def halves(fh):
+        data = bytearray()
+        write(type("Sink", (), {"write": lambda self, b: data.extend(b)})())
+        fh.write(data[: len(data) // 2])
+        os.kill(os.getpid(), signal.SIGTERM)
+        fh.write(data[len(data) // 2 :])
+    return atomic_write(path, halves)
+generate.shards.atomic_write = write_and_terminate
+generate.main(sys.argv[1:])
+"""
+
+
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_sigterm_keeps_the_finished_shards_and_says_how_to_resume(tmp_path, workers):
+    """SIGTERM ended a run with status 143 and no word (a batch system's stop
+    looked like a crash). It stops the run as Ctrl-C does, with one line naming
+    the shards kept and the command that resumes; a shard being written when
+    it came is written whole and kept first, no temporary file is left, and the
+    resumed run has the bytes of an uninterrupted one."""
+    argv = [
+        "--domain", "acrobot", "--instances", "6", "--shard-size", "1",
+        "--episodes-per-instance", "1", "--max-steps", "20", "--no-progress",
+    ]  # fmt: skip
+    out = tmp_path / "terminated"
+    script = _TERMINATE_WHILE_WRITING_SECOND_SHARD
+    run = subprocess.run(
+        [sys.executable, "-c", script, *argv, "--workers", workers, "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=300,  # a guard against hanging, not a timing check
+    )
+    assert run.returncode == 143, run.stderr
+    # kept: the shard being written, the one before, and any other finished by
+    # then (the pool's workers run on)
+    kept = [e for e in shards.read_manifest(out)["shards"] if e["sha256"]]
+    assert run.stdout.strip() in {e["file"] for e in kept} and len(kept) >= 2
+    command = ["python", "-m", "tasks.generate", *argv, "--workers", workers]
+    resume = shlex.join([*command, "--out", str(out), "--resume"])
+    assert run.stderr == (
+        f"python -m tasks.generate: terminated: {len(kept)} of 6 shards finished "
+        f"are kept in {out}; resume with the same command plus --resume: {resume}\n"
+    )
+    assert shards.atomic_temporaries(out, "*") == []
+    resumed = generate.main([*argv, "--out", str(out), "--resume"])
+    assert len(resumed.redone) == 6 - len(kept)
+    generate.main([*argv, "--out", str(tmp_path / "whole")])
+    assert files(out) == files(tmp_path / "whole")
 
 
 def test_corrupt_truncated_and_missing_shards_are_detected_and_redone(
