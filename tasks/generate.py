@@ -47,7 +47,10 @@ killed pool process or Dask worker, a full disk, a worker running other code).
 
 Execution (`concurrent.futures`): in-process (`--workers 1`), a local process pool
 (`--workers N`), or a Dask cluster (`--scheduler ADDRESS`, needs
-`pip install -e ".[dask]"`). Every shard carries the client's `software`
+`pip install -e ".[dask]"`; a scheduler that does not answer within Dask's
+connect timeout, `distributed.comm.timeouts.connect`, 30 s by default, stops the
+run before anything is written, even one that accepts the connection and stays
+silent). Every shard carries the client's `software`
 record, and a worker running other software (another package version, an edited
 source) refuses it, naming its host and what differs; on a cluster, the workers
 connected at the start are asked first. The run then stops, keeping the finished
@@ -874,6 +877,7 @@ def executor_for(
             raise ValueError(
                 '--scheduler needs Dask: pip install -e ".[dask]"'
             ) from None
+        _check_scheduler_answers(scheduler)
         with distributed.Client(scheduler) as client:
             if software is not None:
                 check_cluster_software(client, software)
@@ -904,6 +908,52 @@ def executor_for(
             initargs=(action, os.getpid()),
         ) as pool:
             yield pool
+
+
+def _check_scheduler_answers(address: str) -> None:
+    """Raise OSError unless a Dask scheduler at `address` answers within Dask's
+    connect timeout (`distributed.comm.timeouts.connect`, 30 s by default).
+
+    Dask's connect reads the scheduler's handshake without a deadline: an
+    address that accepts the connection and stays silent (another server, the
+    dashboard's port) made `Client` wait for ever, `Client(timeout=...)` too.
+    A connection of our own, the handshake included, gets the deadline; the
+    error is Dask's own for a scheduler that cannot be reached."""
+    import asyncio
+
+    import dask
+    from dask.utils import parse_timedelta
+    from distributed.comm import connect, parse_address
+    from distributed.security import Security
+
+    if parse_address(address)[0] == "inproc":  # in this process: it answers
+        return
+    timeout = parse_timedelta(
+        dask.config.get("distributed.comm.timeouts.connect"), default="seconds"
+    )
+    arguments = Security().get_connection_args("client")
+
+    async def handshake() -> None:
+        comm = await asyncio.wait_for(
+            connect(address, timeout=timeout, **arguments), timeout
+        )
+        await comm.close()
+
+    try:  # in a thread of its own: the caller may run an event loop
+        with cf.ThreadPoolExecutor(1) as thread:
+            thread.submit(asyncio.run, handshake()).result()
+    except TimeoutError:  # (an OSError: before the next clause)
+        raise OSError(
+            f"Timed out trying to connect to {address} after {timeout:g} s (it "
+            "accepted the connection but did not answer as a Dask scheduler)"
+        ) from None
+    except OSError:
+        raise
+    except Exception as error:  # something else answered
+        raise OSError(
+            f"{address} did not answer as a Dask scheduler "
+            f"({type(error).__name__}: {error})"
+        ) from None
 
 
 def _init_worker(action: Any, owner: int) -> None:

@@ -5,6 +5,7 @@ is refused untouched."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import shlex
@@ -354,6 +355,53 @@ def test_a_scheduler_that_does_not_answer_stops_the_run_before_any_file(
                 generate.main([*RUN, "--out", str(out), "--scheduler", address])
     assert stopped.value.code == 1
     assert address in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_a_server_that_accepts_but_never_answers_stops_the_run_before_any_file(
+    tmp_path, capsys
+):
+    """An address that accepts the connection and stays silent (another server,
+    the dashboard's port) made the run wait for ever: Dask reads the handshake
+    without a deadline, `Client(timeout=...)` too. It gets Dask's connect
+    timeout now, and the one line of an unreachable scheduler."""
+    pytest.importorskip("distributed")
+    import threading
+
+    import dask
+
+    stop, accepted = threading.Event(), []
+
+    def silent(server):
+        with server:
+            for _ in range(600):  # a guard of a minute, not a timing check:
+                if stop.is_set():  # without the deadline, Dask then reads a
+                    break  # close, and the test fails instead of hanging
+                with contextlib.suppress(OSError):
+                    accepted.append(server.accept()[0])
+        for connection in accepted:
+            connection.close()
+
+    server = socket.create_server(("127.0.0.1", 0))
+    server.settimeout(0.1)
+    address = f"tcp://127.0.0.1:{server.getsockname()[1]}"
+    out = tmp_path / "run"
+    thread = threading.Thread(target=silent, args=(server,), daemon=True)
+    thread.start()
+    try:
+        with dask.config.set({"distributed.comm.timeouts.connect": "1s"}):
+            with pytest.raises(SystemExit) as stopped:
+                generate.main([*RUN, "--out", str(out), "--scheduler", address])
+    finally:
+        stop.set()
+        thread.join()
+    assert accepted  # it was reached, and stayed silent
+    assert stopped.value.code == 1
+    assert capsys.readouterr().err == (
+        f"python -m tasks.generate: error: Timed out trying to connect to {address} "
+        "after 1 s (it accepted the connection but did not answer as a Dask "
+        "scheduler)\n"
+    )
     assert not out.exists()
 
 
