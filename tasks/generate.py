@@ -50,7 +50,8 @@ Execution (`concurrent.futures`): in-process (`--workers 1`), a local process po
 `pip install -e ".[dask]"`; a scheduler that does not answer within Dask's
 connect timeout, `distributed.comm.timeouts.connect`, 30 s by default, stops the
 run before anything is written, even one that accepts the connection and stays
-silent). Every shard carries the client's `software`
+silent; two shards per thread of the cluster, as workers join, at least 64, are
+kept in flight). Every shard carries the client's `software`
 record, and a worker running other software (another package version, an edited
 source) refuses it, naming its host and what differs; on a cluster, the workers
 connected at the start are asked first. The run then stops, keeping the finished
@@ -881,7 +882,10 @@ def executor_for(
         with distributed.Client(scheduler) as client:
             if software is not None:
                 check_cluster_software(client, software)
-            yield client.get_executor()
+            executor = client.get_executor()
+            # the cluster's threads, as workers join and leave (`_in_flight`)
+            executor.threads = functools.partial(_cluster_threads, client)
+            yield executor
     elif workers == 1:
         yield InlineExecutor()
     else:
@@ -1084,7 +1088,6 @@ def generate(
         shards.remove_temporaries(out)
         path = shards.write_manifest(out, manifest)  # with what was done before
         shards.remove_progress(out)  # the manifest holds it now
-        in_flight = 2 * max(config.workers, 1) if config.scheduler is None else 64
         pending: set[cf.Future] = set()
         queue = list(reversed(jobs))
 
@@ -1102,6 +1105,7 @@ def generate(
 
         try:
             while queue or pending:
+                in_flight = _in_flight(pool, config)  # as workers join and leave
                 while queue and len(pending) < in_flight:
                     pending.add(pool.submit(run_shard, queue.pop()))
                 done, _ = cf.wait(pending, return_when=cf.FIRST_COMPLETED)
@@ -1123,6 +1127,28 @@ def generate(
     shards.write_manifest(out, manifest)
     shards.remove_progress(out)
     return Generated(path, manifest, tuple(todo))
+
+
+#: Shards in flight on a Dask cluster at least (before its workers join).
+MIN_IN_FLIGHT = 64
+
+
+def _in_flight(pool: cf.Executor, config: Config) -> int:
+    """How many shards to keep submitted: two per worker (one running, one
+    waiting), on a Dask cluster per thread as the cluster now has (it was 64
+    whatever the cluster, leaving a larger one idle), at least MIN_IN_FLIGHT."""
+    threads = getattr(pool, "threads", None)  # a Dask cluster's (executor_for)
+    if threads is not None:
+        return max(2 * threads(), MIN_IN_FLIGHT)
+    if config.scheduler is not None:  # a Dask executor passed in
+        return MIN_IN_FLIGHT
+    return 2 * config.workers
+
+
+def _cluster_threads(client: Any) -> int:
+    """The threads of the Dask workers connected to `client` now (one call to
+    the scheduler, for the totals alone)."""
+    return int(client.scheduler_info(n_workers=0).get("total_threads", 0))
 
 
 def _failed(future: cf.Future) -> bool:

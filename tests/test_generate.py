@@ -942,3 +942,36 @@ def _context(executor):
     import contextlib
 
     return contextlib.nullcontext(executor)
+
+
+def test_a_dask_cluster_gets_two_shards_in_flight_per_thread(tmp_path, monkeypatch):
+    """A Dask run kept 64 shards in flight whatever the cluster's size, so a
+    cluster of more than 64 threads idled. It keeps two per thread now (here 2
+    workers of 40 threads: 160), counted when the first shard is kept, after
+    the first round of submissions."""
+    distributed = pytest.importorskip("distributed")
+    from distributed.cfexecutor import ClientExecutor
+
+    submitted, at_first_write = [], []
+    submit, write = ClientExecutor.submit, shards.write_shard
+
+    def counted_submit(self, fn, *args, **kwargs):
+        submitted.append(args[0].index)
+        return submit(self, fn, *args, **kwargs)
+
+    def counted_write(*args, **kwargs):
+        at_first_write.append(at_first_write[0] if at_first_write else len(submitted))
+        return write(*args, **kwargs)
+
+    monkeypatch.setattr(ClientExecutor, "submit", counted_submit)
+    monkeypatch.setattr(shards, "write_shard", counted_write)
+    with distributed.Client(
+        processes=False, n_workers=2, threads_per_worker=40, dashboard_address=None
+    ) as client:
+        generate.main(
+            ["--domain", "cartpole", "--instances", "200", "--shard-size", "1",
+             "--episodes-per-instance", "1", "--max-steps", "2", "--no-progress",
+             "--out", str(tmp_path), "--scheduler", client.scheduler.address]
+        )  # fmt: skip
+    assert sorted(submitted) == list(range(200))
+    assert at_first_write[0] == 160
