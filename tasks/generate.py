@@ -51,11 +51,11 @@ Execution (`concurrent.futures`): in-process (`--workers 1`), a local process po
 connect timeout, `distributed.comm.timeouts.connect`, 30 s by default, stops the
 run before anything is written, even one that accepts the connection and stays
 silent; two shards per thread of the cluster, as workers join, at least 64, are
-kept in flight). Every shard carries the client's `software`
-record, and a worker running other software (another package version, an edited
-source) refuses it, naming its host and what differs; on a cluster, the workers
-connected at the start are asked first. The run then stops, keeping the finished
-shards. Read the result with
+kept in flight; a cluster with no worker for 30 s is warned of, once). Every
+shard carries the client's `software` record, and a worker running other
+software (another package version, an edited source) refuses it, naming its
+host and what differs; on a cluster, the workers connected at the start are
+asked first. The run then stops, keeping the finished shards. Read the result with
 `hipmdp.Transitions.load(OUT, instances=...)` or `hipmdp.shards.Dataset(OUT)`.
 """
 
@@ -1104,11 +1104,26 @@ def generate(
                 bar.update()
 
         try:
+            threads = getattr(pool, "threads", None)  # a Dask cluster's
+            warned = threads is None  # warned of no workers, or nothing to warn of
             while queue or pending:
                 in_flight = _in_flight(pool, config)  # as workers join and leave
                 while queue and len(pending) < in_flight:
                     pending.add(pool.submit(run_shard, queue.pop()))
-                done, _ = cf.wait(pending, return_when=cf.FIRST_COMPLETED)
+                done, _ = cf.wait(
+                    pending,
+                    timeout=None if warned else NO_WORKERS_WARNING,
+                    return_when=cf.FIRST_COMPLETED,
+                )
+                if not done and not warned and threads() == 0:
+                    tqdm.write(
+                        f"python -m tasks.generate: warning: no Dask worker has "
+                        f"been connected to {config.scheduler} for "
+                        f"{NO_WORKERS_WARNING:g} s; waiting for one (dask worker "
+                        f"{config.scheduler})",
+                        file=sys.stderr,
+                    )
+                    warned = True
                 # the finished shards first: a failed or cancelled one's error
                 # (Ctrl-C in the inline executor, a lost Dask scheduler) is
                 # raised once they are kept (`exception()` of a cancelled future
@@ -1128,6 +1143,9 @@ def generate(
     shards.remove_progress(out)
     return Generated(path, manifest, tuple(todo))
 
+
+#: Seconds a Dask run waits with no worker before it warns (once; it waits on).
+NO_WORKERS_WARNING = 30.0
 
 #: Shards in flight on a Dask cluster at least (before its workers join).
 MIN_IN_FLIGHT = 64

@@ -975,3 +975,47 @@ def test_a_dask_cluster_gets_two_shards_in_flight_per_thread(tmp_path, monkeypat
         )  # fmt: skip
     assert sorted(submitted) == list(range(200))
     assert at_first_write[0] == 160
+
+
+def test_a_dask_run_without_workers_warns_once_and_waits(tmp_path, monkeypatch):
+    """A cluster with no worker left the run waiting with no word. After
+    NO_WORKERS_WARNING seconds without one (here none) it says so on stderr,
+    once, and waits on: the worker started on seeing the warning finishes the
+    run."""
+    import sys
+    import threading
+
+    distributed = pytest.importorskip("distributed")
+    # (raising=False: code without the warning waits for the guard, then fails)
+    monkeypatch.setattr(generate, "NO_WORKERS_WARNING", 0, raising=False)
+    written = []
+    with distributed.Client(
+        processes=False, n_workers=0, dashboard_address=None
+    ) as client:
+        address = client.scheduler.address
+
+        class Stderr:
+            def write(self, text):
+                written.append(text)
+                if "warning: no Dask worker" in text:
+                    client.cluster.scale(1)
+
+            def flush(self):
+                pass
+
+        guard = threading.Timer(60, client.cluster.scale, (1,))  # not a timing
+        guard.start()  # check: without the warning, the run would never end
+        try:
+            monkeypatch.setattr(sys, "stderr", Stderr())
+            generate.main(
+                ["--domain", "acrobot", *TINY, *QUIET, "--out", str(tmp_path),
+                 "--scheduler", address]
+            )  # fmt: skip
+            monkeypatch.undo()
+        finally:
+            guard.cancel()
+    assert "".join(written) == (
+        f"python -m tasks.generate: warning: no Dask worker has been connected to "
+        f"{address} for 0 s; waiting for one (dask worker {address})\n"
+    )
+    assert shards.Dataset(tmp_path).complete
