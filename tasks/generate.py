@@ -86,7 +86,7 @@ import numpy as np
 from tqdm import tqdm
 
 from hipmdp import shards
-from hipmdp.data import atomic_temporaries
+from hipmdp.data import atomic_temporaries, lock_folder
 from tasks._common import parameter_matrix
 from tasks.acrobot import AcrobotParams, book_inertia_range, with_book_inertia
 from tasks.collect import DOMAINS, collect, collect_sarsa, get_domain
@@ -234,6 +234,30 @@ class ShardOutput(NamedTuple):
     data: bytes
     counts: dict[str, int]
     diverged: list[dict[str, Any]]
+
+
+class BusyError(ValueError):
+    """Another run is writing to `--out` (it holds the folder's lock)."""
+
+
+def _busy(out: Path) -> BusyError:
+    return BusyError(
+        f"--out: another tasks.generate run is writing to {out}; wait for it to "
+        "end, or choose another --out (two runs at once mix their shards)"
+    )
+
+
+def _held(out: Path) -> bool:
+    """Whether another process holds `out`'s lock (`generate`)."""
+    if not out.is_dir():
+        return False
+    try:
+        fd = lock_folder(out, wait=False)
+    except BlockingIOError:
+        return True
+    if fd is not None:
+        os.close(fd)
+    return False
 
 
 class OtherSoftwareError(RuntimeError):
@@ -651,6 +675,8 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
             finished: nothing to do.)
     """
     check_folder_out(config.out, "--out")
+    if _held(config.out):
+        raise _busy(config.out)
     old = shards.read_manifest(config.out)
     if old is None:  # a run writes its manifest before anything else
         if any(config.out.glob("shard-*.npz")):
@@ -1081,10 +1107,18 @@ def generate(
         desc=f"{config.domain} shards",
         disable=not config.progress,
     )
-    with context as pool, bar:
+    with context as pool, bar, contextlib.ExitStack() as stack:
         # the manifest once the workers (or the Dask scheduler) are there: a
         # scheduler that cannot be reached leaves no unfinished run behind
         out.mkdir(parents=True, exist_ok=True)
+        # one run at a time in a folder (held until this block ends, or the
+        # process dies): two runs at once both reported success over shards
+        # that failed their checksums
+        try:
+            lock = lock_folder(out, wait=False)
+        except BlockingIOError:
+            raise _busy(out) from None
+        stack.callback(lambda: lock is not None and os.close(lock))
         shards.remove_temporaries(out)
         path = shards.write_manifest(out, manifest)  # with what was done before
         shards.remove_progress(out)  # the manifest holds it now
@@ -1203,6 +1237,8 @@ def main(argv: Sequence[str] | None = None) -> Generated:
     except Terminated:
         stopped = _interrupted(config, argv, started=started, what="terminated")
         parser.exit(143, f"{parser.prog}: {stopped}\n")
+    except BusyError as error:  # another run took --out after `prepare` looked
+        parser.error(str(error))
     except cf.CancelledError:  # Dask cancels every task when it loses the scheduler
         stopped = _interrupted(config, argv, started=True, what="stopped")
         parser.exit(

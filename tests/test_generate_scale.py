@@ -929,3 +929,32 @@ def test_open_loop_gathering_drops_a_diverged_episode_and_names_it(monkeypatch):
     assert result.n_episodes == 4 and len(t) == 3 * 10
     assert np.isfinite(t.next_states).all() and np.abs(t.next_states).max() < 100
     np.testing.assert_array_equal(np.bincount(t.instances)[[4, 9]], [10, 20])
+
+
+def test_a_folder_another_run_writes_to_is_refused(tmp_path, capsys):
+    """Two runs into one --out at once both reported success, over shards that
+    then failed their checksums: while another process holds the folder's lock,
+    a run is a usage error before it writes anything; once it ends, the folder
+    is taken."""
+    from tests.test_experiment import _holder
+
+    out = tmp_path / "run"
+    out.mkdir()
+    proc = _holder(out)
+    try:
+        with pytest.raises(SystemExit) as stopped:
+            generate.main([*RUN, "--out", str(out)])
+        assert stopped.value.code == 2
+        assert "another tasks.generate run is writing to" in capsys.readouterr().err
+        assert list(out.iterdir()) == []
+        # the same, found by generate itself (a run that took it after prepare)
+        config = generate.parse_config([*RUN, "--out", str(out)])
+        prepared = generate.prepare(dataclasses.replace(config, out=tmp_path / "x"))
+        with pytest.raises(generate.BusyError):
+            generate.generate(config, prepared=prepared)
+        assert list(out.iterdir()) == []
+    finally:
+        proc.stdin.close()
+        proc.wait()
+    generate.main([*RUN, "--out", str(out)])
+    shards.Dataset(out).verify()
