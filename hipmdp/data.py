@@ -160,23 +160,14 @@ def lock_folder(path: Path, *, wait: bool = True) -> int | None:
     return fd
 
 
-def _locked(path: Path) -> bool:
-    """Whether a live process holds :func:`lock_folder`'s lock on ``path``."""
+def folder_locked(path: Path) -> bool:
+    """Whether a live process (or another open of this one) holds
+    :func:`lock_folder`'s lock on ``path``."""
     try:
-        import fcntl
-    except ImportError:
-        return False
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return False
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fd = lock_folder(path, wait=False)
     except BlockingIOError:
         return True
-    except OSError:
-        return False
-    finally:
+    if fd is not None:
         os.close(fd)
     return False
 
@@ -219,7 +210,7 @@ def atomic_folder(path: str | os.PathLike):
             # a live writer (another process on the same path) holds a lock on
             # its own: removing it under that writer made it recreate the
             # folders it wrote into and rename an incomplete folder into place
-            if not _locked(stale):
+            if not folder_locked(stale):
                 # another writer of this path may be removing it too
                 with contextlib.suppress(FileNotFoundError):
                     shutil.rmtree(stale)

@@ -38,7 +38,13 @@ from scipy import stats
 from threadpoolctl import threadpool_info, threadpool_limits
 
 import hipmdp
-from hipmdp.data import atomic_temporaries, atomic_write, check_integer, lock_folder
+from hipmdp.data import (
+    atomic_temporaries,
+    atomic_write,
+    check_integer,
+    folder_locked,
+    lock_folder,
+)
 
 Array = np.ndarray
 
@@ -274,15 +280,7 @@ def _busy_message(path: Path) -> str:
 
 def _busy(path: Path) -> bool:
     """Whether another process holds ``path``'s run lock (:func:`run_dir`)."""
-    if not path.is_dir() or path.resolve() in _RUN_LOCKS:
-        return False
-    try:
-        fd = lock_folder(path, wait=False)
-    except BlockingIOError:
-        return True
-    if fd is not None:
-        os.close(fd)
-    return False
+    return path.resolve() not in _RUN_LOCKS and folder_locked(path)
 
 
 def releases_run_folders(fn: Callable) -> Callable:

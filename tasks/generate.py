@@ -86,7 +86,7 @@ import numpy as np
 from tqdm import tqdm
 
 from hipmdp import shards
-from hipmdp.data import atomic_temporaries, lock_folder
+from hipmdp.data import atomic_temporaries, folder_locked, lock_folder
 from tasks._common import parameter_matrix
 from tasks.acrobot import AcrobotParams, book_inertia_range, with_book_inertia
 from tasks.collect import DOMAINS, collect, collect_sarsa, get_domain
@@ -245,19 +245,6 @@ def _busy(out: Path) -> BusyError:
         f"--out: another tasks.generate run is writing to {out}; wait for it to "
         "end, or choose another --out (two runs at once mix their shards)"
     )
-
-
-def _held(out: Path) -> bool:
-    """Whether another process holds `out`'s lock (`generate`)."""
-    if not out.is_dir():
-        return False
-    try:
-        fd = lock_folder(out, wait=False)
-    except BlockingIOError:
-        return True
-    if fd is not None:
-        os.close(fd)
-    return False
 
 
 class OtherSoftwareError(RuntimeError):
@@ -675,7 +662,7 @@ def prepare(config: Config) -> tuple[dict[str, Any], list[int]]:
             finished: nothing to do.)
     """
     check_folder_out(config.out, "--out")
-    if _held(config.out):
+    if folder_locked(config.out):
         raise _busy(config.out)
     old = shards.read_manifest(config.out)
     if old is None:  # a run writes its manifest before anything else

@@ -932,14 +932,14 @@ def test_atomic_folder_takes_a_killed_writers_temporary_removed_meanwhile(
     stale = tmp_path / ".run.abcd1234.tmp"
     stale.mkdir()
     (stale / "a.txt").write_text("killed")
-    locked = data._locked
+    locked = data.folder_locked
 
     def other_removes_it_first(path):
         free = locked(path)
         shutil.rmtree(path)
         return free
 
-    monkeypatch.setattr(data, "_locked", other_removes_it_first)
+    monkeypatch.setattr(data, "folder_locked", other_removes_it_first)
     with data.atomic_folder(tmp_path / "run") as tmp:
         (tmp / "b.txt").write_text("this one")
     assert [p.name for p in tmp_path.iterdir()] == ["run"]
