@@ -114,8 +114,8 @@ def centre(E: Array, col: Array, periodic: tuple[int, ...] = ()) -> Array | None
     whose mean is more than `CENTRE_RATIO` standard deviations from 0 (so also a
     constant column other than 0) is centred on its mean; the others, the angle
     embedding's cos/sin (bounded by 1) and sets of fewer than 2 rows are left
-    (shift 0). Inputs near 0, as every
-    experiment's here, are therefore computed exactly as without this step.
+    (shift 0). Inputs near 0, as every experiment's here, are therefore computed
+    exactly as without this step.
     """
     if len(E) < 2:
         return None
