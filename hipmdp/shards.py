@@ -51,6 +51,8 @@ from hipmdp.data import (
     Transitions,
     atomic_temporaries,
     atomic_write,
+    is_integer,
+    is_real_number,
     npz_bytes,
     wanted_instances,
 )
@@ -135,9 +137,6 @@ def _check_manifest(path: Path, manifest: Mapping[str, Any]) -> None:
     def bad(field: str, expected: str) -> ValueError:
         return ValueError(f"{path}: {field}: expected {expected}")
 
-    def is_int(x: Any) -> bool:
-        return isinstance(x, int) and not isinstance(x, bool)
-
     if not isinstance(manifest.get("complete"), bool):
         raise bad("complete", "true or false")
     names = manifest.get("parameter_names")
@@ -150,7 +149,7 @@ def _check_manifest(path: Path, manifest: Mapping[str, Any]) -> None:
         if entry.get("file") != shard_name(i):
             raise bad(f"{where}.file", repr(shard_name(i)))
         ids = entry.get("instances")
-        if not isinstance(ids, list) or not all(is_int(b) and b >= 0 for b in ids):
+        if not isinstance(ids, list) or not all(is_integer(b) and b >= 0 for b in ids):
             raise bad(f"{where}.instances", "a list of instance ids")
         rows = entry.get("parameters")
         if not (
@@ -159,9 +158,7 @@ def _check_manifest(path: Path, manifest: Mapping[str, Any]) -> None:
             and all(
                 isinstance(r, list)
                 and len(r) == len(names)
-                and all(
-                    isinstance(x, int | float) and not isinstance(x, bool) for x in r
-                )
+                and all(is_real_number(x) for x in r)
                 for r in rows
             )
         ):
@@ -175,7 +172,7 @@ def _check_manifest(path: Path, manifest: Mapping[str, Any]) -> None:
         counts = entry.get("counts")
         if counts is not None and not (
             isinstance(counts, dict)
-            and is_int(counts.get("transitions"))
+            and is_integer(counts.get("transitions"))
             and counts["transitions"] >= 0
         ):
             raise bad(
