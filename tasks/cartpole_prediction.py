@@ -295,7 +295,11 @@ N_BOOTSTRAP = 10_000
 
 
 def ratio_intervals(
-    per_setting_mse: dict, mse: dict, *, rng: np.random.Generator
+    per_setting_mse: dict,
+    mse: dict,
+    *,
+    rng: np.random.Generator,
+    baselines: dict[str, str] | None = None,
 ) -> dict[str, dict[str, Any] | None]:
     """A 95% percentile-bootstrap interval for each ratio of means of
     `_ratios`: the test settings resampled with replacement (the setting as
@@ -305,13 +309,18 @@ def ratio_intervals(
     t-interval, and a few settings can carry most of a mean MSE.
 
     per_setting_mse: method -> (settings, dimensions) MSEs, in DIM_NAMES order.
+    baselines: dimension -> the baseline to divide by, where it is not the best
+        (`tasks.seed_spread` holds one baseline across seeds); the resamples are
+        drawn as without it, so a dimension's interval does not depend on the
+        others' baselines.
     """
     hip = np.asarray(per_setting_mse["hipmdp"], dtype=float)
     n = hip.shape[0]
     idx = rng.integers(n, size=(N_BOOTSTRAP, n))
     out: dict[str, dict[str, Any] | None] = {}
     for j, d in enumerate(DIM_NAMES):
-        best = np.asarray(per_setting_mse[best_baseline(mse, d)], dtype=float)[:, j]
+        name = (baselines or {}).get(d) or best_baseline(mse, d)
+        best = np.asarray(per_setting_mse[name], dtype=float)[:, j]
         den = best[idx].mean(axis=1)
         if n < 2 or np.any(den <= 0):
             out[d] = None

@@ -26,7 +26,11 @@ each headline number:
 
 MSE ratios are against one baseline per dimension for every seed: the first
 run's best (lowest mean MSE), named in the row. The cart-pole's ratio of means is
-then the paper's measure on the first run and comparable across seeds.
+then the paper's measure on the first run and comparable across seeds. Each
+seed's cell gives the run's 95% percentile bootstrap over its test settings
+(``mse_ratio_to_best_baseline_interval``; drawn again, from the run's seed, where
+the run's own best baseline is another). A bootstrap interval gives no standard
+error, so these rows have no ``sd / SE``.
 
 The table is printed as Markdown; ``--out FILE`` also writes every value as JSON.
 There an episode count of "never" (a median, minimum or maximum beyond the last
@@ -44,6 +48,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from scipy import stats
 
+from tasks.cartpole_prediction import ratio_intervals
 from tasks.compare_runs import PRESENTATION, differences, read_run
 from tasks.experiment import (
     check_out_file,
@@ -61,14 +66,17 @@ LABELS = ("seed", "name")
 
 
 class Headline(NamedTuple):
-    """One number of a run: ``get(metrics)`` gives a point value, None (not
-    available; for counts, not reached) or an interval ``{"mean", "low", "high",
-    "n"}``. ``scale``: how it is averaged across seeds: ``"linear"``, ``"log"``
-    (ratios), or ``"count"`` (episode counts: median and range)."""
+    """One number of a run: ``get(metrics)`` (``get(metrics, config)`` where
+    ``with_config``) gives a point value, None (not available; for counts, not
+    reached) or an interval ``{"mean", "low", "high", "n"}`` (``n`` None: an
+    interval that gives no standard error, a bootstrap's). ``scale``: how it is
+    averaged across seeds: ``"linear"``, ``"log"`` (ratios), or ``"count"``
+    (episode counts: median and range)."""
 
     label: str
-    get: Callable[[dict], Any]
+    get: Callable[..., Any]
     scale: str = "linear"
+    with_config: bool = False
 
 
 def _ratio(metrics: dict, baseline: str, dim: str) -> dict | None:
@@ -79,19 +87,48 @@ def _ratio(metrics: dict, baseline: str, dim: str) -> dict | None:
             "n": r["n"]}  # fmt: skip
 
 
-def _ratio_of_means(metrics: dict, baseline: str, dim: str) -> float | None:
+def _ratio_of_means(
+    metrics: dict, baseline: str, dim: str, config: dict
+) -> dict | float | None:
     base = metrics["mse"][baseline][dim]["mean"]
-    return metrics["mse"]["hipmdp"][dim]["mean"] / base if base > 0 else None
+    if not base > 0:
+        return None
+    value = metrics["mse"]["hipmdp"][dim]["mean"] / base
+    interval = _bootstrap(metrics, baseline, dim, config)
+    if interval is None:
+        return value
+    return {"mean": value, "low": interval["low"], "high": interval["high"],
+            "n": None}  # fmt: skip
 
 
-def _ratios(metrics: dict, what: str, get: Callable) -> list[Headline]:
-    """One row per dimension: ``get(m, baseline, dim)``, the HiP-MDP's MSE over
-    the dimension's best baseline in ``metrics`` (the first run's)."""
+def _bootstrap(metrics: dict, baseline: str, dim: str, config: dict) -> dict | None:
+    """The run's 95% bootstrap interval of its ratio of means to ``baseline``
+    (`tasks.cartpole_prediction.ratio_intervals`): the one it stored, where its
+    own best baseline is ``baseline``; else drawn as the run drew its own, from
+    its seed. None for a run from before the intervals, or without one."""
+    stored = metrics.get("mse_ratio_to_best_baseline_interval")
+    if not stored or "per_setting_mse" not in metrics:
+        return None
+    if best_baseline(metrics["mse"], dim) == baseline:
+        return stored[dim]
+    rng = np.random.default_rng(np.random.SeedSequence(config["seed"], spawn_key=(4,)))
+    return ratio_intervals(
+        metrics["per_setting_mse"], metrics["mse"], rng=rng, baselines={dim: baseline}
+    )[dim]
+
+
+def _ratios(
+    metrics: dict, what: str, get: Callable, with_config: bool = False
+) -> list[Headline]:
+    """One row per dimension: ``get(m, baseline, dim)`` (``get(m, baseline, dim,
+    config)`` where ``with_config``), the HiP-MDP's MSE over the dimension's best
+    baseline in ``metrics`` (the first run's)."""
     return [
         Headline(
             f"HiP-MDP MSE / {b}'s, {d} ({what})",
-            lambda m, b=b, d=d: get(m, b, d),
+            lambda m, *c, b=b, d=d: get(m, b, d, *c),
             "log",
+            with_config,
         )
         for d in metrics["mse"]["hipmdp"]
         for b in [best_baseline(metrics["mse"], d)]
@@ -158,7 +195,7 @@ def _acrobot(metrics: dict) -> list[Headline]:
 
 
 def _cartpole(metrics: dict) -> list[Headline]:
-    out = _ratios(metrics, "ratio of means", _ratio_of_means)
+    out = _ratios(metrics, "ratio of means", _ratio_of_means, with_config=True)
     out += _prediction(metrics)
     out.append(
         Headline(
@@ -252,9 +289,13 @@ def _at(config: dict, key: str) -> str:
 
 def _interval(value: Any, label: str, run: str) -> dict[str, Any]:
     """``{"value", "low", "high", "n"}`` (None where the run gives no interval:
-    a single number, or an interval of one sample, whose bounds are null)."""
+    a single number, or an interval of one sample, whose bounds are null; ``n``
+    None for an interval without a standard error, a bootstrap's)."""
     if isinstance(value, dict):
         try:
+            if value["n"] is None:
+                return {"value": float(value["mean"]), "low": float(value["low"]),
+                        "high": float(value["high"]), "n": None}  # fmt: skip
             n = int(value["n"])
             bounds = [value["low"], value["high"]]
             if n < 2 and bounds == [None, None]:  # experiment.mean_ci of one sample
@@ -331,9 +372,9 @@ def main(runs: Sequence[str | Path], out: str | Path | None = None) -> dict[str,
     numbers = []
     for h in headlines:
         per_seed = []
-        for run, m in zip(runs, metrics, strict=True):
+        for run, m, c in zip(runs, metrics, configs, strict=True):
             try:
-                value = h.get(m)
+                value = h.get(m, c) if h.with_config else h.get(m)
             except (KeyError, IndexError, TypeError) as err:
                 raise ValueError(_older(run, err, h.label)) from None
             per_seed.append(_interval(value, h.label, run))

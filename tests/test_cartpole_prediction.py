@@ -1027,6 +1027,42 @@ def test_ratio_intervals_take_each_dimensions_best_baseline_or_give_none():
     )
 
 
+def test_ratio_intervals_divide_by_a_named_baseline_on_the_same_resamples():
+    """``baselines`` names the divisor of one dimension (seed_spread's fixed
+    baseline); the resamples are those drawn without it, so that dimension's
+    interval is the hand loop's against the named baseline, the other
+    dimensions' are unchanged, and naming each dimension's best changes
+    nothing."""
+    rng = np.random.default_rng(8)
+    base = rng.lognormal(0.0, 1.0, size=(7, 4))
+    train = base * rng.uniform(0.5, 3.0, size=base.shape)
+    hip = base * rng.uniform(0.2, 1.4, size=base.shape)
+    per_setting = {"hipmdp": hip, "batch only": base, "train only": train}
+    mse = {m: {d: {"mean": v[:, j].mean()} for j, d in enumerate(DIM_NAMES)}
+           for m, v in per_setting.items()}  # fmt: skip
+    plain = ratio_intervals(per_setting, mse, rng=np.random.default_rng(3))
+    best = {d: best_baseline(mse, d) for d in DIM_NAMES}
+    assert "train only" not in best.values()  # so naming it changes the divisor
+    assert (
+        ratio_intervals(per_setting, mse, rng=np.random.default_rng(3), baselines=best)
+        == plain
+    )
+    got = ratio_intervals(
+        per_setting, mse, rng=np.random.default_rng(3),
+        baselines={"dtheta": "train only"},
+    )  # fmt: skip
+    draws = np.random.default_rng(3).integers(7, size=(N_BOOTSTRAP, 7))
+    ratios = [hip[i, 1].mean() / train[i, 1].mean() for i in draws]
+    want = np.percentile(ratios, [2.5, 97.5])
+    assert [got["dtheta"]["low"], got["dtheta"]["high"]] == pytest.approx(
+        want, rel=1e-12
+    )
+    assert got["dtheta"]["share_at_least_1"] == np.mean(np.array(ratios) >= 1)
+    assert {d: v for d, v in got.items() if d != "dtheta"} == {
+        d: v for d, v in plain.items() if d != "dtheta"
+    }
+
+
 def test_the_paper_preset_is_the_papers_protocol(tmp_path):
     """The module docstring's protocol (the paper's Table 1): the seven training
     settings as printed, (0.3, 0.4) twice; the 5 × 5 grid of pole masses

@@ -382,6 +382,56 @@ def test_cartpole_ratio_of_means_is_against_the_first_runs_best_baseline(tmp_pat
     assert [p["value"] for p in dtheta["per_seed"]] == [0.6, 0.6, 0.6]
 
 
+def test_cartpole_ratio_of_means_carries_each_runs_bootstrap_interval(tmp_path):
+    """Each seed's cell carries its run's bootstrap interval of the ratio to
+    the row's baseline: the run's stored one where that baseline is the run's
+    own best (seed 0; the stored bounds are marked, so a recomputation would
+    show), else drawn as the run drew its own, from its seed, against the row's
+    baseline (seed 1, whose best on dx is train only). The bootstrap gives no
+    standard error, so the row has no sd / SE. A run from before the intervals
+    gives the ratio alone."""
+    from tasks.cartpole_prediction import DIM_NAMES, N_BOOTSTRAP
+
+    rng = np.random.default_rng(4)
+    batch = rng.lognormal(size=(6, 4))
+    hip = 0.5 * batch * rng.uniform(0.5, 1.5, size=batch.shape)
+    runs = []
+    for seed, train_dx in ((0, 3.0), (1, 0.5)):
+        train = 4.0 * batch
+        train[:, 0] = train_dx * batch[:, 0]  # seed 1: the best on dx
+        per_setting = {"hipmdp": hip, "batch only": batch, "train only": train}
+        mse = {
+            m: {d: {"mean": float(v[:, j].mean())} for j, d in enumerate(DIM_NAMES)}
+            for m, v in per_setting.items()
+        }
+        stored = {d: {"low": 0.125, "high": 0.875} for d in DIM_NAMES}
+        metrics = _cartpole_metrics(seed) | {
+            "mse": mse,
+            "per_setting_mse": {m: v.tolist() for m, v in per_setting.items()},
+            "mse_ratio_to_best_baseline_interval": stored,
+            "mse_ratio_per_setting": {b: dict.fromkeys(DIM_NAMES) for b in BASELINES},
+        }
+        runs.append(({"name": "cp", "seed": seed, "fit": {}}, metrics))
+    older = dict(runs[0][1])
+    del older["mse_ratio_to_best_baseline_interval"]
+    runs.append(({"name": "cp", "seed": 2, "fit": {}}, older))
+    result = main(_write_runs(tmp_path, runs))
+    dx = _number(result, "HiP-MDP MSE / batch only's, dx (ratio of means)")
+    first, second, old = dx["per_seed"]
+    assert (first["low"], first["high"], first["n"]) == (0.125, 0.875, None)
+    assert first["value"] == pytest.approx(hip[:, 0].mean() / batch[:, 0].mean())
+    draws = np.random.default_rng(np.random.SeedSequence(1, spawn_key=(4,))).integers(
+        6, size=(N_BOOTSTRAP, 6)
+    )
+    ratios = [hip[i, 0].mean() / batch[i, 0].mean() for i in draws]
+    want = np.percentile(ratios, [2.5, 97.5])
+    assert [second["low"], second["high"]] == pytest.approx(want, rel=1e-12)
+    assert second["value"] == first["value"]
+    assert (old["value"], old["low"], old["high"]) == (first["value"], None, None)
+    assert dx["across_seeds"]["sd_over_se"] is None
+    assert "[" in report(result).split("dx (ratio of means) |")[1].split("|")[1]
+
+
 def test_cartpole_rows_read_the_unseen_settings_and_the_mean_over_fits(tmp_path):
     """The unseen rows read the leads on the unseen settings alone, not on all
     settings; "latent features (mean over fits)" is the mean of each run's fits
