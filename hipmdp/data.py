@@ -26,6 +26,7 @@ can travel in the same file.
 from __future__ import annotations
 
 import contextlib
+import glob
 import hashlib
 import io
 import os
@@ -92,16 +93,22 @@ def fsync_folder(path: Path) -> None:
         os.close(fd)
 
 
-def atomic_write(path: str | os.PathLike, write) -> Path:
+def atomic_write(path: str | os.PathLike, write, *, clean: bool = False) -> Path:
     """Call ``write(file_object)`` on a temporary file beside ``path``, then rename.
 
-    A crash or kill mid-write leaves at most a stray ``.tmp`` file, never a truncated
-    ``path``.
+    A crash or kill mid-write leaves at most a stray ``.<name>.<random>.tmp``
+    file, never a truncated ``path``. The writer holds an ``flock`` on its
+    temporary file. With ``clean``, a write that succeeds then removes the
+    temporary files that killed writes of the same ``path`` left, sparing those a
+    live writer holds. That lists the folder once per write, so a folder of many
+    files written one by one (a generate run's shards) leaves it to
+    `hipmdp.shards.remove_temporaries`.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        _lock_file(fd)
         with os.fdopen(fd, "wb") as fh:
             write(fh)
             fh.flush()
@@ -113,7 +120,23 @@ def atomic_write(path: str | os.PathLike, write) -> Path:
             os.unlink(tmp)
         raise
     fsync_folder(path.parent)
+    if clean:
+        stale = re.compile(rf"\.{re.escape(path.name)}\.[a-z0-9_]{{8}}\.tmp")
+        for left in atomic_temporaries(path.parent, glob.escape(path.name)):
+            if stale.fullmatch(left.name) and not folder_locked(left):
+                left.unlink(missing_ok=True)
     return path
+
+
+def _lock_file(fd: int) -> None:
+    """An ``flock`` on the open file ``fd``, held until it is closed; nothing
+    where files cannot be locked."""
+    try:
+        import fcntl
+
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except (ImportError, OSError):
+        pass
 
 
 def atomic_temporaries(directory: str | os.PathLike, pattern: str) -> list[Path]:
@@ -162,7 +185,8 @@ def lock_folder(path: Path, *, wait: bool = True) -> int | None:
 
 def folder_locked(path: Path) -> bool:
     """Whether a live process (or another open of this one) holds
-    :func:`lock_folder`'s lock on ``path``."""
+    :func:`lock_folder`'s lock on ``path`` (or, for a file, the lock
+    :func:`atomic_write` holds on its temporary file)."""
     try:
         fd = lock_folder(path, wait=False)
     except BlockingIOError:
@@ -929,7 +953,7 @@ class Transitions:
         if path.suffix != ".npz":
             raise ValueError(f"path: expected a .npz file name, got {path.name!r}")
         data = npz_bytes(self.arrays(table))
-        return atomic_write(path, lambda fh: fh.write(data))
+        return atomic_write(path, lambda fh: fh.write(data), clean=True)
 
     @classmethod
     def load(

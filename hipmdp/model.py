@@ -516,7 +516,7 @@ class HipMDP:
         }
         arrays["meta_json"] = np.array(json.dumps(meta))
         data = npz_bytes(arrays)
-        return atomic_write(path, lambda fh: fh.write(data))
+        return atomic_write(path, lambda fh: fh.write(data), clean=True)
 
 
 def load(path: str | os.PathLike) -> HipMDP:

@@ -406,7 +406,9 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
     timings["prediction"] = time.perf_counter() - t0
 
     arrays = trial_arrays(config, trials)
-    atomic_write(path / "trials.npz", lambda fh: fh.write(npz_bytes(arrays)))
+    atomic_write(
+        path / "trials.npz", lambda fh: fh.write(npz_bytes(arrays)), clean=True
+    )
     metrics = transfer_metrics(config, trials)
     metrics.update(
         mse=mse["test"]["mse"],

@@ -15,12 +15,10 @@ import contextlib
 import contextvars
 import dataclasses
 import functools
-import glob
 import json
 import os
 import pickle
 import platform
-import re
 import subprocess
 import sys
 import tempfile
@@ -233,16 +231,11 @@ def to_jsonable(x: Any) -> Any:
 
 
 def _write(path: str | os.PathLike, write: Callable) -> Path:
-    """:func:`hipmdp.data.atomic_write`, then remove the temporary files that
-    killed writes of this same file left (``.<name>.<8 characters>.tmp``:
-    a check killed while writing its JSON into a run folder left one that no
-    later run removed)."""
-    path = atomic_write(path, write)
-    stale = re.compile(rf"\.{re.escape(path.name)}\.[A-Za-z0-9_]{{8}}\.tmp")
-    for tmp in atomic_temporaries(path.parent, glob.escape(path.name)):
-        if stale.fullmatch(tmp.name):
-            tmp.unlink(missing_ok=True)
-    return path
+    """:func:`hipmdp.data.atomic_write` with ``clean``: it also removes the
+    temporary files that killed writes of this same file left (a check killed
+    while writing its JSON into a run folder left one that no later run
+    removed)."""
+    return atomic_write(path, write, clean=True)
 
 
 def write_json(path: str | os.PathLike, obj: Any) -> Path:

@@ -228,6 +228,45 @@ def test_failed_write_leaves_old_file_intact(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["d.npz"]  # no temp file left
 
 
+def test_a_save_removes_what_killed_saves_of_the_same_file_left(tmp_path):
+    """A save killed mid-write leaves a full-size hidden temporary file; the next
+    save of the same file removes it, but not one a live writer holds (its
+    flock), nor another file's, nor a name mkstemp does not make."""
+    from hipmdp.data import lock_folder
+
+    stale = [".d.npz.k2x_9abc.tmp", ".d.npz.00000000.tmp"]
+    kept = [".d.npz.backup.tmp", ".d.npz.ABCDEFGH.tmp", ".e.npz.abcdefgh.tmp",
+            ".d.npz.x.abcdefgh.tmp", "d.npz.abcdefgh.tmp"]  # fmt: skip
+    live = tmp_path / ".d.npz.livewrit.tmp"
+    for name in stale + kept + [live.name]:
+        (tmp_path / name).write_bytes(b"half")
+    lock = lock_folder(live)  # another writer, still writing
+    try:
+        make().save(tmp_path / "d.npz")
+    finally:
+        os.close(lock)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        kept + [live.name, "d.npz"]
+    )
+    make().save(tmp_path / "d.npz")  # the writer has gone
+    assert not live.exists()
+
+
+def test_a_writer_holds_a_lock_on_its_temporary_file(tmp_path):
+    """What spares a live writer's temporary file from another's cleaning."""
+    from hipmdp.data import atomic_temporaries, atomic_write, folder_locked
+
+    seen = []
+
+    def write(fh):
+        (tmp,) = atomic_temporaries(tmp_path, "f.bin")
+        seen.append(folder_locked(tmp))
+        fh.write(b"x")
+
+    atomic_write(tmp_path / "f.bin", write, clean=True)
+    assert seen == [True]
+
+
 def test_atomic_folder_appears_whole_or_not_at_all(tmp_path):
     from hipmdp.data import atomic_folder
 

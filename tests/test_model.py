@@ -177,6 +177,18 @@ def test_save_load_identical_predictions(fitted, tmp_path):
     assert loaded.info["data_sha256"] == _batch().sha256()  # what it was fitted on
 
 
+def test_a_save_removes_a_killed_saves_temporary_file(fitted, tmp_path):
+    """As `Transitions.save` (tests/test_data.py): what a killed save of the same
+    file left goes, another file's stays."""
+    (tmp_path / ".model.npz.abcd1234.tmp").write_bytes(b"half a model")
+    (tmp_path / ".other.npz.abcd1234.tmp").write_bytes(b"half a model")
+    fitted.save(tmp_path / "model.npz")
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        ".other.npz.abcd1234.tmp",
+        "model.npz",
+    ]
+
+
 def test_a_model_file_with_a_changed_byte_is_refused_naming_it(fitted, tmp_path):
     from tests.test_data import flipped, member_data
 
