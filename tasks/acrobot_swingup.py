@@ -160,8 +160,9 @@ class SwingupConfig:
         n_trials: trials per test setting.
         transfer: sizes of the transfer protocol.
         mse_train, mse_test: transitions per instance for the prediction table.
-        split: ``"random"`` (the paper's) or ``"time"``: how a test setting's
-            transitions are split into train and test (``gather_split``).
+        split: ``"random"`` (our reading of the paper's) or ``"time"``: how a
+            test setting's transitions are split into train and test
+            (``gather_split``).
         methods: your own methods, run in the transfer trials and (models, not
             policies) scored in the prediction tables beside the others, as
             ``"NAME=module:attribute"`` (``tasks.methods``).

@@ -1,4 +1,5 @@
-"""Batch data as the paper gathers it: Sarsa(λ) agents learning on each training
+"""Batch data as the paper gathers it (its "Sarsa" on a Fourier basis; λ and ε
+are ours): Sarsa(λ) agents learning on each training
 instance, every transition they see kept (``tasks.collect.collect_sarsa``).
 
 Each (instance, repetition) is one job with its own seed spawned from one
@@ -47,8 +48,10 @@ def gather_batch(
     Args:
         domain: ``"acrobot"`` or ``"cartpole"``.
         instances: the parameter dataclasses of the training instances.
-        repetitions: independent agents per instance (paper: 5).
-        episodes: episodes per agent (paper: 30); max_steps: their step limit.
+        repetitions: independent agents per instance (the paper's cart-pole: 5;
+            not stated for the acrobot).
+        episodes: episodes per agent (the paper's cart-pole: 30); max_steps:
+            their step limit.
         seed: all streams are spawned from it; workers: processes.
     """
     seeds = seed.spawn(len(instances) * repetitions)

@@ -101,8 +101,9 @@ class PredictionConfig:
         average_n_max: transitions per action in the batch GPs.
         n_train, n_test: transitions per test setting (paper: 50 and 50).
         gather_episodes: Sarsa episodes gathered per test setting.
-        split: ``"random"`` (the paper's) or ``"time"``: how a test setting's
-            transitions are split into train and test (``gather_split``).
+        split: ``"random"`` (our reading of the paper's) or ``"time"``: how a
+            test setting's transitions are split into train and test
+            (``gather_split``).
         methods: your own methods, scored beside the others, as
             ``"NAME=module:attribute"`` (``tasks.methods``).
         workers: processes for the batch data.

@@ -63,8 +63,9 @@ def add_split_argument(parser) -> None:
         "--split",
         choices=SPLITS,
         default=None,
-        help="train/test split of each test setting's transitions: random (the "
-        "paper's, default) or time (the first to train on, the last to test on)",
+        help="train/test split of each test setting's transitions: random (our "
+        "reading of the paper's; default) or time (the first to train on, the "
+        "last to test on)",
     )
 
 
@@ -128,8 +129,9 @@ def gather_split(
     max_episodes: int = 500,
     split: str = "random",
 ) -> Split:
-    """Transitions along Sarsa trajectories on ``params``, split at random (the
-    paper's "50 (different) test points") or, with ``split="time"``, in time: the
+    """Transitions along Sarsa trajectories on ``params``, split at random (our
+    reading of the paper's "50 (different) test points", whose choice it does not
+    describe) or, with ``split="time"``, in time: the
     first ``n_train`` transitions to train on and the last ``n_test`` to test on,
     so that no test transition has a train transition a step away (unless
     exactly ``n_train + n_test`` were gathered) and the test is a prediction of

@@ -62,7 +62,8 @@ METHODS = ("true", "average", "hipmdp")
 LABELS = {"true": "true model", "average": "average model", "hipmdp": "HiP-MDP"}
 
 
-#: The most real episodes per trial a TransferConfig takes (the paper: 20).
+#: The most real episodes per trial a TransferConfig takes (the paper's text
+#: implies at least 15; its figure is not in its source).
 MAX_EPISODES = 10_000
 
 
