@@ -64,8 +64,7 @@ from tasks.prediction import (
     add_split_argument,
     best_baseline,
     check_split,
-    gather_split,
-    score_instance,
+    score_settings,
     summarise,
 )
 from tasks.recording import resolve_record
@@ -218,38 +217,15 @@ def main(config: PredictionConfig, out: str | os.PathLike | None = None) -> Resu
     seconds["average_model"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    splits, scores = [], []
-    from tqdm.auto import tqdm
-
-    streams = ss_test.spawn(len(config.test_settings))
-    for i, (p, stream) in enumerate(
-        zip(
-            tqdm(
-                config.test_settings, desc="test settings", disable=not config.progress
-            ),
-            streams,
-            strict=True,
-        )
-    ):
-        rng = np.random.default_rng(stream)
-        split = gather_split(
-            CARTPOLE, _params(*p), config.n_train, config.n_test, rng=rng,
-            n_episodes=config.gather_episodes, split=config.split,
-        )  # fmt: skip
-        splits.append(split)
-        scores.append(
-            score_instance(
-                hips,
-                average,
-                batch,
-                split.train,
-                split.test,
-                rng=rng,
-                n_max=config.average_n_max,
-                added=added,
-                key=(0, i),
-            )  # fmt: skip
-        )
+    splits: list = []
+    scores = score_settings(
+        CARTPOLE, hips, average, batch,
+        [_params(*p) for p in config.test_settings],
+        n_train=config.n_train, n_test=config.n_test, seed=ss_test,
+        split=config.split, desc="test settings", progress=config.progress,
+        added=added, n_episodes=config.gather_episodes,
+        n_max=config.average_n_max, splits=splits,
+    )  # fmt: skip
     seconds["prediction"] = time.perf_counter() - t0
 
     train = set(config.train_settings)

@@ -380,10 +380,15 @@ def score_settings(
     progress: bool = False,
     added: Sequence[Any] = (),
     table: int = 0,
+    n_episodes: int = 3,
+    n_max: int = 2000,
+    splits: list[Split] | None = None,
 ) -> list[InstanceScores]:
-    """:func:`gather_split` (with ``split``) and :func:`score_instance` on each
-    instance in turn, each with its own stream spawned from ``seed``; ``added``
-    methods are scored with keys ``(table, i)`` for instance ``i``."""
+    """:func:`gather_split` (with ``split`` and ``n_episodes``) and
+    :func:`score_instance` (with ``n_max``) on each instance in turn, each with
+    its own stream spawned from ``seed``; ``added`` methods are scored with keys
+    ``(table, i)`` for instance ``i``. Each instance's split is appended to
+    ``splits`` where given."""
     from tqdm.auto import tqdm
 
     scores = []
@@ -392,7 +397,12 @@ def score_settings(
         zip(tqdm(instances, desc=desc, disable=not progress), streams, strict=True)
     ):
         rng = np.random.default_rng(stream)
-        parts = gather_split(domain, params, n_train, n_test, rng=rng, split=split)
+        parts = gather_split(
+            domain, params, n_train, n_test, rng=rng, n_episodes=n_episodes,
+            split=split,
+        )  # fmt: skip
+        if splits is not None:
+            splits.append(parts)
         scores.append(
             score_instance(
                 hips,
@@ -401,6 +411,7 @@ def score_settings(
                 parts.train,
                 parts.test,
                 rng=rng,
+                n_max=n_max,
                 added=added,
                 key=(table, i),
             )

@@ -347,7 +347,7 @@ def test_time_split_reaches_the_prediction_table(run, monkeypatch):
         splits.append(gather(*args, **kwargs))
         return splits[-1]
 
-    def score_stub(hips, average, batch, train, test, rng, added, key):
+    def score_stub(hips, average, batch, train, test, rng, n_max, added, key):
         return prediction.InstanceScores(
             {m: np.ones(4) for m in prediction.PREDICTION_METHODS},
             {m: 0.0 for m in prediction.PREDICTION_METHODS},

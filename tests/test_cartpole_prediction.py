@@ -612,17 +612,20 @@ def test_score_settings_gives_each_setting_its_own_stream_and_key(monkeypatch):
     """Settings with the same parameters still get independent data (a stream
     each, spawned from the seed); the same seed gives the same streams, and a
     setting's stream does not depend on how many follow it; added methods are
-    keyed (table, setting)."""
+    keyed (table, setting); the gathering's episodes and the average GP's cap
+    reach each setting, and its splits come back in order."""
     from tasks import prediction
 
-    draws, keys = [], []
+    draws, keys, sizes = [], [], []
 
-    def gather_split(domain, params, n_train, n_test, *, rng, split):
+    def gather_split(domain, params, n_train, n_test, *, rng, n_episodes, split):
         draws.append(rng.random())
-        return prediction.Split(None, None, None)
+        sizes.append(n_episodes)
+        return prediction.Split(len(draws), None, None)
 
-    def score_instance(hips, average, batch, train, test, *, rng, added, key):
+    def score_instance(hips, average, batch, train, test, *, rng, n_max, added, key):
         keys.append(key)
+        sizes.append(n_max)
         return key
 
     monkeypatch.setattr(prediction, "gather_split", gather_split)
@@ -643,6 +646,15 @@ def test_score_settings_gives_each_setting_its_own_stream_and_key(monkeypatch):
     again, _ = run(3)
     two, _ = run(2)
     assert again == three and two == three[:2]
+    sizes.clear()
+    draws.clear()
+    splits = []
+    prediction.score_settings(
+        None, [], None, None, ["a", "b"], n_train=1, n_test=1, n_episodes=7,
+        n_max=90, seed=np.random.SeedSequence(1), splits=splits,
+    )  # fmt: skip
+    assert sizes == [7, 90, 7, 90]
+    assert [s.train for s in splits] == [1, 2]
 
 
 def test_report_sections_say_what_the_metrics_hold():
@@ -888,7 +900,7 @@ def test_main_hands_each_step_its_part_of_the_config(tmp_path, monkeypatch):
     import dataclasses
 
     from tasks import cartpole_prediction as cp
-    from tasks import prediction_report
+    from tasks import prediction, prediction_report
     from tasks.experiment import write_json
 
     config = dataclasses.replace(
@@ -907,7 +919,7 @@ def test_main_hands_each_step_its_part_of_the_config(tmp_path, monkeypatch):
     def state(rng):  # a stream's state before any draw
         return copy.deepcopy(rng.bit_generator.state)
 
-    real = cp.gather_split, cp.score_instance, cp.baselines.batch_only
+    real = prediction.gather_split, prediction.score_instance, cp.baselines.batch_only
     real += cp.ratio_intervals, prediction_report.write_artefacts, cp.fit_all
 
     def gather(*args, rng, **kw):
@@ -934,9 +946,9 @@ def test_main_hands_each_step_its_part_of_the_config(tmp_path, monkeypatch):
         calls["methods"].append(seed)
         return real[5](loaded, batch, seed, *args, **kw)
 
-    monkeypatch.setattr(cp, "gather_split", gather)
+    monkeypatch.setattr(prediction, "gather_split", gather)
     monkeypatch.setattr(cp, "fit_all", fit_methods)
-    monkeypatch.setattr(cp, "score_instance", score)
+    monkeypatch.setattr(prediction, "score_instance", score)
     monkeypatch.setattr(cp.baselines, "batch_only", average)
     monkeypatch.setattr(cp, "ratio_intervals", bootstrap)
     monkeypatch.setattr(prediction_report, "write_artefacts", write)
