@@ -465,3 +465,54 @@ def test_batch_ties_are_broken_only_among_maximal_actions() -> None:
     rng = np.random.default_rng(10)
     q = np.tile([0.0, 0.1, 0.05], (1000, 1))
     np.testing.assert_array_equal(epsilon_greedy_batch(q, 0.0, rng=rng), 1)
+
+
+def test_a_one_episode_batch_that_is_inactive_changes_nothing() -> None:
+    """N = 1 takes the single-update path: an inactive episode must still leave θ
+    and its trace alone with δ = 0, as in the general path (N > 1)."""
+    rng = np.random.default_rng(11)
+    config = SarsaConfig(alpha=0.05, lam=0.9, gamma=0.95)
+    weights = rng.normal(size=(2, 4))
+    traces = rng.uniform(-1, 1, size=(1, 2, 4))
+    phi, phi2 = rng.uniform(-1, 1, size=(2, 1, 4))
+    out = sarsa_update_batch(
+        SarsaState(weights, traces), phi, np.array([0]), np.array([1.0]), phi2,
+        np.array([1]), np.array([False]), np.array([False]), np.full(4, 0.05),
+        config,
+    )  # fmt: skip
+    np.testing.assert_array_equal(out.state.weights, weights)
+    np.testing.assert_array_equal(out.state.traces, traces)
+    np.testing.assert_array_equal(out.td_error, [0.0])
+
+
+@pytest.mark.parametrize("n", [0, 1, 2], ids=["single", "batch-1", "batch-2"])
+def test_updates_leave_the_state_they_are_given_alone(n: int) -> None:
+    """A new SarsaState out, the old one unchanged: decaying the traces in place
+    rewrote the caller's (the state a caller keeps, e.g. to compare, moved)."""
+    rng = np.random.default_rng(12)
+    config = SarsaConfig(alpha=0.05, lam=0.9, gamma=0.95)
+    weights = rng.normal(size=(2, 4))
+    traces = rng.uniform(-1, 1, size=(2, 4) if n == 0 else (n, 2, 4))
+    phi, phi2 = rng.uniform(-1, 1, size=(2, 4))
+    state = SarsaState(weights.copy(), traces.copy())
+    alphas = np.full(4, config.alpha)
+    if n == 0:
+        out = sarsa_update(state, phi, 0, 1.0, phi2, 1, alphas, config)
+    else:
+        out = sarsa_update_batch(
+            state, np.tile(phi, (n, 1)), np.zeros(n, int), np.ones(n),
+            np.tile(phi2, (n, 1)), np.ones(n, int), np.zeros(n, bool),
+            np.ones(n, bool), alphas, config,
+        )  # fmt: skip
+    assert not np.array_equal(out.state.weights, weights)  # it did update
+    np.testing.assert_array_equal(state.weights, weights)
+    np.testing.assert_array_equal(state.traces, traces)
+
+
+def test_batch_choices_are_each_rows_own_greedy_action() -> None:
+    """ε = 0, no ties: each row's choice is that row's argmax, whatever the other
+    rows' values (a maximum over the whole batch left rows below it at action 0)."""
+    rng = np.random.default_rng(13)
+    q = rng.normal(size=(200, 4)) + rng.normal(scale=10.0, size=(200, 1))
+    expected = [max(range(4), key=lambda a, row=row: row[a]) for row in q]
+    np.testing.assert_array_equal(epsilon_greedy_batch(q, 0.0, rng=rng), expected)
