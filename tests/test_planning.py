@@ -305,9 +305,10 @@ def test_plan_rejects_bad_input() -> None:
     basis = FourierBasis(1, np.zeros(2), np.ones(2))
     state = init_state(2, basis.n_features)
     config = SarsaConfig()
-    with pytest.raises(ValueError, match="start_states"):
-        plan(state, basis, config, Corridor(), CORRIDOR_TASK, np.zeros((1, 3)), 1,
-             rng=np.random.default_rng(0))  # fmt: skip
+    for starts in (np.zeros((1, 3)), np.zeros((0, 2))):  # (0, 2): numpy's "high <= 0"
+        with pytest.raises(ValueError, match=r"start_states: expected shape \(M >= 1"):
+            plan(state, basis, config, Corridor(), CORRIDOR_TASK, starts, 1,
+                 rng=np.random.default_rng(0))  # fmt: skip
     with pytest.raises(ValueError, match="n_episodes"):
         plan(state, basis, config, Corridor(), CORRIDOR_TASK, np.zeros((1, 2)), -1,
              rng=np.random.default_rng(0))  # fmt: skip
@@ -345,6 +346,9 @@ def test_simulated_episodes_take_exactly_one_integer_action_per_episode() -> Non
          r"task.terminal: expected booleans \(or 0/1\) of shape \(2,\)"),
         (dataclasses.replace(CORRIDOR_TASK, terminal=lambda s2: False),
          r"task.terminal: expected booleans \(or 0/1\) of shape \(2,\)"),
+        # an integer other than 0/1 (a step count?) was taken as reached
+        (dataclasses.replace(CORRIDOR_TASK, terminal=lambda s2: np.full(2, 2)),
+         r"task.terminal: expected booleans \(or 0/1\) of shape \(2,\).*got int64"),
     ],
 )  # fmt: skip
 def test_a_tasks_answer_must_be_one_per_active_episode(task, match) -> None:

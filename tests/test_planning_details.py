@@ -234,3 +234,114 @@ def test_open_loop_errors_take_episodes_whose_angles_were_wrapped_between_rows()
     errs = open_loop_errors(model, data, [1, 3])
     np.testing.assert_allclose(errs[1], 0.0, atol=1e-12)
     np.testing.assert_allclose(errs[3], 0.0, atol=1e-12)
+
+
+def test_lockstep_step_sizes_are_per_feature_too():
+    """Two identical terminal episodes from θ = 0: the mean step is δ α ⊙ φ with
+    δ = r, so each feature moves by its own α_i (as the single update does)."""
+    cfg = SarsaConfig(alpha=0.5, lam=0.5, gamma=0.9)
+    alphas = np.array([0.5, 0.1, 0.02])
+    phi = np.array([1.0, -0.5, 0.25])
+    out = sarsa_update_batch(
+        SarsaState(np.zeros((2, 3)), np.zeros((2, 2, 3))),
+        np.tile(phi, (2, 1)),
+        np.ones(2, int),
+        np.full(2, 2.0),
+        np.tile(phi, (2, 1)),
+        np.zeros(2, int),
+        np.ones(2, bool),
+        np.ones(2, bool),
+        alphas,
+        cfg,
+    )
+    np.testing.assert_allclose(out.state.weights[1], 2.0 * alphas * phi)
+    np.testing.assert_array_equal(out.state.weights[0], 0.0)
+
+
+@pytest.mark.parametrize("n_parallel", [1, 2])
+def test_planning_episodes_start_with_no_eligibility_traces(n_parallel):
+    """An agent handed over with the traces of its last real episode (as
+    tasks.agents.run_episode returns it) plans exactly as one without: traces
+    belong to one episode (Sutton & Barto §7.5)."""
+    basis = FourierBasis(2, np.array([0.0]), np.array([1.0]))
+    rng = np.random.default_rng(0)
+    weights = rng.normal(size=(2, basis.n_features))
+    stale = rng.normal(size=weights.shape)
+    out = {}
+    for name, traces in (("stale", stale), ("none", np.zeros_like(weights))):
+        out[name] = plan(
+            SarsaState(weights, traces),
+            basis,
+            SarsaConfig(alpha=0.1, epsilon=0.2),
+            Corridor(),
+            dataclasses.replace(TASK, max_steps=6),
+            np.array([[0.0], [0.5]]),
+            4,
+            rng=np.random.default_rng(1),
+            n_parallel=n_parallel,
+        ).state.weights
+    assert not np.array_equal(out["none"], weights)  # it did learn
+    np.testing.assert_array_equal(out["stale"], out["none"])
+
+
+def test_an_episode_that_ended_does_not_shift_the_others_actions():
+    """Episode 0 reaches the goal after 3 steps; then episode 1 must get its own
+    action (0: back by 0.1), not the first entry of the actions."""
+    model = Corridor()
+    ep = SimulatedEpisodes(model, TASK, np.array([[0.75], [0.0]]))
+    for _ in range(3):
+        ep.step(np.array([1, 1]))
+    assert not ep.active[0] and ep.active[1]
+    ep.step(np.array([1, 0]))
+    np.testing.assert_allclose(ep.states[:, 0], [1.05, 0.2])
+    np.testing.assert_array_equal(model.seen[-1][1], [0])
+
+
+@pytest.mark.parametrize("n_parallel", [1, 4])
+def test_plan_draws_each_episodes_start_row_uniformly(n_parallel):
+    """300 one-step episodes from 3 rows: each row starts Binomial(300, 1/3)
+    episodes, mean 100, sd sqrt(300 · 1/3 · 2/3) ≈ 8.2, so ±4 sd is ±33. Rows
+    drawn once and reused (for every group) would give 300 or multiples of 75."""
+    basis = FourierBasis(1, np.array([0.0]), np.array([1.0]))
+    model = Corridor()
+    plan(
+        init_state(2, basis.n_features),
+        basis,
+        SarsaConfig(alpha=0.1),
+        model,
+        dataclasses.replace(TASK, max_steps=1),
+        np.array([[0.0], [0.5], [0.9]]),
+        300,
+        rng=np.random.default_rng(0),
+        n_parallel=n_parallel,
+    )
+    seen = np.concatenate([s[:, 0] for s, _ in model.seen])
+    assert seen.shape == (300,)
+    for row in (0.0, 0.5, 0.9):
+        assert abs(np.sum(seen == row) - 100) < 33
+
+
+def test_plan_with_no_episodes_runs_nothing_and_returns_the_weights():
+    """n_episodes = 0 is allowed (a protocol without planning): no model call, θ
+    as given, and empty per-episode statistics."""
+    basis = FourierBasis(2, np.array([0.0]), np.array([1.0]))
+    weights = np.random.default_rng(0).normal(size=(2, basis.n_features))
+    model = Corridor()
+    out = plan(
+        SarsaState(weights, np.zeros_like(weights)),
+        basis,
+        SarsaConfig(alpha=0.1),
+        model,
+        TASK,
+        np.zeros((1, 1)),
+        0,
+        rng=np.random.default_rng(1),
+    )
+    assert model.seen == []
+    np.testing.assert_array_equal(out.state.weights, weights)
+    assert out.steps.shape == out.returns.shape == out.reached.shape == (0,)
+    assert (out.steps.dtype, out.returns.dtype, out.reached.dtype) == (
+        np.int64,
+        np.float64,
+        bool,
+    )
