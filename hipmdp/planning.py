@@ -510,7 +510,7 @@ def plan(
             done += group
             bar.update(group)
     return PlanResult(
-        state,
+        reset_traces(state),  # zero also after no episodes (the caller's were stale)
         np.array(sum(steps, []), dtype=np.int64),
         np.array(sum(returns, []), dtype=np.float64),
         np.array(sum(reached, []), dtype=bool),

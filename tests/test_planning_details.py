@@ -323,12 +323,13 @@ def test_plan_draws_each_episodes_start_row_uniformly(n_parallel):
 
 def test_plan_with_no_episodes_runs_nothing_and_returns_the_weights():
     """n_episodes = 0 is allowed (a protocol without planning): no model call, θ
-    as given, and empty per-episode statistics."""
+    as given, traces zero as after any planning (PlanResult's contract: the stale
+    traces of a real episode were handed back), and empty statistics."""
     basis = FourierBasis(2, np.array([0.0]), np.array([1.0]))
     weights = np.random.default_rng(0).normal(size=(2, basis.n_features))
     model = Corridor()
     out = plan(
-        SarsaState(weights, np.zeros_like(weights)),
+        SarsaState(weights, np.ones_like(weights)),
         basis,
         SarsaConfig(alpha=0.1),
         model,
@@ -339,6 +340,7 @@ def test_plan_with_no_episodes_runs_nothing_and_returns_the_weights():
     )
     assert model.seen == []
     np.testing.assert_array_equal(out.state.weights, weights)
+    np.testing.assert_array_equal(out.state.traces, np.zeros_like(weights))
     assert out.steps.shape == out.returns.shape == out.reached.shape == (0,)
     assert (out.steps.dtype, out.returns.dtype, out.reached.dtype) == (
         np.int64,
