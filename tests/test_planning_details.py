@@ -347,3 +347,14 @@ def test_plan_with_no_episodes_runs_nothing_and_returns_the_weights():
         np.float64,
         bool,
     )
+
+
+@pytest.mark.parametrize("skip", [1.0, -1.0], ids=["ahead", "behind"])
+def test_open_loop_errors_refuse_a_gap_in_either_direction(skip):
+    """0 → 1, then a transition starting at 1 + skip: not one episode in time
+    order, whether the next start lies ahead of the last next state or behind."""
+    s = np.array([[0.0], [1.0 + skip]])
+    data = Transitions(s, np.zeros(2, int), s + 1.0, np.zeros(2, int))
+    model = StepwiseModel(lambda x, a: x + 1.0)
+    with pytest.raises(ValueError, match="data: expected transitions in time order"):
+        open_loop_errors(model, data, [1])
