@@ -833,3 +833,61 @@ def test_basis_key_does_not_depend_on_round_off(fitted, monkeypatch):
         fitted, hyper=HyperSet(h.lengthscales, h.signal_var, 2 * h.noise_var)
     )
     assert noisier.basis_key != fitted.basis_key
+
+
+def _other_hyper(h, **change):
+    parts = {
+        "lengthscales": h.lengthscales,
+        "signal_var": h.signal_var,
+        "noise_var": h.noise_var,
+        "periodic": h.periodic,
+    }
+    return HyperSet(**{**parts, **change})
+
+
+def _flip_a_latent_flag(z):
+    z = np.array(z)
+    z[-1, 0, 0] = not z[-1, 0, 0]  # a latent feature's (k > 0): z[0] stays on
+    return z
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        lambda m: {"support": m.support + 0.1},
+        lambda m: {"z": _flip_a_latent_flag(m.z)},
+        lambda m: {"f": m.f + 0.1},
+        lambda m: {
+            "hyper": _other_hyper(m.hyper, lengthscales=1.1 * m.hyper.lengthscales)
+        },
+        lambda m: {"hyper": _other_hyper(m.hyper, signal_var=1.1 * m.hyper.signal_var)},
+        lambda m: {"hyper": _other_hyper(m.hyper, noise_var=1.1 * m.hyper.noise_var)},
+        lambda m: {"hyper": _other_hyper(m.hyper, periodic=(0,))},
+    ],
+    ids=["support", "z", "f", "lengthscales", "signal_var", "noise_var", "periodic"],
+)
+def test_basis_key_changes_with_every_array_that_defines_the_basis(fitted, change):
+    """Each of support, z, f and the GPs' hyperparameters (periodicity included)
+    defines the basis functions, so what a weight means: another value of any
+    one of them, alone, gives another key, and the first model refuses a
+    belief from the changed one."""
+    other = dataclasses.replace(fitted, **change(fitted))
+    assert other.basis_key != fitted.basis_key
+    with pytest.raises(ValueError, match="belief: it is over another model"):
+        fitted.predict_mean(fitted.support[:2], np.zeros(2, dtype=int), other.prior())
+
+
+def test_basis_key_ignores_what_does_not_define_the_basis(fitted):
+    """The weights' prior and training values, the model-error terms and the
+    filter setting leave the basis functions as they are: the key stays."""
+    same = dataclasses.replace(
+        fitted,
+        weights=np.vstack([fitted.weights[:1], 2.0 * fitted.weights[1:]]),
+        mu_w=np.r_[1.0, 2.0 * fitted.mu_w[1:]],
+        sigma_w=3.0 * fitted.sigma_w,
+        residual_var=2.0 * fitted.residual_var,
+        interp_var_scale=2.0 * fitted.interp_var_scale,
+        filter_weights="training",
+        info={},
+    )
+    assert same.basis_key == fitted.basis_key
