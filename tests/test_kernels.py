@@ -117,6 +117,51 @@ def test_inputs_near_zero_are_not_centred():
     assert kernels.centre(far[:1], np.arange(3)) is None
 
 
+def test_a_column_is_centred_beyond_8_of_its_standard_deviations():
+    """The documented threshold (README, `centre`): a plain column whose mean
+    lies more than 8 standard deviations from 0, on either side, is centred on
+    its mean; one at 7.9 is not. A column of mean 0 and sd 1 (to round-off),
+    moved by 7.9 or 8.1: the margin is far beyond round-off, and beyond the
+    choice of sd's denominator (n or n - 1: a factor 1.0025 at 200 rows)."""
+    x = np.random.default_rng(7).normal(size=(200, 2))
+    x = (x - x.mean(0)) / x.std(0)
+    col = np.arange(2)
+    for offset in (7.9, -7.9):
+        assert kernels.centre(x + [offset, 0.0], col) is None
+    for offset in (8.1, -8.1):
+        np.testing.assert_allclose(
+            kernels.centre(x + [offset, 0.0], col), [offset, 0.0], rtol=1e-12
+        )
+
+
+def test_angles_are_told_from_plain_columns_by_their_input_dimension():
+    """With dimension 0 an angle, the embedding's columns are (x_1, cos x_0,
+    sin x_0): the far plain column is the first, which an index taken for a
+    dimension (0) would call the angle's. Angles of spread 0.3 around 0 (cos x_0
+    about 17 of its spreads from 0) and x_1 1000 from 0 (spread 0.3): x_1 is
+    centred, the angle's columns are not, and the distances are the direct
+    formula's."""
+    rng = np.random.default_rng(8)
+    X1, X2 = (
+        np.column_stack([0.3 * rng.normal(size=n), 1e3 + 0.3 * rng.normal(size=n)])
+        for n in (30, 20)
+    )
+    E2, col = kernels.embed(X2, (0,))
+    np.testing.assert_array_equal(col, [1, 0, 0])
+    np.testing.assert_allclose(
+        kernels.centre(E2, col, (0,)), [X2[:, 1].mean(), 0.0, 0.0], rtol=1e-12
+    )
+    ell = np.array([0.7, 0.5])
+    delta = X1[:, None] - X2[None]
+    delta[..., 0] = 2 * np.sin(delta[..., 0] / 2)
+    np.testing.assert_allclose(
+        kernels.scaled_sqdist(X1, X2, ell, (0,)),
+        ((delta / ell) ** 2).sum(-1),
+        rtol=1e-12,
+        atol=1e-12,
+    )
+
+
 def test_kernel_means_are_the_per_output_kernel_sums(monkeypatch):
     # A = 3 actions (the last with no inputs), E = 2 outputs, D = 3; against one
     # se_kernel call per (action, output), row by row.
