@@ -282,6 +282,34 @@ def test_fit_gp_baseline_fits_hyperparameters_on_n_hyper_transitions(monkeypatch
     assert sizes == [[7]] * (2 * D)  # one pooled group per (a, d)
 
 
+def test_each_gp_is_fitted_on_its_own_dimensions_changes(monkeypatch):
+    """The GP of (a, d) takes its hyperparameters from action a's states and
+    the changes of dimension d, and keeps each in its own place: a fit that
+    returns (ℓ, σ_f², σ²) = ((a + 1, d + 2), 3 + a + d, 0.1 (1 + a + d))."""
+    from hipmdp import baselines
+
+    data = _instance(0, 0.0, 80, np.random.default_rng(6))
+    calls = []
+
+    def record(groups, periodic):
+        ((X, y),) = groups
+        a, d = divmod(len(calls), D)  # fitted in order: action, then dimension
+        calls.append((a, d))
+        rows = [np.flatnonzero((data.states == x).all(1))[0] for x in X]
+        np.testing.assert_array_equal(data.actions[rows], a)
+        np.testing.assert_array_equal(y, data.deltas[rows, d])
+        return np.array([a + 1.0, d + 2.0]), 3.0 + a + d, 0.1 * (1 + a + d)
+
+    monkeypatch.setattr(baselines, "fit_hyperparameters", record)
+    model = fit_gp_baseline(data, rng=np.random.default_rng(0), n_hyper=20)
+    assert calls == [(a, d) for a in range(2) for d in range(D)]
+    for a in range(2):
+        for d in range(D):
+            h = model.hyper.get(a, d)
+            np.testing.assert_array_equal(h.lengthscales, [a + 1.0, d + 2.0])
+            assert (h.signal_var, h.noise_var) == (3.0 + a + d, 0.1 * (1 + a + d))
+
+
 def test_an_action_with_one_transition_is_conditioned_on_it():
     """With the hyperparameters given one transition is enough: the GP of that
     action is conditioned on it (not left at the prior)."""
