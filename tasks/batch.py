@@ -1,6 +1,6 @@
 """Batch data as the paper gathers it (its "Sarsa" on a Fourier basis; λ and ε
-are ours): Sarsa(λ) agents learning on each training
-instance, every transition they see kept (``tasks.collect.collect_sarsa``).
+are ours): Sarsa(λ) agents learning on each training instance, every transition
+they see kept (``tasks.collect.collect_sarsa``).
 
 Each (instance, repetition) is one job with its own seed spawned from one
 ``SeedSequence``, so the data do not depend on how many worker processes ran them.

@@ -18,8 +18,8 @@ with mass × length²; the shapes are then derived, not varied.
 
 Policies: `random` (uniform actions on the dm_control environment), `sarsa` (an
 ε-greedy Sarsa(λ) agent learning per instance; the paper gathers with Sarsa on a
-Fourier basis) and `open-loop`
-(random action sequences, many instances at once with `mujoco.rollout`).
+Fourier basis) and `open-loop` (random action sequences, many instances at once
+with `mujoco.rollout`).
 
 Output (`hipmdp.shards`): `OUT/shard-XXXXX.npz`, one per `--shard-size` instances,
 each written to a temporary name and renamed, and `OUT/manifest.json` (config, seed,
