@@ -656,10 +656,12 @@ def parse_args(argv: list[str] | None = None) -> tuple[SwingupConfig, str | None
 def cli(argv: list[str] | None = None) -> int:
     config, out = parse_args(argv)
     results = main(config, out)
-    m = results.metrics
+    from tasks import swingup_report
+
     print(wrote_line(results.out, "acrobot.rrd"))
-    print("episodes to within 10% of the true model:", m["episodes_to_near_optimal"])
-    print("the same on medians:", m["episodes_to_near_optimal_median"])
+    for line in swingup_report.summary_lines(results.metrics):
+        print(line)
+    print(f"tables and plain-language results: {results.out / 'report.md'}")
     return 0
 
 

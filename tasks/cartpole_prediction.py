@@ -342,8 +342,12 @@ def parse_args(argv: list[str] | None = None) -> tuple[PredictionConfig, str | N
 def cli(argv: list[str] | None = None) -> int:
     config, out = parse_args(argv)
     results = main(config, out)
+    from tasks import prediction_report
+
     print(wrote_line(results.out, "cartpole.rrd"))
-    print("HiP-MDP MSE / best baseline:", results.metrics["mse_ratio_to_best_baseline"])
+    for line in prediction_report.summary_lines(results.metrics):
+        print(line)
+    print(f"tables and plain-language results: {results.out / 'report.md'}")
     return 0
 
 

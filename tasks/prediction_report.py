@@ -20,6 +20,7 @@ from tasks.experiment import (
 )
 from tasks.prediction import (
     added_text,
+    best_baseline,
     coverage_text,
     entity,
     mse_table,
@@ -209,3 +210,24 @@ prediction {s["prediction"]:.0f} s). Figures: `weights.png`.
 {describe_environment(metrics.get("environment"))}
 """
     write_text(path / "report.md", text)
+
+
+def summary_lines(metrics: dict[str, Any]) -> list[str]:
+    """What the command prints when the run ends: per dimension, the HiP-MDP's
+    MSE over the best baseline's (a ratio of means, below 1: the HiP-MDP is
+    better) with its bootstrap interval over the test settings and that
+    baseline's name."""
+    intervals = metrics.get("mse_ratio_to_best_baseline_interval") or {}
+    lines = [
+        "HiP-MDP MSE / the best baseline's (95% bootstrap interval over the test "
+        "settings; below 1: the HiP-MDP is better):"
+    ]
+    for d, v in metrics["mse_ratio_to_best_baseline"].items():
+        ci = intervals.get(d)
+        base = best_baseline(metrics["mse"], d)
+        if v is None:
+            lines.append(f"  {d}: none ({base} predicts it exactly)")
+            continue
+        bounds = f" [{ci['low']:.2g}, {ci['high']:.2g}]" if ci else ""
+        lines.append(f"  {d}: {v:.2g}{bounds} against {base}")
+    return lines

@@ -357,3 +357,51 @@ transfer {s["transfer"]:.0f} s, prediction {s["prediction"]:.0f} s).
 Figures: `learning_curves.png`, `weights.png`. {recording_line(config, "acrobot.rrd")}
 """
     write_text(path / "report.md", text)
+
+
+def _verdict(ci: dict, above: str, below: str, neither: str) -> str:
+    """``above`` where the 95% interval lies above 0, ``below`` where it lies
+    below, else ``neither`` (also for an interval of one sample)."""
+    low, high = ci["low"], ci["high"]
+    if low is None or high is None or np.isnan(low) or np.isnan(high):
+        return neither
+    return above if low > 0 else below if high < 0 else neither
+
+
+def summary_lines(metrics: dict[str, Any]) -> list[str]:
+    """What the command prints when the run ends: each method's mean return at
+    episodes 1, 2 and the last, the two targets (README, Experiments) with their
+    intervals and whether the interval settles them, and the episodes to
+    near-optimal."""
+    returns = metrics["returns"]
+    n_episodes = len(returns["true"]["mean"])
+    shown = sorted({0, min(1, n_episodes - 1), n_episodes - 1})
+    width = max(len(label(m)) for m in returns)
+    n_trials = returns["true"]["n_trials"]
+    lines = [
+        f"mean return per real episode over {n_trials} trials "
+        f"(episode {', '.join(str(e + 1) for e in shown)}):"
+    ]
+    for m, r in returns.items():
+        values = "  ".join(f"{r['mean'][e]:8.1f}" for e in shown)
+        lines.append(f"  {label(m):<{width}}  {values}")
+    margin = metrics["margin_to_target"]["hipmdp"]
+    if n_episodes >= 2:
+        ci = {k: (v[1] if isinstance(v, list) else v) for k, v in margin.items()}
+        verdict = _verdict(ci, "met", "missed", "not settled")
+        lines.append(
+            "HiP-MDP within 10% of the true model by episode 2, margin per trial: "
+            f"{fmt_ci(ci, signed=True)} ({verdict})"
+        )
+    ahead = metrics["paired_difference"]["hipmdp - average"]["all_episodes"]
+    verdict = _verdict(ahead, "clearly ahead", "clearly behind", "not clearly ahead")
+    lines.append(
+        "HiP-MDP - average model, mean return over all episodes: "
+        f"{fmt_ci(ahead, signed=True)} ({verdict})"
+    )
+    reached = ", ".join(
+        f"{label(m)} {'never' if e is None else e}"
+        for m, e in metrics["episodes_to_near_optimal"].items()
+    )
+    lines.append(f"episodes to within 10% of the true model (one crossing): {reached}")
+    return lines

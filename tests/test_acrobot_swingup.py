@@ -1005,3 +1005,79 @@ def test_main_gives_the_fit_the_average_model_and_added_methods_their_streams(
     with pytest.raises(Stop):
         main(flat, tmp_path / "flat")
     assert tuple(seen["average"][2]) == ()
+
+
+def _summary_metrics(margin_2: tuple, ahead: tuple, n_episodes: int = 3) -> dict:
+    """Hand-made metrics: three methods' mean returns, the HiP-MDP's episode-2
+    margin (mean, low, high) and its paired lead over the average model."""
+
+    def ci(mean, low, high, n=10):
+        return {"mean": mean, "low": low, "high": high, "n": n}
+
+    returns = {
+        m: {"mean": [base - e for e in range(n_episodes)], "low": [0.0] * n_episodes,
+            "high": [0.0] * n_episodes, "n_trials": 10}
+        for m, base in (("true", -100.0), ("average", -150.0), ("hipmdp", -130.0))
+    }  # fmt: skip
+    margin = {k: [-50.0, v][:n_episodes] for k, v in zip(("mean", "low", "high"),
+              margin_2, strict=True)}  # fmt: skip
+    return {
+        "returns": returns,
+        "margin_to_target": {"hipmdp": {**margin, "n": 10}},
+        "paired_difference": {"hipmdp - average": {"all_episodes": ci(*ahead)}},
+        "episodes_to_near_optimal": {"true": 1, "average": None, "hipmdp": 2},
+    }
+
+
+@pytest.mark.parametrize(
+    "margin_2, ahead, verdicts",
+    [
+        ((5.0, 1.0, 9.0), (20.0, 4.0, 36.0), ("(met)", "(clearly ahead)")),
+        ((-5.0, -9.0, -1.0), (-20.0, -36.0, -4.0), ("(missed)", "(clearly behind)")),
+        ((-5.0, -9.0, 1.0), (2.0, -4.0, 8.0), ("(not settled)", "(not clearly ahead)")),
+        (
+            (-5.0, None, None),
+            (2.0, None, None),
+            ("(not settled)", "(not clearly ahead)"),
+        ),
+    ],
+)
+def test_the_printed_summary_states_each_target_by_its_interval(
+    margin_2, ahead, verdicts
+):
+    """A target is met or missed only where its 95% interval lies wholly on one
+    side of 0; an interval across 0, or none (one sample), settles nothing. The
+    returns are shown at episodes 1, 2 and the last; a method that never gets
+    within 10% is "never"."""
+    lines = swingup_report.summary_lines(_summary_metrics(margin_2, ahead))
+    assert lines[0] == "mean return per real episode over 10 trials (episode 1, 2, 3):"
+    assert lines[1:4] == [
+        "  true model       -100.0    -101.0    -102.0",
+        "  average model    -150.0    -151.0    -152.0",
+        "  HiP-MDP          -130.0    -131.0    -132.0",
+    ]
+    assert lines[4].startswith("HiP-MDP within 10% of the true model by episode 2")
+    assert lines[4].endswith(verdicts[0])
+    assert lines[5].startswith("HiP-MDP - average model")
+    assert lines[5].endswith(verdicts[1])
+    assert lines[6].endswith("true model 1, average model never, HiP-MDP 2")
+
+
+def test_a_one_episode_summary_has_no_episode_2_target():
+    lines = swingup_report.summary_lines(
+        _summary_metrics((0.0, 0.0, 0.0), (1.0, 0.5, 1.5), n_episodes=1)
+    )
+    assert lines[0].endswith("(episode 1):")
+    assert not any("by episode 2" in line for line in lines)
+
+
+def test_cli_prints_where_it_wrote_and_the_summary(tmp_path, monkeypatch, capsys):
+    metrics = _summary_metrics((5.0, 1.0, 9.0), (20.0, 4.0, 36.0))
+    monkeypatch.setattr(
+        swingup, "main", lambda config, out: swingup.Results(tmp_path, metrics)
+    )
+    assert swingup.cli(["--no-record", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith(f"wrote {tmp_path}/")
+    assert out[1:-1] == swingup_report.summary_lines(metrics)
+    assert out[-1] == f"tables and plain-language results: {tmp_path / 'report.md'}"

@@ -1100,15 +1100,25 @@ def test_the_paper_preset_is_the_papers_protocol(tmp_path):
 def test_cli_runs_the_parsed_config_and_prints_the_ratios(
     tmp_path, monkeypatch, capsys
 ):
-    """What the command prints: where it wrote, and the HiP-MDP's MSE over the
-    best baseline's (main stubbed: the parsed config reaches it)."""
+    """What the command prints: where it wrote, and per dimension the HiP-MDP's
+    MSE over the best baseline's, with its bootstrap interval where the run has
+    one and that baseline's name, or none where the baseline predicts the
+    dimension exactly (main stubbed: the parsed config reaches it)."""
     from tasks import cartpole_prediction as cp
 
     given = []
+    metrics = {
+        "mse": {"hipmdp": {"dx": {"mean": 1.0}, "dtheta": {"mean": 1.0}},
+                "train only": {"dx": {"mean": 2.0}, "dtheta": {"mean": 3.0}},
+                "batch only": {"dx": {"mean": 4.0}, "dtheta": {"mean": 0.0}}},
+        "mse_ratio_to_best_baseline": {"dx": 0.5, "dtheta": None},
+        "mse_ratio_to_best_baseline_interval": {
+            "dx": {"low": 0.25, "high": 1.5}, "dtheta": None},
+    }  # fmt: skip
 
     def fake_main(config, out):
         given.append((config, out))
-        return cp.Results(tmp_path, {"mse_ratio_to_best_baseline": {"dx": 0.5}})
+        return cp.Results(tmp_path, metrics)
 
     monkeypatch.setattr(cp, "main", fake_main)
     assert cp.cli(["--runs", "3", "--no-record", "--out", str(tmp_path)]) == 0
@@ -1116,5 +1126,9 @@ def test_cli_runs_the_parsed_config_and_prints_the_ratios(
     assert config.n_runs == 3 and str(out) == str(tmp_path)
     assert capsys.readouterr().out.splitlines() == [
         f"wrote {tmp_path}/ (report.md, metrics.json, figures)",
-        "HiP-MDP MSE / best baseline: {'dx': 0.5}",
+        "HiP-MDP MSE / the best baseline's (95% bootstrap interval over the test "
+        "settings; below 1: the HiP-MDP is better):",
+        "  dx: 0.5 [0.25, 1.5] against train only",
+        "  dtheta: none (batch only predicts it exactly)",
+        f"tables and plain-language results: {tmp_path / 'report.md'}",
     ]
