@@ -383,6 +383,18 @@ def check_makeable(path: Path, name: str = "out") -> None:
     the end of the work. The probe is an unnamed temporary file, which a kill
     cannot leave behind (``O_TMPFILE``, where the file system has it)."""
     path = Path(path)
+    try:
+        path.resolve()
+    except (RuntimeError, OSError) as err:  # 3.11 raises RuntimeError on a loop
+        raise ValueError(
+            f"{name}: {path} cannot be resolved ({err}): a symbolic link on it "
+            "leads back to itself"
+        ) from None
+    if path.is_symlink() and not path.exists():
+        raise ValueError(
+            f"{name}: {path} is a symbolic link to {os.readlink(path)}, which does "
+            "not exist; make it first, or give another path"
+        )
     ancestor = next(p for p in path.absolute().parents if p.exists())
     if not ancestor.is_dir():
         raise ValueError(

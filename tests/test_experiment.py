@@ -687,6 +687,30 @@ def test_an_output_in_a_folder_that_takes_no_files_is_refused_before_any_work(ma
         check_folder_out(Path("/sys/hipmdp_out"), "--out")
 
 
+@pytest.mark.parametrize("make", [run_dir, lambda out, *a: check_out_file(out)])
+def test_an_output_through_a_symlink_loop_or_to_nowhere_is_refused_by_name(
+    tmp_path, make
+):
+    """A folder path through a symbolic link loop was a RuntimeError traceback
+    (``tasks.generate``: "File exists", after its planning); a link to a
+    missing place was "File exists". Both are named before any work, and
+    nothing is made."""
+    (tmp_path / "a").symlink_to(tmp_path / "b")
+    (tmp_path / "b").symlink_to(tmp_path / "a")
+    (tmp_path / "gone").symlink_to(tmp_path / "missing")
+    loop = "cannot be resolved .*a symbolic link on it leads back to itself"
+    for out in (tmp_path / "a", tmp_path / "a" / "sub"):
+        with pytest.raises(ValueError, match=rf"^out: {re.escape(str(out))} {loop}"):
+            make(out, "exp")
+    where = re.escape(str(tmp_path))
+    gone = rf"^out: {where}/gone is a symbolic link to {where}/missing, which"
+    with pytest.raises(ValueError, match=gone):
+        make(tmp_path / "gone", "exp")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "b", "gone"]
+    with pytest.raises(ValueError, match="^--out: .* leads back to itself"):
+        check_folder_out(tmp_path / "a", "--out")
+
+
 def test_an_existing_folder_that_takes_no_files_is_refused_though_its_parent_does(
     tmp_path, monkeypatch
 ):
