@@ -732,6 +732,27 @@ def test_each_angle_is_unwrapped_with_its_own_mean_velocity():
     assert np.any(np.abs(0.5 * alpha * dt**2) > np.pi)  # the start velocity fails
 
 
+def test_the_trapezoid_estimates_error_is_kept_with_its_sign():
+    """A changing acceleration (constant jerk j): the trapezoid estimate v̄ dt
+    errs, by -j dt³/12 (θ' - θ = ω dt + α dt²/2 + j dt³/6 while v̄ dt = ω dt +
+    α dt²/2 + j dt³/4), here by up to 2 rad; Δθ is the estimate plus that
+    error, which is the true change while the error is below π."""
+    rng = np.random.default_rng(9)
+    n, dt = 50, 0.2
+    theta0 = rng.uniform(-np.pi, np.pi, n)
+    omega = rng.uniform(-30, 30, n)
+    alpha = rng.uniform(-5, 5, n)
+    jerk = rng.uniform(-3000, 3000, n)  # |j| dt³ / 12 <= 2 rad
+    theta1 = theta0 + omega * dt + alpha * dt**2 / 2 + jerk * dt**3 / 6
+    omega1 = omega + alpha * dt + jerk * dt**2 / 2
+    s, s2 = np.c_[wrap_angle(theta0), omega], np.c_[wrap_angle(theta1), omega1]
+    t = Transitions(s, np.zeros(n, int), s2, np.zeros(n, int), angle_dims=(0,), dt=dt)
+    np.testing.assert_allclose(t.deltas[:, 0], theta1 - theta0, atol=1e-12)
+    error = theta1 - theta0 - 0.5 * (omega + omega1) * dt
+    np.testing.assert_allclose(error, -jerk * dt**3 / 12, atol=1e-12)
+    assert np.abs(error).max() > 1.0  # the estimate alone is far off
+
+
 def test_dt_is_kept_by_selection_files_and_checked(tmp_path):
     t = make(n=10, dt=0.05)
     assert t.take([1, 2]).dt == 0.05 and t.select(actions=0).dt == 0.05
