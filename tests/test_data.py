@@ -183,6 +183,7 @@ def test_file_is_plain_npz_without_pickle(tmp_path):
     [
         (dict(states=np.zeros((12,))), "states: expected shape"),
         (dict(next_states=np.zeros((11, 4))), "next_states: expected shape"),
+        (dict(next_states=np.zeros((12, 3))), "next_states: expected shape"),
         (dict(actions=np.zeros(11, int)), "actions: expected shape"),
         (dict(actions=np.full(12, -1)), "actions: expected indices >= 0"),
         (dict(actions=np.full(12, 0.5)), "actions: expected integers"),
@@ -192,6 +193,7 @@ def test_file_is_plain_npz_without_pickle(tmp_path):
         (dict(rewards=np.full(12, np.nan)), "rewards: non-finite"),
         (dict(rewards=np.zeros(3)), "rewards: expected shape"),
         (dict(dones=np.full(12, 2)), "dones: expected booleans"),
+        (dict(dones=np.zeros(3, bool)), "dones: expected shape"),
         (dict(angle_dims=(7,)), "angle_dims"),
         (dict(angle_dims=(0, 0)), "angle_dims"),
         (dict(states=np.full((12, 4), "x")), "states: expected a numeric array"),
@@ -761,8 +763,9 @@ def test_dt_is_kept_by_selection_files_and_checked(tmp_path):
     assert Transitions.load(t.save(tmp_path / "d.npz")).dt == 0.05
     with pytest.raises(ValueError, match="dt"):
         Transitions.concatenate([t, make(n=10)])
-    with pytest.raises(ValueError, match="dt: expected a finite number > 0"):
-        make(dt=-1.0)
+    for bad in (-1.0, 0.0):
+        with pytest.raises(ValueError, match="dt: expected a finite number > 0"):
+            make(dt=bad)
     with pytest.raises(ValueError, match=r"dt: needs the \(qpos, qvel\) layout"):
         make(d=3, dt=0.1, angle_dims=(0,))
     with pytest.raises(ValueError, match=r"dt: needs the \(qpos, qvel\) layout"):
