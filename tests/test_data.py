@@ -120,6 +120,11 @@ def test_concatenate_keeps_order_and_drops_missing_optional_fields():
     c = Transitions.concatenate([a, b])
     np.testing.assert_array_equal(c.states, np.vstack([a.states, b.states]))
     assert c.rewards is None and c.dones is not None
+    # the angles and the step travel with the data: the parts' Δs, stacked
+    first, second = make(seed=1, dt=0.2), make(seed=2, dt=0.2)
+    both = Transitions.concatenate([first, second])
+    assert (both.angle_dims, both.dt) == ((0, 1), 0.2)
+    np.testing.assert_array_equal(both.deltas, np.vstack([first.deltas, second.deltas]))
     with pytest.raises(ValueError, match="angle_dims"):
         Transitions.concatenate([a, make(angle_dims=(0,))])
     with pytest.raises(ValueError, match="at least one"):
