@@ -263,6 +263,33 @@ def test_failed_write_leaves_old_file_intact(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["d.npz"]  # no temp file left
 
 
+def test_a_write_is_on_disk_before_its_rename_and_the_rename_after(
+    tmp_path, monkeypatch
+):
+    """Whole after a power loss too, not only after a kill: the temporary
+    file's data are fsynced before the rename gives them the name (else the
+    name could come back on an empty file), and the folder after it (else the
+    rename could be lost)."""
+    from hipmdp.data import atomic_write
+
+    events = []
+    fsync, replace = os.fsync, os.replace
+
+    def recording_fsync(fd):
+        events.append(("fsync", os.fstat(fd).st_ino))
+        fsync(fd)
+
+    def recording_replace(src, dst):
+        events.append(("replace", os.stat(src).st_ino))
+        replace(src, dst)
+
+    monkeypatch.setattr(os, "fsync", recording_fsync)
+    monkeypatch.setattr(os, "replace", recording_replace)
+    path = atomic_write(tmp_path / "f.bin", lambda fh: fh.write(b"data"))
+    file, folder = path.stat().st_ino, tmp_path.stat().st_ino
+    assert events == [("fsync", file), ("replace", file), ("fsync", folder)]
+
+
 def test_a_save_removes_what_killed_saves_of_the_same_file_left(tmp_path):
     """A save killed mid-write leaves a full-size hidden temporary file; the next
     save of the same file removes it, but not one a live writer holds (its
