@@ -905,6 +905,19 @@ def test_load_errors_name_what_is_wrong(tmp_path):
         Transitions.load(tmp_path / "other.npz")
 
 
+def test_a_table_without_its_values_is_refused_naming_what_is_missing(tmp_path):
+    """A file with table_instances but no table_values (hand-edited or
+    foreign): a ValueError naming the file and the array, not a KeyError."""
+    t = make(n=10)
+    path = t.save(tmp_path / "t.npz", table=table_for(t))
+    with np.load(path, allow_pickle=False) as npz:
+        arrays = {k: npz[k] for k in npz.files if k != "table_values"}
+    np.savez(path, **arrays)
+    match = rf"{path}: an incomplete parameter table \(missing table_values\)"
+    with pytest.raises(ValueError, match=match):
+        ParameterTable.load(path)
+
+
 @pytest.mark.parametrize(
     ("key", "value", "match"),
     [  # each was truncated by int() or float() and loaded as if valid
