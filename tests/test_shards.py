@@ -276,6 +276,21 @@ def test_config_differences_name_keys_on_either_side():
     ]
 
 
+def test_a_shard_is_valid_only_with_its_checksum_and_bytes(run, tmp_path):
+    """What a resume keeps: a shard whose file matches the manifest's SHA-256;
+    not one without a checksum, without its file, or with a byte changed."""
+    entry = shards.read_manifest(run)["shards"][1]
+    data = (run / entry["file"]).read_bytes()
+    assert entry["sha256"] == shards.sha256(data)
+    assert shards.shard_is_valid(run, entry)
+    assert not shards.shard_is_valid(run, {**entry, "sha256": None})
+    assert not shards.shard_is_valid(tmp_path, entry)  # no file there
+    damaged = bytearray(data)
+    damaged[len(data) // 2] ^= 1
+    (tmp_path / entry["file"]).write_bytes(bytes(damaged))
+    assert not shards.shard_is_valid(tmp_path, entry)
+
+
 def test_verify_checks_every_shard(run, tmp_path):
     copy = tmp_path / "copy"
     shutil.copytree(run, copy)
