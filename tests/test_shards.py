@@ -320,7 +320,8 @@ def test_a_manifest_that_disagrees_with_its_shards_is_refused(run, tmp_path):
     """The manifest has no checksum: with two shards' instance lists swapped,
     load(instances=[0]) gave no transitions and no error; with a parameter
     changed, verify() passed. A shard read now checks the manifest's instances
-    and parameters against its own table."""
+    and parameters (their names too, which label the columns of
+    `Dataset.parameters`) against its own table."""
 
     def swap(m):
         a, b = m["shards"][0], m["shards"][1]
@@ -329,7 +330,10 @@ def test_a_manifest_that_disagrees_with_its_shards_is_refused(run, tmp_path):
     def nudge(m):
         m["shards"][1]["parameters"][0][1] += 0.1
 
-    for edit in (swap, nudge):
+    def rename(m):
+        m["parameter_names"][0] += "_renamed"
+
+    for edit in (swap, nudge, rename):
         copy = _edited(run, tmp_path / edit.__name__, edit)
         with pytest.raises(ValueError, match=r"manifest.json does not match shard"):
             shards.Dataset(copy).verify()
