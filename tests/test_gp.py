@@ -36,6 +36,25 @@ def test_nlml_matches_dense_gaussian_density():
     )
 
 
+def test_nlml_of_instances_is_the_sum_of_their_dense_densities():
+    """Instances are independent GPs sharing θ: over groups of different sizes
+    the value is the sum of each group's -log N(y_b; 0, C_b) (scipy's density),
+    and the gradient the sum of each group's."""
+    from scipy import stats
+
+    rng = np.random.default_rng(5)
+    groups = [(rng.normal(size=(n, 2)), rng.normal(size=n)) for n in (4, 7, 5)]
+    h = GPHyper(np.array([0.8, 1.5]), 1.2, 0.1)
+    dense = 0.0
+    for X, y in groups:
+        C = se_kernel(X, X, h.lengthscales, h.signal_var) + h.noise_var * np.eye(len(y))
+        dense -= stats.multivariate_normal(np.zeros(len(y)), C).logpdf(y)
+    nlml = neg_log_marginal_likelihood(h.to_theta(), groups)
+    assert nlml.value == pytest.approx(dense, rel=1e-10)
+    each = [neg_log_marginal_likelihood(h.to_theta(), [g]).grad for g in groups]
+    np.testing.assert_allclose(nlml.grad, np.sum(each, axis=0), rtol=1e-12)
+
+
 def test_nlml_gradient_matches_finite_differences():
     rng = np.random.default_rng(1)
     groups = [(rng.normal(size=(8, 3)), rng.normal(size=8)) for _ in range(2)]
