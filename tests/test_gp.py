@@ -332,13 +332,16 @@ def test_fit_takes_a_constant_input_and_zero_targets():
     """A state dimension that never moves (std 0) and a Δ dimension that is
     always 0 (mean(y²) = 0) set the search's scales: log 0 made θ₀ -inf and the
     fit returned NaN or zero hyperparameters. Their scales fall back to 1 and
-    1e-12, so the fit is finite and positive."""
+    1e-12, so the fit is finite and positive, and the constant dimension's
+    length scale lies in the box about 1 (a vanishing one would make every
+    prediction at another value of that dimension the prior's)."""
     rng = np.random.default_rng(0)
     X = np.column_stack([rng.normal(size=30), np.full(30, 2.0)])
     for y in (np.sin(X[:, 0]), np.zeros(30)):
         h = fit_hyperparameters([(X, y)])
         theta = h.to_theta()
         assert np.all(np.isfinite(theta)), theta
+        assert 1e-2 <= h.lengthscales[1] <= 1e2  # std 1 ± the factor 100 box
 
 
 def test_fit_needs_two_points():
