@@ -46,6 +46,27 @@ def test_reproducible_from_seed_and_subsampled():
     assert len(np.unique(a.index)) == 20
 
 
+def test_each_tasks_kernel_is_its_own_scales_and_variances():
+    """select_support's task (a, d) has ℓ[a,d], σ_f²[a,d] and σ²[a,d] together,
+    as HyperSet.get gives them: with A = 3 actions and D = 2 dimensions (not
+    square, where a transposed index reads another task's) and a noise of its
+    own per task, it picks what the dense reference picks with those kernels."""
+    rng = np.random.default_rng(6)
+    A, D = 3, 2
+    hyper = HyperSet(
+        rng.uniform(0.3, 2.0, (A, D, D)),
+        rng.uniform(0.5, 2.0, (A, D)),
+        rng.uniform(0.01, 0.5, (A, D)),
+    )
+    X = rng.uniform(-2, 2, size=(80, D))
+    got = select_support(X, hyper, 15, n_candidates=80, rng=np.random.default_rng(0))
+    tasks = [hyper.get(a, d) for a in range(A) for d in range(D)]
+    kernels = [(h.lengthscales, h.signal_var, h.noise_var) for h in tasks]
+    dense = greedy_support_dense(X, kernels, 15)
+    np.testing.assert_array_equal(got.index, dense.index)
+    np.testing.assert_allclose(got.errors, dense.errors, atol=1e-9)
+
+
 def test_too_many_support_points_raises():
     S = np.repeat(np.arange(5.0)[:, None], 2, axis=1)
     S = np.concatenate([S, S])  # 5 distinct states
