@@ -211,6 +211,31 @@ def test_file_is_plain_npz_without_pickle(tmp_path):
         assert all(f[k].dtype != object for k in f.files)
 
 
+UNPICKLED = []
+
+
+class _RecordsItsUnpickling:
+    """An object whose unpickling appends to UNPICKLED (as a hostile pickle
+    would run code of its choosing)."""
+
+    def __reduce__(self):
+        return UNPICKLED.append, ("unpickled",)
+
+
+def test_an_array_that_needs_pickle_is_refused_unread(tmp_path):
+    """A member stored as a pickled object array (np.savez pickles by default)
+    is refused naming the file and the array, and is never unpickled."""
+    path = make().save(tmp_path / "d.npz")
+    with np.load(path, allow_pickle=False) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    hostile = np.empty(1, dtype=object)
+    hostile[0] = _RecordsItsUnpickling()
+    np.savez(path, **(arrays | {"states": hostile}))
+    with pytest.raises(ValueError, match=f"{path}: array 'states' cannot be read"):
+        Transitions.load(path)
+    assert UNPICKLED == []
+
+
 @pytest.mark.parametrize(
     "override, match",
     [
