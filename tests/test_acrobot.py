@@ -108,6 +108,42 @@ def test_a_fast_instance_converges_at_its_own_step():
     assert_fourth_order(acrobot, book_accelerations, params, [np.pi, np.pi, 20, 60])
 
 
+def elbow_responses(params: AcrobotParams, theta_2: np.ndarray) -> np.ndarray:
+    """|θ̈₂| that 1 N·m of elbow torque adds, at rest, per elbow angle: MuJoCo's
+    θ̈₂ under τ = 1 minus under τ = 0 (linear in τ: (M⁻¹)₂₂ τ)."""
+    model = acrobot.make_model(params)
+    return np.array(
+        [
+            abs(
+                mujoco_accelerations(model, np.array([0.0, t, 0.0, 0.0]), 1.0)[1]
+                - mujoco_accelerations(model, np.array([0.0, t, 0.0, 0.0]), 0.0)[1]
+            )
+            for t in theta_2
+        ]
+    )
+
+
+@pytest.mark.parametrize("params", REWRITTEN, ids=str)
+def test_elbow_acceleration_is_the_unit_torques_greatest_effect(params):
+    """`elbow_acceleration` (which sets the step) is the largest |θ̈₂| per N·m of
+    elbow torque at any elbow angle, against MuJoCo on a 2° grid of angles,
+    which holds the straight and folded arms (θ₂ = 0, ±π)."""
+    effect = elbow_responses(params, np.linspace(-np.pi, np.pi, 181))
+    assert acrobot.elbow_acceleration(params) == pytest.approx(max(effect), rel=1e-9)
+
+
+@pytest.mark.parametrize("link_mass_2, n_sub", [(0.3, 20), (0.29, 40)])
+def test_the_step_is_halved_just_past_4_rad_s2_per_n_m(link_mass_2, n_sub):
+    """The documented threshold, `ELBOW_ACCELERATION` = 4 rad/s² per N·m of the
+    largest torque (1 N·m), on each side of it: a light second link at 3.98
+    (MuJoCo's response) keeps 20 steps of 10 ms, at 4.08 the step is halved."""
+    params = AcrobotParams(link_mass_2=link_mass_2)
+    peak = max(elbow_responses(params, np.linspace(-np.pi, np.pi, 181)))
+    assert (peak > 4.0) == (n_sub == 40) and abs(peak - 4.0) < 0.1
+    assert acrobot.sub_steps(params) == n_sub
+    assert acrobot.make_model(params).opt.timestep == 0.01 / (n_sub // 20)
+
+
 @pytest.mark.parametrize("field", [f.name for f in dataclasses.fields(AcrobotParams)])
 def test_every_parameter_changes_the_accelerations(field):
     rng = np.random.default_rng(2)
@@ -286,6 +322,20 @@ def test_the_goal_line_is_the_instances_first_link_length():
     up = np.array([np.pi, np.arccos(-0.2), 0.0, 0.0])  # nominal: y = 1 - 0.2
     assert acrobot.tip_height(up, acrobot.AcrobotParams()) == pytest.approx(0.8)
     assert not acrobot.swingup(seed=0).task.is_terminal(up)
+
+
+def test_a_tip_exactly_on_the_goal_line_has_not_reached_it():
+    """The goal is strictly above the line, `y > l₁` (the module docstring's
+    "higher than", Gym's strict `>`). Straight down with the elbow folded back
+    up, `θ = (0, π)`, and `l₂ = 2 l₁`: the tip is at `-l₁ + l₂ = l₁` exactly;
+    a hair longer `l₂` puts it past the line."""
+    s = np.array([0.0, np.pi, 0.0, 0.0])
+    on_line = AcrobotParams(link_length_1=1.0, link_length_2=2.0)
+    assert acrobot.tip_height(s, on_line) == 1.0  # cos π = -1 exactly
+    assert not acrobot.goal_reached(s, on_line)
+    assert not acrobot.swingup(on_line, seed=0).task.is_terminal(s)
+    past = AcrobotParams(link_length_1=1.0, link_length_2=2.0 + 1e-9)
+    assert acrobot.goal_reached(s, past)
 
 
 def test_episode_is_truncated_at_the_step_limit():
