@@ -138,6 +138,17 @@ def test_failed_marks_the_classic_thresholds():
     )
 
 
+def test_failed_is_decided_at_the_documented_thresholds_exactly():
+    """12° and 2.4 m themselves (the module docstring's), not values near them:
+    a relative 1e-9 either side of each is inside, then past it."""
+    limit = np.deg2rad(12.0)
+    for sign in (1.0, -1.0):
+        for below, above in ((1 - 1e-9, False), (1 + 1e-9, True)):
+            theta = np.array([0.0, sign * below * limit, 0.0, 0.0])
+            x = np.array([sign * below * 2.4, 0.0, 0.0, 0.0])
+            assert cartpole.failed(theta) == above and cartpole.failed(x) == above
+
+
 def test_episode_starts_near_upright_and_ends_at_failure():
     env = cartpole.balance(seed=4)
     first = env.reset()
@@ -208,6 +219,23 @@ def test_pole_acceleration_is_the_largest_forces_greatest_effect(params):
         for theta in np.linspace(-np.pi, np.pi, 361)
     ]
     assert cartpole.pole_acceleration(params) == pytest.approx(max(effect), rel=1e-9)
+
+
+@pytest.mark.parametrize("half_length, n_sub", [(0.232, 2), (0.225, 4)])
+def test_the_step_is_halved_just_past_32_rad_s2(half_length, n_sub):
+    """The documented threshold, `POLE_ACCELERATION` = 32 rad/s² under the
+    largest force, on each side of it: a short pole at 31.5 rad/s² (MuJoCo's θ̈
+    under 10 N minus under 0, upright at rest, where it peaks) keeps 2 steps of
+    10 ms, at 32.5 the step is halved."""
+    params = CartpoleParams(pole_half_length=half_length)
+    model, upright = cartpole.make_model(params), np.zeros(4)
+    peak = abs(
+        mujoco_accelerations(model, upright, 10.0)[1]
+        - mujoco_accelerations(model, upright, 0.0)[1]
+    )
+    assert (peak > 32.0) == (n_sub == 4) and abs(peak - 32.0) < 1.0
+    assert cartpole.sub_steps(params) == n_sub
+    assert model.opt.timestep == 0.01 / (n_sub // 2)
 
 
 def test_a_light_cart_poles_action_still_lasts_0_02_s():
