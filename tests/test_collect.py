@@ -55,6 +55,27 @@ def test_transitions_follow_the_simulator_and_carry_the_parameters():
         np.testing.assert_allclose(replay, t.next_states[i], atol=1e-9)
 
 
+def test_an_episodes_last_transition_ends_in_the_state_that_ended_it():
+    """Random pushes topple the pole within the step limit: each episode's last
+    next_state is past the failure thresholds (none before it is), and is one
+    action of MuJoCo's from its state, as every other next_state is."""
+    result = collect.collect(
+        "cartpole", [CartpoleParams(1.0, 0.3, 0.8)], episodes_per_instance=4,
+        rng=np.random.default_rng(8),
+    )  # fmt: skip
+    t = result.transitions
+    assert np.count_nonzero(t.dones) == 4 and len(t) < 4 * cartpole.DEFAULT_MAX_STEPS
+    np.testing.assert_array_equal(cartpole.failed(t.next_states), t.dones)
+    model = cartpole.make_model(CartpoleParams(1.0, 0.3, 0.8))
+    data = mujoco.MjData(model)
+    for i in np.flatnonzero(t.dones):
+        data.qpos[:], data.qvel[:] = t.states[i, :2], t.states[i, 2:]
+        data.ctrl[0] = cartpole.ACTIONS[t.actions[i]]
+        mujoco.mj_step(model, data, cartpole.N_SUB_STEPS)
+        replay = np.r_[data.qpos[0], wrap_angle(data.qpos[1]), data.qvel]
+        np.testing.assert_allclose(replay, t.next_states[i], atol=1e-9)
+
+
 def test_same_rng_gives_the_same_data_and_another_does_not():
     a, b, c = gather(seed=1).transitions, gather(seed=1).transitions, gather(2)
     for name in ("states", "actions", "next_states", "instances", "rewards"):
