@@ -110,6 +110,27 @@ def test_relative_normal_is_the_truncated_normal_around_the_nominal(low, high, s
     assert x.min() > low and x.max() < high
 
 
+class EndsOfU:
+    """Stands in for the Generator: every `uniform` draw is one of `u`, in turn
+    (the relative normal draws `u ~ U[0, 1)` once per point)."""
+
+    def __init__(self, u):
+        self.u = np.asarray(u)
+
+    def uniform(self, size):
+        return np.resize(self.u, size)
+
+
+def test_relative_normal_draws_at_the_ends_of_u_stay_in_the_box():
+    """u = 0 (and just above, which `Generator.uniform` can return) is the lower
+    bound itself: pole mass ~ N(0.1, 0.01²) on [0.01, 2.0], whose inverse CDF
+    at Φ(a), a = -9, gave 0.01 - 1.9e-17, outside it."""
+    d = Distribution(CartpoleParams, {"pole_mass": (0.01, 2.0)}, kind="relative-normal")
+    x = draw(d, 3, rng=EndsOfU([0.0, 5e-324, 1e-300])).varied[:, 0]
+    assert np.all((x >= 0.01) & (x <= 2.0))
+    np.testing.assert_allclose(x, 0.01, rtol=1e-12)
+
+
 def test_same_rng_same_draws_and_a_degenerate_range_stays_put():
     a = draw(dist(kind="relative-normal"), 10, rng=np.random.default_rng(7)).values
     b = draw(dist(kind="relative-normal"), 10, rng=np.random.default_rng(7)).values
