@@ -907,6 +907,34 @@ def test_a_non_finite_state_is_a_divergence_even_at_a_terminal_step(monkeypatch)
     np.testing.assert_array_equal(result.diverged, [3, 3])
 
 
+def test_a_divergence_in_a_later_chunk_is_counted_from_the_episodes_start(
+    monkeypatch,
+):
+    """Three control steps per `mujoco.rollout` call: a state made NaN at the
+    end of the second step of the second call is step 3 + 1 = 4 of the
+    episode, not 1 of the chunk."""
+    real = rollout.mj_rollout.rollout
+    n_sub, calls = cartpole.N_SUB_STEPS, []
+    at = rollout.mujoco.mj_stateSize(
+        cartpole.make_model(CARTPOLES[0]), rollout.mujoco.mjtState.mjSTATE_TIME
+    )
+
+    def poisoned(models, data, physics, control):
+        state, sensors = real(models, data, physics, control)
+        calls.append(state.shape)
+        if len(calls) == 2:
+            state[:, 2 * n_sub - 1, at + 3] = np.nan  # the pole's speed
+        return state, sensors
+
+    monkeypatch.setattr(rollout.mj_rollout, "rollout", poisoned)
+    result = rollout.rollout_episodes(
+        "cartpole", CARTPOLES, np.array([0, 1]), np.zeros((2, 4)),
+        np.ones((2, 6), int), chunk=3,
+    )  # fmt: skip
+    assert len(calls) == 2 and calls[1][1] == 3 * n_sub  # steps 3 to 5
+    np.testing.assert_array_equal(result.diverged, [4, 4])
+
+
 def test_open_loop_gathering_drops_a_diverged_episode_and_names_it(monkeypatch):
     """An episode that diverges (here instance 0's second, from a velocity of
     1e150) is reported with its instance id and its episode within the
