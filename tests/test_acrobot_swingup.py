@@ -26,7 +26,7 @@ from tasks.acrobot_swingup import (
     step_limit_split,
     transfer_metrics,
 )
-from tasks.experiment import to_jsonable, trial_seeds
+from tasks.experiment import fmt_ci, to_jsonable, trial_seeds
 from tasks.prediction import score_settings
 from tasks.recording import rrd_contents
 from tasks.transfer import METHODS, TransferConfig, TrialResult, run_trial
@@ -732,6 +732,21 @@ def test_report_tables_show_the_episodes_they_name(run, tmp_path):
         tmp_path, config, metrics | {"near_optimal_target": window}
     )
     assert "its mean over the last 3 episodes)" in (tmp_path / "report.md").read_text()
+
+    # the targets, first: episode 2's margin, -16, has its interval below 0
+    # (missed); the lead over the average model, -2.567, one across 0
+    targets = report.split("## Against the targets")[1].split("\n## ")[0]
+    lead = metrics["paired_difference"]["hipmdp - average"]["all_episodes"]
+    margin = {k: v[1] for k, v in metrics["margin_to_target"]["hipmdp"].items()
+              if k != "n"}  # fmt: skip
+    assert margin["mean"] == pytest.approx(-16.0) and margin["high"] < 0 < lead["high"]
+    assert [line for line in targets.splitlines() if line.startswith("- ")] == [
+        "- HiP-MDP within 10% of the true model by episode 2, margin per trial: "
+        f"{fmt_ci(margin, signed=True)} (missed)",
+        "- HiP-MDP - average model, mean return over all episodes: "
+        f"{fmt_ci(lead, signed=True)} (not clearly ahead)",
+    ]
+    assert report.index("## Against the targets") < report.index("## Returns")
 
     # margin per trial: the return minus -22 (10% below the true model's -20)
     header, *rows = _table(report, "Per trial, each method's return")
