@@ -210,6 +210,63 @@ def test_a_run_with_an_added_method_is_compared_on_what_both_ran(tmp_path):
     assert "verdict: the results differ" in report(result)
 
 
+def test_an_added_methods_steps_are_set_apart_as_its_returns(tmp_path):
+    """trials.npz's ``steps`` has a row per method, as ``returns`` has: a run with
+    an added method is compared on the built-in methods' steps (it was reported
+    as differing, shapes (3, 4) against (4, 4)), and a built-in's step that
+    moved is a difference."""
+    a = _run(tmp_path / "a")
+    steps = np.arange(12).reshape(3, 4) + 100
+    np.savez(a / "trials.npz", returns=np.arange(12.0).reshape(3, 4),
+             steps=steps, methods=np.array(["a", "b", "c"]))  # fmt: skip
+    b = _run(tmp_path / "b", config={"seed": 0, "progress": True,
+                                     "methods": ["d=mine:D"]})  # fmt: skip
+    more = np.r_[steps, np.full((1, 4), 7)]
+    returns = np.r_[np.arange(12.0).reshape(3, 4), np.full((1, 4), 7.0)]
+    names = np.array(["a", "b", "c", "d"])
+    np.savez(b / "trials.npz", returns=returns, steps=more, methods=names)
+    result = main(a, b)
+    assert result.arrays["trials.npz:steps"] == "identical"
+    assert result.shared_identical and cli([str(a), str(b)]) == 0
+    more[0, 1] += 1
+    np.savez(b / "trials.npz", returns=returns, steps=more, methods=names)
+    result = main(a, b)
+    assert result.arrays["trials.npz:steps"] == {
+        "max_abs_diff": 1.0, "n_differ": 1, "size": 12
+    }  # fmt: skip
+    assert not result.shared_identical
+
+
+def test_a_statistic_named_as_an_added_method_is_compared(tmp_path):
+    """An added method may bear the name of a statistic (README's example method
+    is ``mean``): a metric one run has more under ``margin_to_target.hipmdp.mean``
+    (a list the other run also has, shorter) is a difference, not the added
+    method's entry; ``returns.mean`` is the method's."""
+    added = {"seed": 0, "progress": True, "methods": ["mean=mine:MeanDelta"]}
+    margin = {"hipmdp": {"mean": [-20.0], "n": 480}}
+    base = {"returns": {"hipmdp": [1.0]}, "margin_to_target": margin}
+    b = _run(tmp_path / "b", metrics=base)
+    longer = {"hipmdp": {"mean": [-20.0, -8.0], "n": 480}}
+    more = {"returns": {"hipmdp": [1.0], "mean": [2.0]}, "margin_to_target": longer}
+    a = _run(tmp_path / "a", metrics=more, config=added)
+    result = main(a, b)
+    assert result.extra[str(a)] == ["returns.mean.0"]
+    assert result.metrics == {"margin_to_target.hipmdp.mean.1": [-8.0, None]}
+    assert not result.shared_identical
+
+
+def test_settings_that_only_show_or_schedule_a_run_are_no_difference(tmp_path):
+    """``progress``, ``workers`` and ``record`` (PRESENTATION) change no result;
+    any other setting that differs is named."""
+    shown = {"seed": 0, "progress": True, "workers": 1, "record": True}
+    a = _run(tmp_path / "a", config=shown)
+    b = _run(tmp_path / "b", config={**shown, "progress": False, "workers": 4,
+                                     "record": False})  # fmt: skip
+    assert main(a, b).config == {}
+    c = _run(tmp_path / "c", config={**shown, "record": False, "trials": 3})
+    assert main(a, c).config == {"trials": [None, 3]}
+
+
 def test_only_an_added_methods_entries_are_set_apart(tmp_path):
     """What one run lacks counts as a difference unless it is an entry of a
     method only the other run added: a shorter list, a None against a value,
@@ -407,6 +464,10 @@ def test_compare_arrays_nan_shapes_dtypes_and_strings():
     moved = np.array([1.0, 2.0, np.nan])  # NaN moved: two entries differ
     assert compare_arrays(nan, moved) == {
         "max_abs_diff": 0.0, "n_differ": 2, "size": 3
+    }  # fmt: skip
+    # a NaN where both have one is no difference: one entry of these two differs
+    assert compare_arrays(np.array([np.nan, 1.0]), np.array([np.nan, 3.0])) == {
+        "max_abs_diff": 2.0, "n_differ": 1, "size": 2
     }  # fmt: skip
     big = np.array([2**53, 1], dtype=np.int64)
     assert compare_arrays(big, big + [0, 5]) == {
