@@ -360,6 +360,52 @@ def test_learn_takes_its_config_and_starting_agent():
     np.testing.assert_array_equal(result.state.weights, state.weights)
 
 
+def _cartpole_learning(limit=25):
+    """A fresh agent's first episodes on the cart-pole: the first two end with
+    the pole down (23 and 9 steps), the others at the step limit of 25."""
+    env = CARTPOLE.make_env(None, seed=1, max_steps=limit)
+    return learn(env, CARTPOLE, 6, rng=np.random.default_rng(0))
+
+
+def test_learns_returns_are_each_episodes_rewards():
+    """The cart-pole pays 1 per step and 0 for the step that drops the pole: an
+    episode's return is its steps, less 1 if it ended with the pole down (on the
+    acrobot, -1 per step, the return is -steps whatever the end, so it cannot
+    tell a return from a step count)."""
+    result = _cartpole_learning()
+    fell = result.steps < 25
+    assert fell.any() and not fell.all()
+    np.testing.assert_array_equal(result.returns, result.steps - fell)
+
+
+def test_the_cartpole_planning_task_pays_and_ends_as_the_environment():
+    """On the real transitions of episodes that drop the pole and episodes cut
+    at the step limit: the planning task's reward is the environment's, and it
+    is terminal exactly at the last step of the episodes that dropped the pole."""
+    result = _cartpole_learning()
+    t = result.transitions
+    task = CARTPOLE.planning_task(None, 25)
+    np.testing.assert_array_equal(task.reward(t.states, t.actions, t.next_states),
+                                  t.rewards)  # fmt: skip
+    ends = np.flatnonzero(t.dones)
+    fell = ends[result.steps < 25]
+    assert len(fell) == 2 and 0.0 in t.rewards
+    np.testing.assert_array_equal(np.flatnonzero(task.terminal(t.next_states)), fell)
+
+
+def test_the_acrobot_planning_task_ends_at_its_instances_goal():
+    """The goal is the tip above ``l₁``, with the instance's links: at θ₁ = π/2,
+    θ₂ = 2π/3 the tip is ``-l₂ cos(7π/6) = 0.866 l₂`` above the shoulder, below
+    the nominal ``l₁ = 1`` but above it with ``l₂ = 1.5`` (1.30). Every step
+    costs 1."""
+    state = np.array([[np.pi / 2, 2 * np.pi / 3, 0.0, 0.0]])
+    long_arm = acrobot.AcrobotParams(link_length_2=1.5)
+    for params, reached in ((None, False), (long_arm, True)):
+        task = ACROBOT.planning_task(params, 500)
+        np.testing.assert_array_equal(task.terminal(state), [reached])
+        np.testing.assert_array_equal(task.reward(state, np.zeros(1, int), state), [-1])
+
+
 def test_the_energy_conserving_model_predicts_the_given_actions():
     """It rescales the wrapped model's prediction for the same states and
     actions. (The energy check in test_acrobot_energy cannot tell: a prediction
