@@ -294,6 +294,39 @@ def test_the_try_steps_once_or_on_an_empty_batch_only_ends_the_episode():
         assert Records.calls == expected
 
 
+class Observes(Draws):
+    """Keeps the first draw of its agent's rng and what the agent observes."""
+
+    seen: list = []
+
+    def observe(self, state, action, reward, next_state, terminal):
+        Observes.seen.append((state, action, reward, next_state, terminal))
+
+
+def test_the_try_agent_has_its_stream_and_observes_the_first_batch_transition():
+    """fit_all's try of a policy: the agent's rng is that of key (2, 2)
+    (method_seed's docstring), and it observes the batch's first transition as
+    it was, not at the goal (terminal False)."""
+    data = batch()
+    Draws.drawn, Observes.seen = [], []
+    methods.fit_all([(MethodSpec("o", "m", "A"), Observes())], data, 7, 3)
+    assert Draws.drawn == [np.random.default_rng(method_seed(7, "o", 1, 2, 2)).random()]
+    ((state, action, reward, next_state, terminal),) = Observes.seen
+    np.testing.assert_array_equal(state, data.states[0])
+    np.testing.assert_array_equal(next_state, data.next_states[0])
+    assert (action, reward, terminal) == (data.actions[0], -1.0, False)
+
+
+def test_the_example_policy_starts_from_the_domains_initial_values():
+    """A fresh agent's action values are the domain's q₀ (tasks/agents.py's
+    table): 0 on the acrobot, 100 on the cart-pole, one row per action."""
+    for domain, n_actions, q0 in (("acrobot", 3, 0.0), ("cartpole", 2, 100.0)):
+        agent = SarsaPolicy(domain).agent(rng=np.random.default_rng(0))
+        weights = agent.state.weights
+        assert weights.shape == (n_actions, agent.basis.n_features), domain
+        np.testing.assert_array_equal(agent.basis(np.zeros(4)) @ weights.T, q0)
+
+
 def test_the_example_policy_refuses_an_unknown_domain():
     with pytest.raises(
         ValueError, match="domain: expected one of .*, got 'no_such_domain'"
