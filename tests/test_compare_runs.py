@@ -493,6 +493,11 @@ def test_compare_arrays_nan_shapes_dtypes_and_strings():
     assert compare_arrays(np.array(["x", "y"]), np.array(["x", "zz"])) == {
         "n_differ": 1, "size": 2
     }  # fmt: skip
+    # a single string that is not a JSON object (a label, a JSON list) is
+    # compared as a string
+    for x, y in [("cartpole", "acrobot"), ("[1, 2]", "[1, 3]")]:
+        assert compare_arrays(np.array(x), np.array(y)) == {"n_differ": 1, "size": 1}
+        assert compare_arrays(np.array(x), np.array(x)) == "identical"
     assert compare_arrays(np.zeros(2), np.array(["a", "b"])) == {
         "dtypes": ["float64", "<U1"]
     }  # fmt: skip
