@@ -190,6 +190,11 @@ def test_specs_must_be_a_sequence_of_distinct_names():
     assert methods.check_specs([LINEAR]) == (
         MethodSpec("linear", "tasks.methods", "BayesianLinear"),
     )
+    # load_all, which a run calls on its specs, checks them as check_specs does
+    with pytest.raises(ValueError, match="more than once \\('Linear', 'linear'\\)"):
+        methods.load_all([LINEAR, "Linear=tasks.methods:BayesianLinear"])
+    with pytest.raises(ValueError, match="'HiP-MDP' is .* reported as"):
+        methods.load_all(["HiP-MDP=tasks.methods:BayesianLinear"])
 
 
 def test_names_may_hold_letters_digits_and_dots_dashes_underscores():
