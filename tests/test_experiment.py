@@ -132,6 +132,9 @@ def test_first_episode_within_uses_negative_returns():
     assert first_episode_within(curve, target=-10.0) is None
     # on the threshold counts as within (returns are whole steps: ties happen)
     assert first_episode_within(np.array([-111.0, -110.0]), target=-100.0) == 2
+    # the margin is the one given: within 12% is >= -112, within 0% is >= -100
+    assert first_episode_within(curve, target=-100.0, margin=0.12) == 3
+    assert first_episode_within(curve, target=-100.0, margin=0.0) == 5
 
 
 def test_paired_difference_cancels_what_the_trials_share():
