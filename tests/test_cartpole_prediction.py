@@ -389,7 +389,11 @@ def test_mse_ratios_are_paired_per_setting():
     assert r["geometric_mean"] == pytest.approx(np.exp(logs.mean()))
     # counted on the same 3 settings: 1 < 10, 2 < 10, not 4 < 2 (0 < 1 is left out)
     assert r["n"] == 3 and r["hipmdp_lower"] == 2
-    assert r["low"] < r["geometric_mean"] < r["high"]
+    # the interval: the t-interval of the 3 log ratios (df 2), exponentiated
+    from scipy import stats
+
+    low, high = stats.t.interval(0.95, df=2, loc=logs.mean(), scale=stats.sem(logs))
+    assert [r["low"], r["high"]] == pytest.approx(np.exp([low, high]), rel=1e-12)
 
 
 def test_seed_spread_reads_the_run(run, tmp_path):
