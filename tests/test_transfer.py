@@ -78,6 +78,42 @@ def test_the_environment_starts_and_agent_draw_from_three_streams(monkeypatch):
     assert len({str(s) for s in (*seeds, agent)}) == 3
 
 
+def test_the_value_function_passes_from_each_planning_to_the_next_real_episode(
+    monkeypatch,
+):
+    """One value function runs through the trial: each real episode starts from
+    the value function the planning before it left, and each planning from the
+    one the real episode before it left (what the agent learnt acting on the
+    instance is kept); each planning runs its configured number of episodes
+    (initial, after the first real episode, after the others)."""
+    calls, episodes = [], []
+    real_plan, real_episode = transfer.plan, transfer.run_episode
+
+    def planning(state, *args, rng):
+        result = real_plan(state, *args, rng=rng)
+        calls.append((state, args[-1], result.state))  # args[-1]: n_episodes
+        return result
+
+    def acting(env, basis, sarsa, state, *, rng):
+        episode = real_episode(env, basis, sarsa, state, rng=rng)
+        episodes.append((state, episode.state))
+        return episode
+
+    monkeypatch.setattr(transfer, "plan", planning)
+    monkeypatch.setattr(transfer, "run_episode", acting)
+    config = dataclasses.replace(
+        TINY, initial_planning_episodes=2, first_planning_episodes=3
+    )
+    set_models(ACROBOT, config, CountingHipMDP(), None)
+    run_trial(TrialJob("hipmdp", 0, 0, PARAMS, (5, (0, 0)), False))
+    assert [n for _, n, _ in calls] == [2, 3, 1]  # none after the last episode
+    for e, (before, after) in enumerate(episodes):
+        assert before is calls[e][2]
+        assert not np.array_equal(after.weights, before.weights)  # it learnt
+        if e + 1 < len(calls):
+            assert calls[e + 1][0] is after
+
+
 class Remembers:
     """A model that counts its adapt calls on itself and records, on the class,
     what each call saw: that count, the number of transitions and their ids."""
