@@ -305,6 +305,28 @@ def test_trial_seeds_are_setting_major_children_of_the_stream():
             assert entropy == 7 and spawn_key == (i * 4 + t,)
 
 
+def test_trial_seeds_of_a_spawned_stream_keep_its_whole_spawn_key():
+    """A run's trial stream is itself a child (``run_streams``: spawn key
+    (3,)), so a trial's seed is a grandchild, (3, k): rebuilt from its value it
+    draws as the child it stands for, and no trial's seed is one of the run's
+    other streams (keeping only the last key, trial 0 would draw the batch
+    data's stream, (0,))."""
+    root = np.random.SeedSequence(7)
+    streams = root.spawn(5)
+    seeds = trial_seeds(streams[3], 2, 3)
+    children = np.random.SeedSequence(7, spawn_key=(3,)).spawn(6)
+    for k, (entropy, spawn_key) in enumerate(s for row in seeds for s in row):
+        assert spawn_key == (3, k)
+        rebuilt = np.random.SeedSequence(entropy, spawn_key=spawn_key)
+        np.testing.assert_array_equal(
+            rebuilt.generate_state(4), children[k].generate_state(4)
+        )
+        for stream in streams:
+            assert not np.array_equal(
+                rebuilt.generate_state(4), stream.generate_state(4)
+            )
+
+
 def _blas_threads(_=None) -> list[int]:
     return sorted(
         {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}
