@@ -274,6 +274,9 @@ def test_coverage_counts_as_the_dense_interval_check_does():
                 low, high = norm.interval(level, mean[i, d], np.sqrt(var[i, d]))
                 expected[k, d] += (low <= observed[i, d] <= high) / 200
     np.testing.assert_allclose(coverage(mean, var, observed, levels), expected)
+    # the interval is closed, as norm.interval's check above: Δ on its edge is in
+    edge = norm.ppf(0.75) * np.array([[-1.0], [1.0]])
+    assert coverage(np.zeros((2, 1)), np.ones((2, 1)), edge, (0.5,)).item() == 1.0
     with pytest.raises(ValueError, match="levels: expected values in"):
         coverage(mean, var, observed, (0.5, 1.0))
 
