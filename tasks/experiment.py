@@ -566,7 +566,8 @@ def count(n: int, noun: str) -> str:
 def fmt_value(v: float, digits: int = 3, sign: str = "") -> str:
     """``v`` to ``digits`` significant digits, in scientific notation if small;
     large values (those ``g`` would print with an exponent) whole: 1187, not
-    1.19e+03. ``sign="+"`` puts ``+`` before a positive value."""
+    1.19e+03. ``sign="+"`` puts ``+`` before a value that is not negative
+    (``+0`` for zero)."""
     v = float(v)
     if abs(v) < 1e-3 and v != 0:
         return f"{v:{sign}.{digits - 1}e}"
@@ -577,7 +578,7 @@ def fmt_value(v: float, digits: int = 3, sign: str = "") -> str:
 def fmt_ci(ci: dict, digits: int = 3, signed: bool = False) -> str:
     """``mean [low, high]`` (:func:`fmt_value`), or ``mean [no interval: one
     sample]`` where the bounds are NaN or None (:func:`mean_ci` of one sample);
-    ``signed`` puts ``+`` before a positive mean (for differences)."""
+    ``signed`` puts ``+`` before a mean that is not negative (for differences)."""
     mean = fmt_value(ci["mean"], digits, "+" if signed else "")
     return f"{mean} {fmt_bounds(ci['low'], ci['high'], lambda v: fmt_value(v, digits))}"
 
