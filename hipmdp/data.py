@@ -106,9 +106,13 @@ def atomic_write(path: str | os.PathLike, write, *, clean: bool = False) -> Path
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, _, tmp = _locked_temporary(
+        lambda: tempfile.mkstemp(
+            prefix=f".{path.name}.", suffix=".tmp", dir=path.parent
+        ),
+        lambda fd, _: _lock_file(fd),
+    )
     try:
-        _lock_file(fd)
         with os.fdopen(fd, "wb") as fh:
             write(fh)
             fh.flush()
@@ -123,20 +127,73 @@ def atomic_write(path: str | os.PathLike, write, *, clean: bool = False) -> Path
     if clean:
         stale = re.compile(rf"\.{re.escape(path.name)}\.[a-z0-9_]{{8}}\.tmp")
         for left in atomic_temporaries(path.parent, glob.escape(path.name)):
-            if stale.fullmatch(left.name) and not folder_locked(left):
-                left.unlink(missing_ok=True)
+            if stale.fullmatch(left.name):
+                remove_unless_locked(left)
     return path
 
 
-def _lock_file(fd: int) -> None:
-    """An ``flock`` on the open file ``fd``, held until it is closed; nothing
+def _lock_file(fd: int) -> int | None:
+    """An ``flock`` on the open file ``fd``, held until it is closed (waiting
+    while a cleaner holds it: :func:`remove_unless_locked`); ``fd``, or None
     where files cannot be locked."""
     try:
         import fcntl
 
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fcntl.flock(fd, fcntl.LOCK_EX)
     except (ImportError, OSError):
-        pass
+        return None
+    return fd
+
+
+def _locked_temporary(make, lock) -> tuple[int | None, int | None, str]:
+    """``make()``'s new temporary ``(fd, name)`` (``fd`` None for a folder) and
+    ``lock(fd, name)``'s descriptor holding its lock (None where nothing can be
+    locked), checked to be still there once locked: a writer of the same path
+    cleaning up may take it for a killed writer's between its making and its
+    locking, and remove it. :func:`remove_unless_locked` holds the lock while it
+    removes, so once this one holds it the temporary stays. One removed is made
+    again. Returns ``(fd, lock descriptor, name)``."""
+    for _ in range(100):
+        fd, name = make()
+        held = None
+        try:
+            held = lock(fd, name)
+            if held is None and os.path.exists(name):
+                return fd, None, name  # nothing can be locked here
+            if held is not None and os.path.samestat(os.fstat(held), os.stat(name)):
+                return fd, held, name
+        except FileNotFoundError:
+            pass  # os.stat: a cleaner removed it while this waited for the lock
+        except BaseException:
+            for each in {fd, held} - {None}:
+                os.close(each)
+            raise
+        for each in {fd, held} - {None}:
+            os.close(each)  # removed by another writer cleaning up: make another
+    raise OSError(f"{name}: removed by another writer each time it was made")
+
+
+def remove_unless_locked(path: Path) -> bool:
+    """Remove the file or folder ``path``, a killed writer's temporary, unless a
+    live writer holds its lock (:func:`lock_folder`); whether it was removed.
+    The lock is held while removing, so a writer that has just made ``path``
+    and is waiting for the lock finds it gone and makes another
+    (:func:`_locked_temporary`). One that another cleaner removes first counts
+    as removed."""
+    try:
+        fd = lock_folder(path, wait=False)
+    except BlockingIOError:
+        return False
+    try:
+        with contextlib.suppress(FileNotFoundError):
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path)
+            else:
+                path.unlink()
+    finally:
+        if fd is not None:
+            os.close(fd)
+    return True
 
 
 def atomic_temporaries(directory: str | os.PathLike, pattern: str) -> list[Path]:
@@ -234,17 +291,20 @@ def atomic_folder(path: str | os.PathLike):
             # a live writer (another process on the same path) holds a lock on
             # its own: removing it under that writer made it recreate the
             # folders it wrote into and rename an incomplete folder into place
-            if not folder_locked(stale):
-                # another writer of this path may be removing it too
-                with contextlib.suppress(FileNotFoundError):
-                    shutil.rmtree(stale)
-        tmp = Path(
-            tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+            remove_unless_locked(stale)
+        _, lock, tmp = _locked_temporary(
+            lambda: (
+                None,
+                tempfile.mkdtemp(
+                    prefix=f".{path.name}.", suffix=".tmp", dir=path.parent
+                ),
+            ),
+            lambda _, name: lock_folder(Path(name)),
         )
+        tmp = Path(tmp)
     except BaseException:
         _remove_empty(made)
         raise
-    lock = lock_folder(tmp)
     try:
         yield tmp
         os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp's 0700 -> what mkdir would give

@@ -1084,7 +1084,7 @@ def test_atomic_folder_takes_a_killed_writers_temporary_removed_meanwhile(
     tmp_path, monkeypatch
 ):
     """Two writers of one path that both find a killed writer's temporary folder:
-    the other removes it between this one's check and its removal. This one
+    the other removes it between this one's listing and its removal. This one
     goes on (its removal raised FileNotFoundError)."""
     import shutil
 
@@ -1093,15 +1093,113 @@ def test_atomic_folder_takes_a_killed_writers_temporary_removed_meanwhile(
     stale = tmp_path / ".run.abcd1234.tmp"
     stale.mkdir()
     (stale / "a.txt").write_text("killed")
-    locked = data.folder_locked
+    lock_folder = data.lock_folder
 
-    def other_removes_it_first(path):
-        free = locked(path)
-        shutil.rmtree(path)
-        return free
+    def other_removes_it_first(path, *, wait=True):
+        if path == stale:
+            shutil.rmtree(path)
+        return lock_folder(path, wait=wait)
 
-    monkeypatch.setattr(data, "folder_locked", other_removes_it_first)
+    monkeypatch.setattr(data, "lock_folder", other_removes_it_first)
     with data.atomic_folder(tmp_path / "run") as tmp:
         (tmp / "b.txt").write_text("this one")
     assert [p.name for p in tmp_path.iterdir()] == ["run"]
     assert [p.name for p in (tmp_path / "run").iterdir()] == ["b.txt"]
+
+
+def test_a_temporary_removed_before_its_writer_locks_it_is_made_again(
+    tmp_path, monkeypatch
+):
+    """Another writer of the same path, cleaning up, took this writer's new
+    temporary folder (or file) for a killed writer's in the moment between its
+    making and its locking, and removed it: the writer then wrote into a folder
+    atomic_write made again, unlocked, or failed at the rename. It makes
+    another and locks that."""
+    import tempfile
+
+    from hipmdp import data
+
+    made = []
+    mkdtemp, mkstemp = tempfile.mkdtemp, tempfile.mkstemp
+
+    def removed_at_once_the_first_time(*args, **kwargs):
+        name = mkdtemp(*args, **kwargs)
+        made.append(name)
+        if len(made) == 1:
+            os.rmdir(name)
+        return name
+
+    def file_removed_at_once_the_first_time(*args, **kwargs):
+        fd, name = mkstemp(*args, **kwargs)
+        made.append(name)
+        if len(made) == 3:
+            os.unlink(name)
+        return fd, name
+
+    monkeypatch.setattr(tempfile, "mkdtemp", removed_at_once_the_first_time)
+    monkeypatch.setattr(tempfile, "mkstemp", file_removed_at_once_the_first_time)
+    with data.atomic_folder(tmp_path / "run") as tmp:
+        assert str(tmp) == made[1] and data.folder_locked(tmp)
+        data.atomic_write(tmp / "a.txt", lambda fh: fh.write(b"a"))
+    assert len(made) == 4  # two folders, two files, the first of each removed
+    assert [p.name for p in tmp_path.iterdir()] == ["run"]
+    assert (tmp_path / "run" / "a.txt").read_bytes() == b"a"
+
+
+def test_a_temporary_replaced_while_its_writer_waited_for_the_lock_is_made_again(
+    tmp_path, monkeypatch
+):
+    """A cleaner removed the writer's temporary folder while holding its lock,
+    and another writer made a folder of the same name meanwhile: the writer,
+    locking its own descriptor of the removed folder, checks that the name
+    still leads to it, and makes another when it does not."""
+    from hipmdp import data
+
+    lock_folder, calls = data.lock_folder, []
+
+    def replaced_the_first_time(path, *, wait=True):
+        fd = lock_folder(path, wait=wait)
+        calls.append(path)
+        if len(calls) == 1:
+            path.rmdir()
+            path.mkdir()  # another writer's, by chance of the same name
+        return fd
+
+    monkeypatch.setattr(data, "lock_folder", replaced_the_first_time)
+    with data.atomic_folder(tmp_path / "run") as tmp:
+        assert tmp != calls[0]
+        (tmp / "b.txt").write_text("this one")
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["run", calls[0].name])
+    assert [p.name for p in (tmp_path / "run").iterdir()] == ["b.txt"]
+
+
+def test_a_killed_writers_temporary_is_removed_under_its_lock(tmp_path, monkeypatch):
+    """What makes a writer that waited for the lock of its new temporary find it
+    gone: a cleaner holds that lock while it removes (a check, then a removal
+    without it, let a writer lock in between and lose its folder)."""
+    import shutil
+
+    from hipmdp import data
+
+    stale_folder = tmp_path / ".run.abcd1234.tmp"
+    stale_folder.mkdir()
+    stale_file = tmp_path / ".d.npz.abcd1234.tmp"
+    stale_file.write_bytes(b"half")
+    held = []
+    rmtree, unlink = shutil.rmtree, Path.unlink
+
+    def checked_rmtree(path, *args, **kwargs):
+        held.append(data.folder_locked(Path(path)))
+        rmtree(path, *args, **kwargs)
+
+    def checked_unlink(path, *args, **kwargs):
+        held.append(data.folder_locked(path))
+        unlink(path, *args, **kwargs)
+
+    monkeypatch.setattr(shutil, "rmtree", checked_rmtree)
+    monkeypatch.setattr(Path, "unlink", checked_unlink)
+    with data.atomic_folder(tmp_path / "run") as tmp:
+        (tmp / "a.txt").write_text("a")
+    make().save(tmp_path / "d.npz")
+    assert held == [True, True]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d.npz", "run"]
