@@ -24,7 +24,9 @@ reports, from the first place results can part to the last:
    config) and the other did not: its metric values (counted per top-level key)
    and its rows of ``trials.npz`` (compared on the methods both runs ran). The
    verdict is then "identical where both runs have results" when everything
-   else is identical. Anything else one run lacks is a difference.
+   else is identical. Anything else one run lacks is a difference, a method
+   in one ``trials.npz`` alone that its run's config does not name as added
+   included (``methods_differ``).
 
 Settings that only change how a run is shown or scheduled (``progress``,
 ``workers``, ``record``) are not counted as differences.
@@ -402,6 +404,13 @@ def main(run_a: str | Path, run_b: str | Path, out: str | Path | None = None):
     arrays: dict[str, Any] = {}
     for name in sorted(names_a & names_b):
         arrays |= _compare_files(a / name, b / name)
+    for name, value in arrays.items():
+        if _is_extra(value):
+            a_only, b_only = value["methods_only_in"]
+            if not (
+                set(a_only) <= added_a - added_b and set(b_only) <= added_b - added_a
+            ):  # a method no config names as added: the runs' methods differ
+                arrays[name] = {"methods_differ": value["methods_only_in"]}
     only_in = {str(a): sorted(names_a - names_b), str(b): sorted(names_b - names_a)}
     result = Comparison(
         config, environment, arrays, metrics, only_in, not_compared, extra

@@ -210,6 +210,37 @@ def test_a_run_with_an_added_method_is_compared_on_what_both_ran(tmp_path):
     assert "verdict: the results differ" in report(result)
 
 
+def test_a_method_in_one_trials_file_that_no_config_added_is_a_difference(
+    tmp_path,
+):
+    """Rows of a method one ``trials.npz`` names and the other lacks are set apart
+    only for a method that run's config names as added (``--method``): a
+    built-in method missing from one file (a damaged or hand-edited file), or
+    one the other run's config names, is a difference."""
+    a = _run(tmp_path / "a")
+    returns = np.arange(12.0).reshape(3, 4)
+    np.savez(a / "trials.npz", returns=returns, methods=np.array(["a", "b", "c"]))
+    b = _run(tmp_path / "b")
+    np.savez(b / "trials.npz", returns=returns[:2], methods=np.array(["a", "b"]))
+    result = main(a, b)
+    assert result.arrays["trials.npz:methods"] == {"methods_differ": [["c"], []]}
+    assert result.arrays["trials.npz:returns"] == "identical"  # on a and b
+    assert not result.shared_identical
+    text = report(result)
+    assert "arrays: 3 identical, 1 differ" in text
+    assert "verdict: the results differ" in text
+    # named as added, but by the run that lacks it
+    added = {"seed": 0, "progress": True, "methods": ["c=mine:C"]}
+    b = _run(tmp_path / "b2", config=added)
+    np.savez(b / "trials.npz", returns=returns[:2], methods=np.array(["a", "b"]))
+    assert main(a, b).arrays["trials.npz:methods"] == {"methods_differ": [["c"], []]}
+    # named as added by the run that has it: set apart
+    c = _run(tmp_path / "c", config=added)
+    result = main(c, tmp_path / "b")
+    assert result.arrays["trials.npz:methods"] == {"methods_only_in": [["c"], []]}
+    assert result.shared_identical
+
+
 def test_an_added_methods_steps_are_set_apart_as_its_returns(tmp_path):
     """trials.npz's ``steps`` has a row per method, as ``returns`` has: a run with
     an added method is compared on the built-in methods' steps (it was reported
