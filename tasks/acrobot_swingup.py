@@ -55,6 +55,7 @@ from tasks.experiment import (
     pool_map,
     releases_run_folders,
     run_dir,
+    stops_reported,
     to_jsonable,
     trial_seeds,
     write_json,
@@ -655,7 +656,9 @@ def parse_args(argv: list[str] | None = None) -> tuple[SwingupConfig, str | None
 
 def cli(argv: list[str] | None = None) -> int:
     config, out = parse_args(argv)
-    results = main(config, out)
+    folder = Path(out) if out is not None else Path("runs") / config.name
+    with stops_reported("python -m tasks.acrobot_swingup", folder):
+        results = main(config, out)
     from tasks import swingup_report
 
     print(wrote_line(results.out, "acrobot.rrd"))

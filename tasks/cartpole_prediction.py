@@ -48,6 +48,7 @@ from tasks.experiment import (
     one_blas_thread,
     releases_run_folders,
     run_dir,
+    stops_reported,
     to_jsonable,
     write_json,
     writes_metrics,
@@ -341,7 +342,9 @@ def parse_args(argv: list[str] | None = None) -> tuple[PredictionConfig, str | N
 
 def cli(argv: list[str] | None = None) -> int:
     config, out = parse_args(argv)
-    results = main(config, out)
+    folder = Path(out) if out is not None else Path("runs") / config.name
+    with stops_reported("python -m tasks.cartpole_prediction", folder):
+        results = main(config, out)
     from tasks import prediction_report
 
     print(wrote_line(results.out, "cartpole.rrd"))

@@ -19,6 +19,7 @@ import json
 import os
 import pickle
 import platform
+import signal
 import subprocess
 import sys
 import tempfile
@@ -146,6 +147,59 @@ def wrote_line(out: Path, recording: str) -> str:
     ``recording`` file too, if there is one)."""
     written = "figures, recording" if (out / recording).exists() else "figures"
     return f"wrote {out}/ (report.md, metrics.json, {written})"
+
+
+class Terminated(BaseException):
+    """SIGTERM (what a batch system sends to stop a job) while an experiment
+    runs (:func:`stops_reported`): what KeyboardInterrupt is to Ctrl-C."""
+
+
+def _raise_terminated(signum: int, frame: Any) -> None:
+    raise Terminated
+
+
+@contextlib.contextmanager
+def stops_reported(prog: str, out: Path):
+    """Within: Ctrl-C and SIGTERM end an experiment's command with status 130 or
+    143 and one line on stderr saying what its run folder ``out`` holds, not a
+    traceback (or, for SIGTERM, nothing at all). A run stopped after it began
+    writing leaves the files it finished (each whole) and no ``metrics.json``;
+    the next run into ``out`` replaces them (:func:`run_dir`). SIGTERM is
+    handled only where its handler is the default one (not under a caller
+    that set its own) and in the main thread."""
+    previous = None
+    if (
+        threading.current_thread() is threading.main_thread()
+        and signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+    ):
+        previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    began = time.time()
+    try:
+        yield
+    except (KeyboardInterrupt, Terminated) as stop:
+        code, how = (
+            (143, "terminated (SIGTERM)")
+            if isinstance(stop, Terminated)
+            else (130, "interrupted (Ctrl-C)")
+        )
+        config = out / "config.json"
+        if config.is_file() and config.stat().st_mtime >= began - 1:
+            written = sorted(
+                f.name
+                for f in out.iterdir()
+                if not f.name.startswith(".") and f.stat().st_mtime >= began - 1
+            )
+            left = (
+                f"{out} holds the files it finished ({', '.join(written)}) and no "
+                "metrics.json; the next run into it replaces them"
+            )
+        else:
+            left = f"it had written nothing to {out}"
+        print(f"{prog}: {how} before the run ended: {left}", file=sys.stderr)
+        raise SystemExit(code) from None
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 def sort_blas(blas: list[dict[str, Any]]) -> list[dict[str, Any]]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import fnmatch
 import importlib
@@ -1011,3 +1012,103 @@ def test_seed_zero_is_a_seed():
     assert seed_argument("0") == 0
     with pytest.raises(argparse.ArgumentTypeError, match=">= 0, got -1"):
         seed_argument("-1")
+
+
+@pytest.mark.parametrize(
+    "module", [acrobot_swingup, cartpole_prediction], ids=lambda m: m.__name__
+)
+@pytest.mark.parametrize(
+    ("stop", "status", "how"),
+    [("ctrl-c", 130, "interrupted (Ctrl-C)"), ("sigterm", 143, "terminated (SIGTERM)")],
+)
+def test_a_stopped_experiment_says_what_its_folder_holds(
+    module, stop, status, how, tmp_path, monkeypatch, capsys
+):
+    """Ctrl-C or SIGTERM (a batch system's stop) while an experiment runs: status
+    130 or 143 and one line naming the files the run finished (the previous
+    run's, replaced, and a file it does not write are not named), not a
+    traceback (Ctrl-C) or silence (SIGTERM). The SIGTERM handler is put back."""
+    import signal
+
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "check.json").write_text("{}")  # kept from before: not this run's
+    old = time.time() - 3600
+    os.utime(out / "check.json", (old, old))
+
+    def stopped_main(config, folder):
+        write_json(out / "config.json", {"name": config.name})
+        write_json(out / "batch.npz", {})
+        if stop == "ctrl-c":
+            raise KeyboardInterrupt
+        if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:  # would end pytest
+            raise AssertionError("no SIGTERM handler during the run")
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)  # the signal's handler raises before this ends
+        raise AssertionError("SIGTERM was not handled")
+
+    before = signal.getsignal(signal.SIGTERM)
+    monkeypatch.setattr(module, "main", stopped_main)
+    try:
+        module.cli(["--no-record", "--out", str(out)])
+    except SystemExit as exited:
+        code = exited.code
+    except KeyboardInterrupt:  # would end pytest's session
+        code = "KeyboardInterrupt"
+    assert code == status
+    assert signal.getsignal(signal.SIGTERM) == before
+    assert capsys.readouterr().err == (
+        f"python -m {module.__name__}: {how} before the run ended: {out} holds the "
+        "files it finished (batch.npz, config.json) and no metrics.json; the next "
+        "run into it replaces them\n"
+    )
+
+
+def test_an_experiment_stopped_before_writing_says_so(tmp_path, monkeypatch, capsys):
+    """A stop before the run's config.json is written: the folder is as it was
+    (a previous run's files, left)."""
+    out = tmp_path / "run"
+    out.mkdir()
+    write_json(out / "config.json", {"name": "cartpole_prediction"})
+    old = time.time() - 3600
+    os.utime(out / "config.json", (old, old))
+
+    def stopped_main(config, folder):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cartpole_prediction, "main", stopped_main)
+    try:
+        cartpole_prediction.cli(["--no-record", "--out", str(out)])
+    except SystemExit as exited:
+        code = exited.code
+    except KeyboardInterrupt:  # would end pytest's session
+        code = "KeyboardInterrupt"
+    assert code == 130
+    assert capsys.readouterr().err == (
+        "python -m tasks.cartpole_prediction: interrupted (Ctrl-C) before the run "
+        f"ended: it had written nothing to {out}\n"
+    )
+
+
+def test_a_caller_s_own_sigterm_handler_is_left_alone(tmp_path, monkeypatch):
+    """An experiment run under a caller that handles SIGTERM itself: the caller's
+    handler stays in place during the run."""
+    import signal
+
+    seen = []
+
+    def callers(signum, frame):
+        pass
+
+    def main(config, folder):
+        seen.append(signal.getsignal(signal.SIGTERM))
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, callers)
+    try:
+        monkeypatch.setattr(cartpole_prediction, "main", main)
+        with contextlib.suppress(SystemExit, KeyboardInterrupt):
+            cartpole_prediction.cli(["--no-record", "--out", str(tmp_path / "r")])
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert seen == [callers]
