@@ -239,3 +239,29 @@ def test_ibp_log_prior_refuses_a_feature_no_row_uses():
     z = np.array([[1, 1], [1, 0], [0, 0]], dtype=bool)
     with pytest.raises(ValueError, match="z has a feature used by no row"):
         ibp_log_prior(z, 1.0)
+
+
+@pytest.mark.parametrize("k", [1, 2])
+def test_new_feature_series_is_exact_to_third_order(monkeypatch, k):
+    """The series path at x = γ λ_j/σ² in [4.5e-3, 9e-3] for every j (SMALL
+    raised to 1e-2; every draw with γ = 1 on each of its k features): its error is
+    ≤ x³ ≈ 7e-7 relative per term (1/(1+x) against 1 − x + x², log(1+x) against
+    x − x²/2 + x³/3), and both sums have terms of one sign, so new_llr is within
+    1e-6 relative of the dense value. At SMALL = 1e-5 the same check cannot see
+    a missing x² or x³ term (~1e-10 relative and below); here such a series errs
+    by x² or x²/3 ≥ 7e-6 relative. E = 0 puts the weight on the log-determinant,
+    a large E on the quadratic form."""
+    monkeypatch.setattr(fast, "SMALL", 1e-2)
+    rng = np.random.default_rng(40 + k)
+    B, m, noise = 3, 6, 0.05
+    Q = np.linalg.qr(rng.normal(size=(m, m)))[0]
+    K = Q @ np.diag(np.linspace(0.45, 0.9, m)) @ Q.T * (1e-2 * noise)
+    K = 0.5 * (K + K.T)
+    W = np.linalg.qr(rng.normal(size=(4, B, k)))[0]  # orthonormal columns: γ = 1
+    cache = fast.prepare(GibbsData(np.zeros((1, B, m)), K[None], np.array([noise])))
+    x = cache.lam[0] / noise
+    assert np.all((4.4e-3 < x) & (x < 9.1e-3))  # the series path only
+    for E in (np.zeros((B, m)), 1e3 * rng.normal(size=(B, m))):
+        got = fast.new_llr(E @ cache.U[0], W, cache.lam[0], noise)
+        want = [dense.marginal_llr(E, Wn, K, noise) for Wn in W]
+        np.testing.assert_allclose(got, want, rtol=1e-6, atol=0)

@@ -3,7 +3,10 @@ sides run the same sweep (found by a mutation review): the z step leaves
 singletons to the new-feature step, born features take f from the residual
 without the old singletons, the weight draw's fallback for a singular
 covariance, the eigenvalue floor, the w block with a single latent feature and
-σ_w ≠ σ_w0, f = 0 wherever z is off, and the removal of an unused feature."""
+σ_w ≠ σ_w0, f = 0 wherever z is off, and the removal of an unused feature;
+and (a second review) what `prepare` takes as round-off and floors per row, the
+weight fallback's tolerance relative to its covariance, and `MeanDraws` leaving
+the stream where a draw leaves it."""
 
 from __future__ import annotations
 
@@ -152,3 +155,86 @@ def test_a_sweep_drops_a_feature_no_row_uses():
     out = gibbs_sweep(state, data, priors, prepare(data), rng=rng)
     assert out.z[1:].any(axis=1).all()
     assert np.isfinite(log_joint(out, data, priors))
+
+
+def test_a_kernel_is_refused_only_beyond_the_round_off_of_a_psd_matrix():
+    """`prepare` floors eigenvalues down to −PSD_TOLERANCE (1e-8) of the largest as
+    round-off and refuses a K[r] with one beyond. A 5 × 5 kernel's round-off is
+    ~ m ε λ_max ≈ 1e-15 of λ_max: −1e-10 is round-off, −1e-6 an error in K (each
+    100× from the tolerance; the existing case of −0.5 passes a far looser check)."""
+    Q = np.linalg.qr(np.random.default_rng(3).normal(size=(5, 5)))[0]
+
+    def data(smallest):
+        K = Q @ np.diag([1.0, 0.5, 0.2, 0.1, smallest]) @ Q.T
+        return GibbsData(np.zeros((1, 2, 5)), (0.5 * (K + K.T))[None], np.ones(1))
+
+    cache = prepare(data(-1e-10))
+    assert cache.lam.min() == fast.EIG_FLOOR * cache.lam.max()  # floored
+    with pytest.raises(ValueError, match="positive semi-definite"):
+        prepare(data(-1e-6))
+
+
+def test_each_kernel_is_floored_at_its_own_largest_eigenvalue():
+    """The floor of K[r] is EIG_FLOOR · λ_max of K[r] itself, so `prepare` is
+    equivariant to scaling one row: with K[1] = 1e-8 K[0] (singular: a duplicated
+    support point), row 1's eigenvalues are 1e-8 row 0's, the floored one too (a
+    floor from the largest eigenvalue of all rows put it 1e4 times higher)."""
+    X = np.array([[0.0], [0.5], [0.5], [1.0]])
+    K = np.exp(-0.5 * (X - X.T) ** 2)
+    data = GibbsData(np.zeros((2, 2, 4)), np.stack([K, 1e-8 * K]), np.ones(2))
+    cache = prepare(data)
+    assert cache.lam[0].min() == fast.EIG_FLOOR * cache.lam[0].max()  # floored
+    np.testing.assert_allclose(cache.lam[1], 1e-8 * cache.lam[0], rtol=1e-10)
+
+
+@pytest.mark.parametrize("scale", [1e8, 1e-8])
+def test_weight_draw_fallback_judges_round_off_relative_to_the_covariance(
+    monkeypatch, scale
+):
+    """What the fallback clips is round-off relative to the covariance's largest
+    eigenvalue, at any scale (σ_w up to 1e4 allows covariances of 1e8): an
+    eigenvalue of −5e-14 of the largest is drawn from (w₁ − w₂ fixed at the
+    mean's), one of −1e-3 of the largest refused. An absolute tolerance of 1e-8
+    refuses the first at scale 1e8 and draws from the second at scale 1e-8."""
+    mean = np.array([[0.5], [-0.25]])
+    cov = scale * np.array([[1.0, 1.0], [1.0, 1.0 - 1e-13]])  # eigenvalue −5e-14·s
+    with pytest.raises(np.linalg.LinAlgError):
+        np.linalg.cholesky(cov)
+    monkeypatch.setattr(fast, "w_posterior", lambda *args: (mean, cov))
+    alg = fast.EigenAlgebra(prepare(small_problem(3)[0]))
+    rng = np.random.default_rng(4)
+    d = np.array([alg.w_draw(None, None, None, 1.0, rng=rng)[:, 0] for _ in range(50)])
+    np.testing.assert_allclose(d[:, 0] - d[:, 1], 0.75, atol=1e-6 * np.sqrt(scale))
+    assert np.std(d[:, 0]) > 0.5 * np.sqrt(scale)  # drawn, not the mean alone
+    indefinite = scale * np.diag([1.0, -1e-3])
+    monkeypatch.setattr(fast, "w_posterior", lambda *args: (mean, indefinite))
+    with pytest.raises(np.linalg.LinAlgError):
+        alg.w_draw(None, None, None, 1.0, rng=rng)
+
+
+def test_mean_draws_take_the_normals_a_draw_takes():
+    """`MeanDraws` returns the posterior mean of an f or w draw, and leaves the
+    stream where the draw leaves it (its docstring): every later random choice
+    of a sweep then sees the uniforms it would see. Each algebra, each draw."""
+    data, rng = small_problem(6)
+    z = np.array([[1, 1, 1], [1, 0, 1], [0, 1, 1]], dtype=bool)
+    f = rng.normal(size=(3, 3, 5)) * z[:, :, None]
+    mu_w = np.array([0.0, 0.3, -0.2])
+    W = rng.normal(size=(4, 2))
+    eig, den = fast.EigenAlgebra(prepare(data)), dense.DenseAlgebra(data)
+    means = {  # the posterior means, each in its algebra's coordinates
+        (eig, "f"): fast.f_posterior(eig.Yc[1], W, eig.cache.lam[1], eig.noise[1]).mean,
+        (den, "f"): dense.f_posterior(den.Yc[1], W, den.K[1], den.noise[1]).mean,
+        (eig, "w"): fast.w_posterior(z, f, eig.Yc, eig.noise, mu_w, 1.3)[0],
+        (den, "w"): dense.w_posterior(z, f, den.Yc, den.noise, mu_w, 1.3).mean,
+    }
+    draws = {
+        "f": lambda a, g: a.f_draw(1, a.Yc[1], W, rng=g),
+        "w": lambda a, g: a.w_draw(z, f, mu_w, 1.3, rng=g),
+    }
+    for (alg, name), want in means.items():
+        g_mean, g_draw = np.random.default_rng(7), np.random.default_rng(7)
+        got = draws[name](dense.MeanDraws(alg), g_mean)
+        draws[name](alg, g_draw)
+        assert g_mean.random() == g_draw.random(), (type(alg).__name__, name)
+        np.testing.assert_allclose(got.ravel(), want.ravel(), rtol=1e-12, atol=1e-12)
