@@ -9,7 +9,7 @@ import warnings
 import numpy as np
 import pytest
 
-from hipmdp import FitConfig, fit
+from hipmdp import FitConfig, fit, fitting
 from hipmdp import gibbs_dense as dense
 from hipmdp.data import Transitions
 from hipmdp.fitting import (
@@ -18,6 +18,7 @@ from hipmdp.fitting import (
     posterior_weights,
     smooth_onto_support,
 )
+from hipmdp.gibbs import ChainResult, GibbsPriors, GibbsState
 from hipmdp.gp import HyperSet, subsample
 
 
@@ -173,3 +174,70 @@ def test_check_batch_counts_distinct_states_for_the_support():
     check_batch(twice, FitConfig(n_support=n, n_candidates=n))
     with pytest.raises(ValueError, match=f"at most {n} \\(distinct states"):
         check_batch(twice, FitConfig(n_support=n + 1, n_candidates=n + 1))
+
+
+def test_fit_hands_the_sampler_rows_a_d_and_takes_the_dense_weights(monkeypatch):
+    """What `fit` gives the sampler and makes of its best sample, against plain
+    formulas. Rows r = a·D + d: Y[r, b] the dense GP mean of all of instance b's
+    action-a transitions (n_smooth, not n_hyper, covers each cell whole), K[r]
+    the kernel of (a, d) at the support points, σ²[r] its noise; the config's
+    priors and budgets. From a best sample with a feature on some rows only: z
+    and f kept as sampled, and the weights the dense w-posterior mean under the
+    sample's μ_w and σ_w (not σ_w0). The hyperparameters and the best sample are
+    stand-ins: this checks the plumbing, not the fitting. With A = 2 ≠ D = 3, rows
+    in d-major order or a transposed noise show."""
+    seen = {}
+    B, A, D = 3, 2, 3
+    rng = np.random.default_rng(5)
+    z = np.zeros((3, A * D), dtype=bool)
+    z[0], z[1, [0, 3, 4]], z[2, 2] = True, True, True
+    w = np.vstack([np.ones(B), rng.normal(size=(2, B))])
+    mu_w = np.array([0.0, 0.7, -0.4])
+
+    def run_chains(data, priors, **kwargs):
+        seen.update(data=data, priors=priors, **kwargs)
+        f = rng.normal(size=(3, A * D, data.Y.shape[2])) * z[:, :, None]
+        seen["f"] = f
+        best = GibbsState(z, w, f, mu_w)
+        dummy = np.zeros((1, 1))
+        return ChainResult(best, 0.0, 0.0, 0, 0, dummy, dummy, dummy.astype(int))
+
+    def select_support(*args, **kwargs):
+        seen["n_candidates"] = kwargs["n_candidates"]
+        return real_select_support(*args, **kwargs)
+
+    real_select_support = fitting.select_support
+    hyper = _hyper(np.random.default_rng(2))  # as fitted, but well conditioned
+    monkeypatch.setattr(fitting, "fit_hyper_set", lambda *args, **kwargs: hyper)
+    monkeypatch.setattr(fitting, "run_chains", run_chains)
+    monkeypatch.setattr(fitting, "select_support", select_support)
+    data = _batch(np.random.default_rng(0), B=B, A=A, D=D)
+    # n_smooth covers every (b, a) cell whole (16-24 transitions), n_hyper does not
+    config = FitConfig(
+        n_support=9, n_sweeps=5, n_chains=3, alpha=1.5, sigma_w=2.0, sigma_w0=3.0,
+        n_w=7, n_hyper=12, n_candidates=50, n_smooth=1000, progress=False,
+    )  # fmt: skip
+    model = fit(data, config, rng=np.random.default_rng(1))
+    g, h, S = seen["data"], model.hyper, model.support
+    assert h is hyper
+    assert seen["priors"] == GibbsPriors(1.5, 2.0, 3.0, 7)
+    assert (seen["n_sweeps"], seen["n_chains"], seen["n_candidates"]) == (5, 3, 50)
+    for a in range(A):
+        for d in range(D):
+            r = a * D + d
+            assert g.noise[r] == h.noise_var[a, d]
+            dist2 = (((S[:, None] - S[None]) / h.lengthscales[a, d]) ** 2).sum(-1)
+            Kr = h.signal_var[a, d] * np.exp(-0.5 * dist2)
+            np.testing.assert_allclose(g.K[r], Kr, rtol=1e-12, atol=1e-15)
+            for bi, b in enumerate(data.instance_ids):
+                cell = (data.instances == b) & (data.actions == a)
+                want = _dense_gp_mean(
+                    data.states[cell], data.deltas[cell, d], S,
+                    h.lengthscales[a, d], h.signal_var[a, d], h.noise_var[a, d],
+                )  # fmt: skip
+                np.testing.assert_allclose(g.Y[r, bi], want, rtol=1e-8, atol=1e-12)
+    np.testing.assert_array_equal(model.z.reshape(3, A * D), z)
+    np.testing.assert_array_equal(model.f.reshape(3, A * D, -1), seen["f"])
+    ref = dense.w_posterior(z, seen["f"], g.Y, g.noise, mu_w, 2.0)
+    np.testing.assert_array_equal(model.weights[0], 1.0)
+    np.testing.assert_allclose(model.weights[1:], ref.mean, rtol=1e-10)
