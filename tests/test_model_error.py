@@ -219,3 +219,49 @@ def test_another_start_replaces_the_first_only_if_better_by_the_tolerance(
         ]
     )
     assert _fit_error_terms(r2, np.ones(10), 1e-3) == pytest.approx((0.25, 4.0))
+
+
+def _nll(r2, u, noise, r0, c):
+    """−log-likelihood of the residuals (constant dropped): r ~ N(0, σ² + c u + r0)."""
+    var = noise + c * u + r0
+    return 0.5 * np.sum(r2 / var + np.log(var))
+
+
+def test_error_terms_reach_an_r0_above_the_mean_squared_residual():
+    """The bounds only keep (log r0, log c) finite; they must not bind short of
+    the optimum. Half the residuals at u = 0 with variance 1, half at u = 1e4
+    with variance 1e-6: c stays at its bound 1 and r0 ≈ 1, twice mean(r²) ≈ 0.5.
+    Reference: the best r0 for each c on a log grid by bounded 1-D searches."""
+    rng = np.random.default_rng(3)
+    n, noise = 200, 1e-8
+    u = np.repeat([0.0, 1e4], n // 2)
+    r2 = rng.normal(size=n) ** 2 * np.where(u == 0, 1.0, 1e-6)
+    reference = min(
+        optimize.minimize_scalar(
+            lambda r0, c=c: _nll(r2, u, noise, r0, c), bounds=(0, 10), method="bounded"
+        ).fun
+        for c in np.geomspace(1.0, 100.0, 41)
+    )
+    r0_hat, c_hat = _fit_error_terms(r2, u, noise)
+    assert r0_hat > 1.5 * np.mean(r2)  # the case is what it says
+    assert _nll(r2, u, noise, r0_hat, c_hat) <= reference + 1e-6
+
+
+def test_error_terms_start_where_documented(monkeypatch):
+    """L-BFGS-B starts at c = 1 and r0 = median(r²), σ², 1e-6 median(r²), told
+    apart by the likelihood at each start (whatever the optimiser's coordinates).
+    With mean(r²) = 1e-3 ≠ 1, a start at σ² in units of mean(r²) would show."""
+    rng = np.random.default_rng(4)
+    noise, u = 2e-4, rng.exponential(1e-3, size=50)
+    r2 = rng.normal(size=50) ** 2 * (noise + u + 5e-4)
+    at_start, minimize = [], optimize.minimize
+
+    def spy(fun, x0, *args, **kwargs):
+        at_start.append(fun(np.asarray(x0, dtype=float))[0])
+        return minimize(fun, x0, *args, **kwargs)
+
+    monkeypatch.setattr(optimize, "minimize", spy)
+    _fit_error_terms(r2, u, noise)
+    median = np.median(r2)
+    want = [_nll(r2, u, noise, r0, 1.0) for r0 in (median, noise, 1e-6 * median)]
+    np.testing.assert_allclose(at_start, want, rtol=1e-12)
