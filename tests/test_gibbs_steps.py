@@ -3,10 +3,12 @@ sides run the same sweep (found by a mutation review): the z step leaves
 singletons to the new-feature step, born features take f from the residual
 without the old singletons, the weight draw's fallback for a singular
 covariance, the eigenvalue floor, the w block with a single latent feature and
-σ_w ≠ σ_w0, f = 0 wherever z is off, and the removal of an unused feature;
-and (a second review) what `prepare` takes as round-off and floors per row, the
-weight fallback's tolerance relative to its covariance, and `MeanDraws` leaving
-the stream where a draw leaves it."""
+σ_w ≠ σ_w0, f = 0 wherever z is off, the removal of an unused feature, the
+residual the z step hands on, the importance choice of a born feature's weights,
+the skipped proposal of k' = k, and a sweep's purity; and (another review) what
+`prepare` takes as round-off and floors per row, the weight fallback's
+tolerance relative to its covariance, and `MeanDraws` leaving the stream where
+a draw leaves it."""
 
 from __future__ import annotations
 
@@ -238,3 +240,119 @@ def test_mean_draws_take_the_normals_a_draw_takes():
         draws[name](alg, g_draw)
         assert g_mean.random() == g_draw.random(), (type(alg).__name__, name)
         np.testing.assert_allclose(got.ravel(), want.ravel(), rtol=1e-12, atol=1e-12)
+
+
+def test_the_z_step_returns_the_residual_of_the_row_it_leaves():
+    """z_step_row's E is Y_r − Σ_k z[k,r] w[k] f[k,r] of the z and f it leaves,
+    whether it switched the feature on, off or kept it (the new-feature step
+    takes that E as it is); and a feature left on has its f[k,r] from the
+    residual without its own term: with means for draws, the dense posterior
+    mean of f given Y_r − f[0,r] and w[k]. Row 0 of three, feature 1 also on
+    in row 1 (m₋ᵣ,ₖ = 1), started on and off, over 60 seeds."""
+    data, rng = small_problem(3)
+    alg = dense.MeanDraws(dense.DenseAlgebra(data))
+    w = np.vstack([np.ones(4), 0.3 * rng.normal(size=4)])
+    f = rng.normal(size=(2, 3, 5))
+    f_on = dense.f_posterior(data.Y[0] - f[0, 0], w[1][:, None], data.K[0],
+                             data.noise[0]).mean  # fmt: skip
+    moves = set()
+    for seed in range(60):
+        z = np.array([[1, 1, 1], [seed % 2, 1, 0]], dtype=bool)
+        z2, f2 = z.copy(), f * z[:, :, None]
+        E = z_step_row(alg, 0, z2, w, f2, rng=np.random.default_rng(seed))
+        want = data.Y[0] - sum(w[k][:, None] * f2[k, 0] for k in (0, 1) if z2[k, 0])
+        np.testing.assert_allclose(E, want, atol=1e-12)
+        if z2[1, 0]:
+            np.testing.assert_allclose(f2[1, 0], f_on, atol=1e-10)
+        moves.add((bool(z[1, 0]), bool(z2[1, 0])))
+    assert len(moves) == 4  # on → off, off → on and both stays were seen
+
+
+def test_a_born_feature_takes_a_weight_draw_by_its_importance_weight(monkeypatch):
+    """An accepted new feature takes draw n of its N_w weight draws (its μ_w and
+    w together) with probability ∝ its likelihood ratio: softmax over n of
+    log N(E; 0, W_n W_nᵀ ⊗ K + σ²I) − log N(E; 0, σ²I) (the dense formula).
+    Three fixed draws stand in for the prior's, each w = s_n · w_true on data
+    of one feature: every ratio is > 1, so a proposal of one feature against
+    none is always accepted. Frequencies within 4 standard errors; the uniform
+    choice (1/3 each) errs by 20 standard errors on draw 0, the best draw
+    alone by 32 on draw 2 (~1100 births)."""
+    from hipmdp import gibbs_sweep
+
+    rng = np.random.default_rng(0)
+    B, m, noise = 3, 3, 0.5
+    A = rng.normal(size=(m, m))
+    K = A @ A.T / m + 0.3 * np.eye(m)
+    w_true = np.array([1.2, -0.8, 0.4])
+    f_true = np.linalg.cholesky(K) @ rng.normal(size=m)
+    Y = np.outer(w_true, f_true) + np.sqrt(noise) * rng.normal(size=(B, m))
+    W = np.array([0.2, 0.6, 1.0])[:, None, None] * w_true[None, :, None]
+    mu = np.array([[-0.5], [0.25], [0.75]])
+    llr = np.array([dense.marginal_llr(Y, Wn, K, noise) for Wn in W])
+    p = np.exp(llr) / np.exp(llr).sum()
+    assert np.all(llr > 0) and 0.1 < p.min() and p.max() < 0.6  # informative
+
+    def fixed_draws(n_draws, B_, k, priors, *, rng):
+        assert (n_draws, B_) == (3, B)
+        return np.tile(mu, (1, k)), np.tile(W, (1, 1, k))
+
+    monkeypatch.setattr(gibbs_sweep, "draw_new_weights", fixed_draws)
+    alg = fast.EigenAlgebra(prepare(GibbsData(Y[None], K[None], np.array([noise]))))
+    priors = GibbsPriors(alpha=1.0, sigma_w=1.0, sigma_w0=1.0, n_w=3)
+    empty = (np.ones((1, 1), bool), np.ones((1, B)), np.zeros((1, 1, m)), np.zeros(1))
+    rng = np.random.default_rng(1)
+    chosen = []
+    for _ in range(3000):
+        z, w, _, mu_w = new_feature_step(alg, 0, alg.Yc[0], empty, priors, rng=rng)
+        if z.shape[0] == 2:  # one feature born
+            n = int(np.flatnonzero(np.all(np.isclose(W[:, :, 0], w[1]), axis=1))[0])
+            assert mu_w[1] == mu[n, 0]  # its μ_w is the same draw's
+            chosen.append(n)
+    freq = np.bincount(chosen, minlength=3) / len(chosen)
+    assert np.all(np.abs(freq - p) < 4 * np.sqrt(p * (1 - p) / len(chosen)))
+
+
+def test_a_proposal_of_as_many_features_as_the_row_has_singletons_is_skipped():
+    """k' = k leaves the row's singleton as it is (its w, f and μ_w: redrawing
+    the weights is the w-block's job); so does a rejected k' ≠ k. So whenever
+    the step ends with the row's one singleton count unchanged, the state is
+    the one it was given. α/N = 1: k' = 1 in ~37% of the steps."""
+    data, rng = small_problem(3)
+    alg = fast.EigenAlgebra(prepare(data))
+    priors = GibbsPriors(alpha=3.0, sigma_w=1.0, sigma_w0=1.0, n_w=20)
+    z = np.array([[1, 1, 1], [1, 0, 0]], dtype=bool)
+    w = np.vstack([np.ones(4), rng.normal(size=4)])
+    f = rng.normal(size=(2, 3, 5)) * z[:, :, None]
+    mu_w = np.array([0.0, 0.4])
+    E = alg.Yc[0] - f[0, 0] - np.outer(w[1], f[1, 0])
+    same = 0
+    for seed in range(100):
+        out = new_feature_step(
+            alg, 0, E, (z, w, f, mu_w), priors, rng=np.random.default_rng(seed)
+        )
+        if out[0].shape[0] == 2:
+            same += 1
+            for got, was in zip(out, (z, w, f, mu_w), strict=True):
+                np.testing.assert_array_equal(got, was)
+    assert same > 20
+
+
+def test_a_sweep_leaves_the_state_it_is_given_unchanged():
+    """`gibbs_sweep` is pure: the arrays of the state it is given are as they were
+    after it returns (the z step works on the row's z in place: on the caller's
+    z, a kept reference to an earlier sample changed under it), over sweeps
+    whose z changes (checked)."""
+    data, _ = small_problem(15, R=4, B=5, m=6)
+    priors = GibbsPriors(alpha=2.0, sigma_w=1.0, sigma_w0=1.0, n_w=50)
+    cache = prepare(data)
+    rng = np.random.default_rng(16)
+    state = init_state(data, priors, rng=rng)
+    moved = 0
+    for _ in range(10):
+        before = {k: getattr(state, k).copy() for k in ("z", "w", "f", "mu_w")}
+        new = gibbs_sweep(state, data, priors, cache, rng=rng)
+        for name, was in before.items():
+            np.testing.assert_array_equal(getattr(state, name), was)
+        moved += new.z.shape != state.z.shape or not np.array_equal(new.z, state.z)
+        state = new
+    assert moved > 0
