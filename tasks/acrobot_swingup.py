@@ -41,6 +41,7 @@ from tasks.agents import ACROBOT
 from tasks.batch import gather_and_save
 from tasks.experiment import (
     apply_common,
+    by_preset,
     check_positive,
     check_run_fields,
     check_settings,
@@ -617,8 +618,14 @@ def parse_args(argv: list[str] | None = None) -> tuple[SwingupConfig, str | None
     parser = common_parser(
         "python -m tasks.acrobot_swingup", __doc__, PRESETS, "runs/acrobot_swingup"
     )
-    parser.add_argument("--trials", type=int, default=None, help="trials per setting")
-    parser.add_argument("--episodes", type=int, default=None, help="real episodes")
+    parser.add_argument(
+        "--trials", type=int, default=None,
+        help=f"trials per setting (default {by_preset(PRESETS, 'n_trials')})",
+    )  # fmt: skip
+    parser.add_argument(
+        "--episodes", type=int, default=None,
+        help=f"real episodes (default {by_preset(PRESETS, 'transfer.n_episodes')})",
+    )  # fmt: skip
     parser.add_argument(
         "--book-inertia",
         action="store_true",

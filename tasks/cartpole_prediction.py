@@ -40,6 +40,7 @@ from tasks.batch import gather_and_save
 from tasks.cartpole import CartpoleParams
 from tasks.experiment import (
     apply_common,
+    by_preset,
     check_positive,
     check_run_fields,
     check_settings,
@@ -329,7 +330,10 @@ def parse_args(argv: list[str] | None = None) -> tuple[PredictionConfig, str | N
         "python -m tasks.cartpole_prediction", __doc__, PRESETS,
         "runs/cartpole_prediction",
     )  # fmt: skip
-    parser.add_argument("--runs", type=int, default=None, help="HiP-MDP fits")
+    parser.add_argument(
+        "--runs", type=int, default=None,
+        help=f"HiP-MDP fits (default {by_preset(PRESETS, 'n_runs')})",
+    )  # fmt: skip
     add_split_argument(parser)
     add_method_argument(parser)
     args = parser.parse_args(argv)

@@ -32,7 +32,7 @@ Settings that only change how a run is shown or scheduled (``progress``,
 ``workers``, ``record``) are not counted as differences.
 
 Identical configs and environments should give identical arrays and metrics
-(README, Experiments). Where only the environment differs, round-off is the
+(README, Reproducibility). Where only the environment differs, round-off is the
 likely cause: the fitted model parts by ~1e-10 and the learned models' control
 returns by as much as the swing-up's chaos allows, while data and the true
 simulator's returns stay identical. The comparison is also written as JSON with
@@ -54,6 +54,7 @@ from hipmdp.data import load_npz
 from tasks.experiment import (
     ADDED_FIT_FIELDS,
     check_out_file,
+    plain_text,
     read_json_object,
     sort_blas,
     with_added_fields,
@@ -512,7 +513,7 @@ def cli(argv: list[str] | None = None) -> int:
 
     parser = argparse.ArgumentParser(
         prog="python -m tasks.compare_runs",
-        description=__doc__,
+        description=plain_text(__doc__),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("run_a", help="a finished run folder")

@@ -19,6 +19,7 @@ import json
 import os
 import pickle
 import platform
+import re
 import signal
 import subprocess
 import sys
@@ -852,7 +853,9 @@ def run_parser(prog: str, doc: str, progress: bool = True):
     docstring ``doc`` as its description, the positional ``run`` folder and,
     with ``progress`` (a check that shows progress bars), ``--no-progress``."""
     parser = argparse.ArgumentParser(
-        prog=prog, description=doc, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog=prog,
+        description=plain_text(doc),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("run", help="a finished acrobot_swingup run folder")
     if progress:
@@ -888,14 +891,38 @@ def run_or_exit(parser, fn: Callable[[], Any]) -> Any:
         _INPUTS_CHECKED.reset(token)
 
 
-def common_parser(prog: str, doc: str, presets: Sequence[str], out_default: str):
+def plain_text(doc: str) -> str:
+    """A docstring's text for a terminal (``--help``): ``name`` and
+    :func:`name` (reStructuredText's literals and cross-references) as name."""
+    return re.sub(r":\w+:`~?([^`]+)`", r"\1", doc).replace("``", "")
+
+
+def by_preset(presets: dict[str, Any], field: str) -> str:
+    """A ``--help`` default that comes from the preset: ``field`` of each of
+    ``presets`` (name to config; a dotted ``field`` reaches into a nested
+    one), "2" if they agree, else "quick 12, paper 30" (the default preset,
+    quick, first)."""
+
+    def value(config: Any) -> Any:
+        for name in field.split("."):
+            config = getattr(config, name)
+        return config
+
+    names = sorted(presets, key=lambda name: (name != "quick", name))
+    values = {name: value(presets[name]) for name in names}
+    if len(set(values.values())) == 1:
+        return str(next(iter(values.values())))
+    return ", ".join(f"{name} {v}" for name, v in values.items())
+
+
+def common_parser(prog: str, doc: str, presets: dict[str, Any], out_default: str):
     """The options every experiment has: --preset, --seed, --out, --workers,
     --filter-weights, --no-record, --no-progress."""
     parser = argparse.ArgumentParser(
         prog=prog,
         description=doc.split("\n\n")[0],
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=doc.split("\n\n", 1)[1] if "\n\n" in doc else None,
+        epilog=plain_text(doc.split("\n\n", 1)[1]) if "\n\n" in doc else None,
     )
     parser.add_argument(
         "--preset", choices=sorted(presets), default="quick",
@@ -911,7 +938,8 @@ def common_parser(prog: str, doc: str, presets: Sequence[str], out_default: str)
         "--workers",
         type=int,
         default=None,
-        help="worker processes (default: the preset's, 2); results do not depend on it",
+        help=f"worker processes (default: {by_preset(presets, 'workers')}); "
+        "results do not depend on it",
     )
     parser.add_argument(
         "--filter-weights",

@@ -1251,14 +1251,20 @@ def main(argv: Sequence[str] | None = None) -> Generated:
         raise
     counts = [e["counts"] for e in result.content["shards"]]
     done = "nothing to do: already finished," if finished else "wrote"
+    n_instances = sum(len(e["instances"]) for e in result.content["shards"])
     print(
-        f"{done} {len(counts)} shards and {result.manifest}: "
-        f"{sum(c['transitions'] for c in counts)} transitions, "
-        f"{sum(len(e['instances']) for e in result.content['shards'])} instances, "
-        f"{sum(c['diverged_episodes'] for c in counts)} diverged episodes "
-        f"({len(result.redone)} shards generated now)"
+        f"{done} {_count(len(counts), 'shard')} and {result.manifest}: "
+        f"{_count(sum(c['transitions'] for c in counts), 'transition')}, "
+        f"{_count(n_instances, 'instance')}, "
+        f"{_count(sum(c['diverged_episodes'] for c in counts), 'diverged episode')} "
+        f"({len(result.redone)} generated now)"
     )
     return result
+
+
+def _count(n: int, noun: str) -> str:
+    """ "1 shard", "12 shards"."""
+    return f"{n} {noun}{'' if n == 1 else 's'}"
 
 
 def _cluster_failure(error: BaseException) -> bool:

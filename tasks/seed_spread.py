@@ -56,6 +56,7 @@ from tasks.experiment import (
     fmt_value,
     markdown_table,
     mean_ci,
+    plain_text,
     write_json,
 )
 from tasks.prediction import best_baseline
@@ -442,7 +443,7 @@ def cli(argv: list[str] | None = None) -> int:
 
     parser = argparse.ArgumentParser(
         prog="python -m tasks.seed_spread",
-        description=__doc__,
+        description=plain_text(__doc__),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("runs", nargs="+", help="finished run folders, one per seed")

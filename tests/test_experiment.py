@@ -1112,3 +1112,25 @@ def test_a_caller_s_own_sigterm_handler_is_left_alone(tmp_path, monkeypatch):
     finally:
         signal.signal(signal.SIGTERM, previous)
     assert seen == [callers]
+
+
+def test_help_gives_each_presets_default_and_plain_text(capsys):
+    """``--help`` names the defaults a preset sets (each preset's when they
+    differ, the default preset first) and shows the module docstring without
+    reStructuredText's markup (``x``, :func:`x`)."""
+    for module, wanted in [
+        (acrobot_swingup, ["trials per setting (default quick 12, paper 30)",
+                           "real episodes (default quick 6, paper 20)",
+                           "worker processes (default: 2)"]),
+        (cartpole_prediction, ["HiP-MDP fits (default quick 2, paper 5)"]),
+    ]:  # fmt: skip
+        with pytest.raises(SystemExit):
+            module.cli(["--help"])
+        text = " ".join(capsys.readouterr().out.split())  # argparse's wrapping undone
+        for line in wanted:
+            assert line in text
+        assert "``" not in text and ":func:" not in text
+        assert "Writes runs/<name>/:" in text
+    assert experiment.plain_text("``a`` and :func:`b` or :class:`~c.D`") == (
+        "a and b or c.D"
+    )

@@ -50,7 +50,10 @@ def test_main_writes_loadable_shards_and_a_manifest(tmp_path, capsys):
     assert np.all((masses >= 0.7) & (masses <= 1.3)) and len(np.unique(masses)) == 6
     np.testing.assert_array_equal(everything.values[:, 2:], 1.0)  # nominal lengths
     assert len(dataset.load()) == 3 * 2 * 10
-    assert "wrote 2 shards" in capsys.readouterr().out
+    assert capsys.readouterr().out == (
+        f"wrote 2 shards and {out / 'manifest.json'}: 60 transitions, 3 instances, "
+        "0 diverged episodes (2 generated now)\n"
+    )
     # run again on the finished folder: nothing written, and it says so
     generate.main(
         ["--domain", "acrobot", "--seed", "3", "--out", str(out), *TINY, *QUIET]
