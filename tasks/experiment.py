@@ -602,6 +602,24 @@ def paired_difference(
     return out
 
 
+def z_table(z: Sequence, dims: Sequence[str]) -> str:
+    """The feature matrix ``z`` (features × actions × dimensions, feature 0 the
+    mean dynamics) as a Markdown table: a row per feature, a column per action,
+    each cell the 0/1 of each dimension in ``dims``' order."""
+    z = np.asarray(z, dtype=int)
+    if z.ndim != 3 or z.shape[2] != len(dims):
+        raise ValueError(f"z: expected (features, actions, {len(dims)}), got {z.shape}")
+    rows = [
+        ["0 (mean dynamics)" if k == 0 else str(k)]
+        + ["".join(str(v) for v in z[k, a]) for a in range(z.shape[1])]
+        for k in range(z.shape[0])
+    ]
+    header = ["feature", *(f"action {a}" for a in range(z.shape[1]))]
+    return f"Each cell: z for {', '.join(dims)}, in that order.\n\n" + markdown_table(
+        header, rows
+    )
+
+
 def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
     """A GitHub Markdown table."""
     lines = [
@@ -616,6 +634,19 @@ def count(n: int, noun: str) -> str:
     """``n`` and ``noun``, plural (an ``s`` added) unless ``n`` is 1: "1 trial",
     "12 trials"."""
     return f"{n} {noun}{'' if n == 1 else 's'}"
+
+
+def run_time_line(seconds: dict[str, float]) -> str:
+    """A report's "Run time" sentence from ``metrics.json``'s ``seconds``: the
+    total and every part of at least half a second, in the order measured
+    (underscores as spaces), then the rest of the total if at least a second
+    (what no part timed)."""
+    parts = {k: v for k, v in seconds.items() if k != "total" and v >= 0.5}
+    rest = seconds["total"] - sum(v for k, v in seconds.items() if k != "total")
+    words = [f"{k.replace('_', ' ')} {v:.0f} s" for k, v in parts.items()]
+    if rest >= 1:
+        words.append(f"the rest {rest:.0f} s")
+    return f"Run time: {seconds['total']:.0f} s ({', '.join(words)})."
 
 
 def fmt_value(v: float, digits: int = 3, sign: str = "") -> str:
@@ -1083,8 +1114,13 @@ def weights_figure(
     for j in range(k):
         for col, label in enumerate(labels):
             ax = axes[j, col]
-            ax.scatter(train_params[:, col], train_w[j], label="training (posterior)")
-            ax.scatter(test_params[:, col], test_w[:, j], marker="x", label="test")
+            ax.scatter(
+                train_params[:, col], train_w[j], label="training (posterior mean)"
+            )
+            ax.scatter(
+                test_params[:, col], test_w[:, j], marker="x",
+                label="test (filtered belief mean)",
+            )  # fmt: skip
             ax.set_xlabel(label)
             ax.set_ylabel(f"w{j + 1}")
     if k == 0:

@@ -483,6 +483,11 @@ def unseen_section(metrics: dict[str, Any]) -> str:
     )
     if unseen is None:
         return head + " No test setting is new."
+    if n_seen == 0:  # the tables above are the new settings' already
+        return (
+            f"None of the {len(seen)} test settings is a training setting: the "
+            "tables above are all on settings the HiP-MDP was not trained on."
+        )
     ll = markdown_table(
         ["method", "difference"],
         [[m, fmt_ci(v)] for m, v in unseen["loglik_difference"].items()],
@@ -497,10 +502,11 @@ def unseen_section(metrics: dict[str, Any]) -> str:
         if ratios
         else ""
     )
-    return f"""{head} On the {unseen["n_instances"]} others alone (MSE, then
-test log-likelihood, HiP-MDP minus method):
+    return f"""{head} On the {unseen["n_instances"]} others alone: the MSE,
 
 {mse_table(unseen["mse"])}
+
+then the test log-likelihood, HiP-MDP minus method:
 
 {ll}{ratio_text}"""
 

@@ -15,8 +15,10 @@ from tasks.experiment import (
     describe_environment,
     fmt_ci,
     markdown_table,
+    run_time_line,
     weights_figure,
     write_text,
+    z_table,
 )
 from tasks.prediction import (
     added_text,
@@ -200,11 +202,12 @@ Positive favours the HiP-MDP; mean [95% interval] over test settings.
 
 ## Latent structure
 
-Latent features per run: {metrics["n_latent_features"]}. z of run 0 (feature ×
-action × dimension, feature 0 the mean dynamics): `{metrics["z"][0]}`
+Latent features per run: {metrics["n_latent_features"]}. z of run 0, the
+features each (action, dimension) uses:
 
-Run time: {s["total"]:.0f} s (batch data {s["batch_data"]:.0f} s, fits {s["fit"]:.0f} s,
-prediction {s["prediction"]:.0f} s). Figures: `weights.png`.
+{z_table(metrics["z"][0], list(metrics["mse"]["hipmdp"]))}
+
+{run_time_line(s)} Figures: `weights.png`.
 {recording_line(config, "cartpole.rrd")}
 
 {describe_environment(metrics.get("environment"))}

@@ -13,9 +13,11 @@ from tasks.experiment import (
     describe_environment,
     fmt_ci,
     markdown_table,
+    run_time_line,
     save_figure,
     weights_figure,
     write_text,
+    z_table,
 )
 from tasks.prediction import (
     added_text,
@@ -60,20 +62,33 @@ def _learning_curves(file: Path, metrics: dict) -> None:
     import matplotlib.pyplot as plt
     from matplotlib.ticker import MaxNLocator
 
-    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    fig, ax = plt.subplots(figsize=(6.4, 4.4))
     methods = list(metrics["returns"])  # METHODS, then any added with --method
     for m in methods:
         c = metrics["returns"][m]
         mean, low, high = (np.asarray(c[k], float) for k in ("mean", "low", "high"))
         ep = np.arange(1, len(mean) + 1)
         rgb = np.array(color(m, methods)) / 255
-        ax.plot(ep, mean, label=label(m), color=rgb)
-        ax.fill_between(ep, low, high, color=rgb, alpha=0.2)
+        ax.plot(ep, mean, label=label(m), color=rgb, marker="o", markersize=3)
+        ax.fill_between(ep, low, high, color=rgb, alpha=0.15, linewidth=0)
+    target = metrics.get("near_optimal_target")
+    if target is not None:  # the threshold "episodes to within 10%" counts by
+        final, margin = target["true_model_final_mean_return"], target["margin"]
+        ax.axhline(
+            final - margin * abs(final), color="0.4", linestyle="--", linewidth=1,
+            label=f"within {margin:.0%} of the true model's final mean",
+        )  # fmt: skip
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # episodes are whole
     ax.set_xlabel("real episode")
     ax.set_ylabel("return (−steps to goal)")
-    ax.set_title("Acrobot swing-up on new instances (mean, 95% interval)")
-    ax.legend()
+    n = metrics["returns"][methods[0]].get("n_trials")
+    over = f" over {count(n, 'trial')}" if n else ""
+    ax.set_title(
+        f"Acrobot swing-up on new instances\n(mean, 95% t-interval{over} per method)",
+        fontsize=11,
+    )
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2, frameon=False,
+              fontsize=9)  # fmt: skip
     fig.tight_layout()
     save_figure(fig, file)
 
@@ -355,11 +370,11 @@ few settings one that reaches fast states can lead every method's error.
 
 ## Latent structure
 
-z (feature × (action, dimension)), feature 0 the mean dynamics:
-`{metrics["z"]}`
+z, the features each (action, dimension) uses:
 
-Run time: {s["total"]:.0f} s (batch data {s["batch_data"]:.0f} s, fit {s["fit"]:.0f} s,
-transfer {s["transfer"]:.0f} s, prediction {s["prediction"]:.0f} s).
+{z_table(metrics["z"], list(metrics["mse"]["hipmdp"]))}
+
+{run_time_line(s)}
 
 {describe_environment(metrics.get("environment"))}
 

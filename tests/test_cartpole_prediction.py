@@ -692,6 +692,12 @@ def test_report_sections_say_what_the_metrics_hold():
         "dynamics among its training instances). No test setting is new."
     )
     assert unseen_section({}) == ""
+    unseen = {"n_instances": 4, "mse": {}, "loglik_difference": {}}
+    all_new = {"test_settings_seen": [False] * 4, "unseen": unseen}
+    assert unseen_section(all_new) == (
+        "None of the 4 test settings is a training setting: the tables above are "
+        "all on settings the HiP-MDP was not trained on."
+    )  # the tables were printed again
 
     mse = {m: {"dx": ci(1.0), "dtheta": ci(1.0)} for m in PREDICTION_METHODS}
     mse["train only"] = {"dx": ci(0.5), "dtheta": ci(0.5)}

@@ -1134,3 +1134,31 @@ def test_help_gives_each_presets_default_and_plain_text(capsys):
     assert experiment.plain_text("``a`` and :func:`b` or :class:`~c.D`") == (
         "a and b or c.D"
     )
+
+
+def test_the_run_time_line_names_every_part_and_the_rest():
+    """Every timed part of half a second or more, underscores as spaces, in the
+    order measured; what no part timed as "the rest" (the report's parts did
+    not add up to its total: the average model and the artefacts were left
+    out)."""
+    seconds = {"batch_data": 26.4, "added_methods": 0.0004, "fit": 23.6,
+               "average_model": 14.2, "artefacts": 4.4, "total": 68.8}  # fmt: skip
+    assert experiment.run_time_line(seconds) == (
+        "Run time: 69 s (batch data 26 s, fit 24 s, average model 14 s, artefacts 4 s)."
+    )
+    assert experiment.run_time_line({"fit": 10.2, "total": 24.6}) == (
+        "Run time: 25 s (fit 10 s, the rest 14 s)."
+    )
+
+
+def test_z_is_shown_as_a_table_of_features_by_action():
+    """report.md's z: a row per feature (0 the mean dynamics), a column per
+    action, each cell the dimensions' 0/1 in order (it was a raw nested list)."""
+    z = [[[1, 1, 1], [1, 1, 1]], [[0, 1, 0], [1, 0, 0]]]
+    assert experiment.z_table(z, ["dx", "dy", "dz"]) == (
+        "Each cell: z for dx, dy, dz, in that order.\n\n"
+        "| feature | action 0 | action 1 |\n|---|---|---|\n"
+        "| 0 (mean dynamics) | 111 | 111 |\n| 1 | 010 | 100 |"
+    )
+    with pytest.raises(ValueError, match=r"z: expected \(features, actions, 2\)"):
+        experiment.z_table(z, ["dx", "dy"])
