@@ -293,7 +293,14 @@ class Dataset:
         self.directory = path.parent if path.name == MANIFEST else path
         manifest = read_manifest(self.directory)
         if manifest is None:
-            raise ValueError(f"no {MANIFEST} in {self.directory}")
+            npz = sorted(f.name for f in self.directory.glob("*.npz"))
+            hint = (
+                f" (a folder of .npz files: load one of them by its path, e.g. "
+                f"{self.directory / npz[0]})"
+                if npz
+                else ""
+            )
+            raise ValueError(f"no {MANIFEST} in {self.directory}{hint}")
         self.manifest = manifest
 
     @property
@@ -334,8 +341,16 @@ class Dataset:
         if wanted is not None:
             unknown = np.setdiff1d(wanted, self.instances)
             if unknown.size:
+                ids = np.unique(self.instances)
+                have = (
+                    f"{ids[0]} to {ids[-1]}"
+                    if ids.size > 1
+                    and np.array_equal(ids, np.arange(ids[0], ids[-1] + 1))
+                    else str(ids.tolist()[:20]) + (" ..." if ids.size > 20 else "")
+                )
                 raise ValueError(
-                    f"instances {unknown.tolist()[:10]} are not in the run"
+                    f"instances {unknown.tolist()[:10]} are not in the run "
+                    f"(its instances: {have})"
                 )
         parts = []
         for entry in self.manifest["shards"]:

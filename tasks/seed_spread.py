@@ -245,6 +245,13 @@ def read_runs(
     metrics = [m for _, m, _ in read]
     commits = [(env or {}).get("git_commit") for _, _, env in read]
     kinds = [experiment_of(m) for m in metrics]
+    if None not in kinds and len(set(kinds)) > 1:
+        raise ValueError(
+            "runs: expected runs of one experiment, got runs of "
+            + " and ".join(sorted(set(kinds)))
+            + ": "
+            + ", ".join(f"{r}: {k}" for r, k in zip(runs, kinds, strict=True))
+        )
     if len(set(kinds)) != 1 or kinds[0] is None:
         raise ValueError(
             f"runs: expected runs of one of {sorted(EXPERIMENTS)}, got "

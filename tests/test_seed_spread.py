@@ -193,7 +193,11 @@ def test_runs_of_other_experiments_are_refused(tmp_path):
     m = json.loads((runs[1] / "metrics.json").read_text())
     del m["episodes_to_near_optimal"]
     write_json(runs[1] / "metrics.json", m | {"mse_ratio_to_best_baseline": {}})
-    with pytest.raises(ValueError, match=r"seed1: cartpole_prediction, .*seed2: acr"):
+    with pytest.raises(
+        ValueError,
+        match=r"runs of one experiment, got runs of acrobot_swingup and "
+        r"cartpole_prediction: .*seed1: cartpole_prediction, .*seed2: acr",
+    ):
         main(runs)
     write_json(runs[1] / "metrics.json", {"rmse": 1.0})
     with pytest.raises(ValueError, match=r"seed1: another"):

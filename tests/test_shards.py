@@ -82,8 +82,17 @@ def test_dataset_loads_by_instance_reading_only_the_needed_shards(run, tmp_path)
     assert len(lazy.load(instances=[0, 4])) == len(everything.select(instances=[0, 4]))
     with pytest.raises(ValueError, match="shard-00001.npz is missing .* finished"):
         lazy.load(instances=3)
-    with pytest.raises(ValueError, match=r"instances \[9\] are not in the run"):
+    with pytest.raises(
+        ValueError,
+        match=r"instances \[9\] are not in the run \(its instances: 0 to 4\)",
+    ):
         dataset.load(instances=[0, 9])
+    lazy.manifest = {**lazy.manifest, "shards": [
+        {**e, "instances": [b * 10 for b in e["instances"]]}
+        for e in lazy.manifest["shards"]
+    ]}  # fmt: skip
+    with pytest.raises(ValueError, match=r"\(its instances: \[0, 10, 20, 30, 40\]\)"):
+        lazy.load(instances=[5])
     for bad, match in [([], "one or more ids"), ([True], "an integer array")]:
         with pytest.raises(ValueError, match=f"instances: expected {match}"):
             dataset.load(instances=bad)
@@ -121,8 +130,12 @@ def test_temporaries_are_removed_and_foreign_manifests_refused(tmp_path):
         ".shard-00001.npz.x1.tmp",
     ]
     assert [p.name for p in tmp_path.iterdir()] == [".other.tmp"]
-    with pytest.raises(ValueError, match="no manifest.json"):
+    with pytest.raises(ValueError, match=f"no manifest.json in {tmp_path}$"):
         shards.load_dataset(tmp_path)
+    (tmp_path / "batch.npz").write_bytes(b"")  # an experiment's run folder
+    with pytest.raises(ValueError, match="load one of them by its path, e.g. .*batch"):
+        shards.load_dataset(tmp_path)
+    (tmp_path / "batch.npz").unlink()
     (tmp_path / "manifest.json").write_text('{"format": "something else"}')
     with pytest.raises(ValueError, match="not a hipmdp-shards/1 manifest"):
         shards.Dataset(tmp_path)
