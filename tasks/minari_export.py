@@ -213,11 +213,21 @@ def _write_json(path: Path, content: dict) -> None:
 
 def main(argv: Sequence[str] | None = None) -> Path:
     parser = argparse.ArgumentParser(
-        prog="python -m tasks.minari_export", description=__doc__.splitlines()[0]
+        prog="python -m tasks.minari_export",
+        description=__doc__.splitlines()[0],
+        epilog="Needs pyarrow (installed with rerun-sdk, or: pip install -e "
+        "'.[minari]'); Minari itself is not needed. Writes OUT/<dataset id>/data/, "
+        "which minari.MinariDataset reads.",
     )
     parser.add_argument("run", type=Path, help="run directory of tasks.generate")
-    parser.add_argument("--out", type=path_argument, required=True)
-    parser.add_argument("--dataset-id", default=None)
+    parser.add_argument(
+        "--out", type=path_argument, required=True,
+        help="folder to write the dataset into (it holds OUT/<dataset id>/)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--dataset-id", default=None,
+        help="Minari's dataset id, NAME-vN (default: <domain>-<policy>-v0)",
+    )  # fmt: skip
     args = parser.parse_args(argv)
     try:
         path = export(args.run, args.out, dataset_id=args.dataset_id)
