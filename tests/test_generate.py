@@ -703,6 +703,103 @@ def test_cancelled_shards_keep_the_finished_ones_and_say_how_to_resume(
         assert (out / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()
 
 
+def test_a_shard_the_pool_finished_as_ctrl_c_came_is_kept(
+    tmp_path, capsys, monkeypatch
+):
+    """Ctrl-C while the caller waits on a pool, which finishes shard 0 in the
+    meantime (a future the wait did not return): that shard is written and
+    kept, the other cancelled, and the resumed run has the bytes of an
+    uninterrupted one."""
+    import concurrent.futures as cf
+    import contextlib
+
+    argv = ["--domain", "acrobot", "--seed", "3", *TINY, *QUIET]
+
+    class Held(cf.Executor):
+        """A pool whose shards run only when the test says."""
+
+        def __init__(self):
+            self.jobs = []
+
+        def submit(self, fn, /, *args, **kwargs):
+            self.jobs.append((cf.Future(), fn, args))
+            return self.jobs[-1][0]
+
+    pool = Held()
+
+    def ctrl_c_while_waiting(futures, timeout=None, return_when=None):
+        future, fn, args = pool.jobs[0]
+        future.set_result(fn(*args))  # the pool's thread, meanwhile
+        raise KeyboardInterrupt
+
+    out = tmp_path / "stopped"
+    monkeypatch.setattr(
+        generate, "executor_for", lambda *a: contextlib.nullcontext(pool)
+    )
+    monkeypatch.setattr(generate.cf, "wait", ctrl_c_while_waiting)
+    with pytest.raises((SystemExit, KeyboardInterrupt)) as stopped:  # not pytest's
+        generate.main([*argv, "--out", str(out)])
+    assert stopped.type is SystemExit and stopped.value.code == 130
+    assert [job[2][0].index for job in pool.jobs] == [0, 1]
+    assert pool.jobs[1][0].cancelled()
+    resume = ["python", "-m", "tasks.generate", *argv, "--out", str(out), "--resume"]
+    assert capsys.readouterr().err == (
+        f"python -m tasks.generate: interrupted: 1 of 2 shards finished are kept "
+        f"in {out}; resume with the same command plus --resume: {shlex.join(resume)}\n"
+    )
+    monkeypatch.undo()
+    assert generate.main(resume[3:]).redone == (1,)
+    generate.main([*argv, "--out", str(tmp_path / "whole")])
+    for name in ("manifest.json", "shard-00000.npz", "shard-00001.npz"):
+        assert (out / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()
+
+
+def test_a_resumed_run_stopped_again_says_to_run_its_own_command_again(
+    tmp_path, capsys, monkeypatch
+):
+    """A run started with --resume and stopped by Ctrl-C: the command that
+    resumes it is its own, with --resume once (not "plus --resume")."""
+    out = tmp_path / "stopped"
+    argv = ["--domain", "acrobot", "--seed", "3", *TINY, *QUIET, "--out", str(out)]
+    argv.append("--resume")  # (an empty folder: --resume starts the run)
+    run_shard = generate.run_shard
+
+    def interrupted(job):
+        if job.index == 1:
+            raise KeyboardInterrupt
+        return run_shard(job)
+
+    monkeypatch.setattr(generate, "run_shard", interrupted)
+    with pytest.raises((SystemExit, KeyboardInterrupt)) as stopped:  # not pytest's
+        generate.main(argv)
+    assert stopped.type is SystemExit and stopped.value.code == 130
+    assert capsys.readouterr().err == (
+        f"python -m tasks.generate: interrupted: 1 of 2 shards finished are kept "
+        f"in {out}; resume with the same command: "
+        f"{shlex.join(['python', '-m', 'tasks.generate', *argv])}\n"
+    )
+
+
+@pytest.mark.parametrize(
+    "first, second",
+    [(signal.SIGINT, signal.SIGTERM), (signal.SIGTERM, signal.SIGINT)],
+    ids=["ctrl-c first", "sigterm first"],
+)
+def test_two_stop_signals_while_a_shard_is_written_raise_the_first(first, second):
+    """Ctrl-C and SIGTERM both come while a finished shard is written: it is
+    written whole, then the first one's stop is raised (status 130 for Ctrl-C,
+    143 for SIGTERM), not the later one's."""
+    expected = {signal.SIGINT: KeyboardInterrupt, signal.SIGTERM: generate.Terminated}
+    written = []
+    with pytest.raises((KeyboardInterrupt, generate.Terminated)) as stopped:
+        with generate._signals_deferred():
+            generate._raise_stop(first, None)  # the handler, as a signal calls it
+            generate._raise_stop(second, None)
+            written.append("shard")
+    assert written == ["shard"]
+    assert stopped.type is expected[first]
+
+
 def test_pool_workers_end_quietly_on_ctrl_c():
     """Ctrl-C reaches every process in the terminal's group: an idle pool worker
     printed a KeyboardInterrupt traceback; its handler now raises SystemExit,
