@@ -495,6 +495,31 @@ def test_another_or_unfinished_run_is_refused_untouched(
     assert after == before
 
 
+def test_an_unfinished_run_names_as_damaged_only_the_shards_recorded_finished(
+    reference, tmp_path, capsys
+):
+    """A killed run whose shard 0 was recorded finished and then damaged, and
+    whose shards 1 and 2 never finished: all three are to do, but only shard 0
+    is damaged (the others were never written, not lost)."""
+    from tests.test_shards import unfinished_copy
+
+    run = tmp_path / "run"
+    whole = unfinished_copy(reference, run)
+    shards.append_progress(run, whole["shards"][0])
+    (run / "shard-00000.npz").write_bytes(b"damaged")
+    for name in ("shard-00001.npz", "shard-00002.npz"):
+        (run / name).unlink()
+    before = files(run)
+    with pytest.raises(SystemExit) as stopped:
+        generate.main([*RUN, "--out", str(run)])
+    assert stopped.value.code == 2
+    assert (
+        "holds this run, unfinished (3 of 3 shards to do; damaged (missing, or not "
+        "matching its checksum): shard-00000.npz); pass --resume to continue it"
+    ) in capsys.readouterr().err
+    assert files(run) == before
+
+
 def test_resume_advice_keeps_seed_0_and_says_the_vary_order_matters(tmp_path, capsys):
     """A run made with --seed 0 is advised --seed 0 (0 is not an absent
     option); its two --vary, whose order the draws follow and the manifest
@@ -596,13 +621,18 @@ def test_a_stale_record_is_cleared_before_its_shard_is_redone(reference, tmp_pat
 
     run = tmp_path / "run"
     whole = unfinished_copy(reference, run)
-    shards.append_progress(run, whole["shards"][1])
+    diverged = {"instance": 2, "episode": 1, "step": 4, "reason": "non-finite state"}
+    counts = {"episodes": 3, "transitions": 12, "diverged_episodes": 1}
+    shards.append_progress(  # a record of the shard with a diverged episode
+        run, whole["shards"][1] | {"counts": counts, "diverged": [diverged]}
+    )
     (run / "shard-00001.npz").write_bytes(b"damaged")
     config = generate.parse_config([*RUN, "--out", str(run), "--resume"])
     with pytest.raises(RuntimeError, match="killed"):
         generate.generate(config, executor=Dies())
     assert not (run / shards.PROGRESS).exists()
-    assert shards.read_manifest(run)["shards"][1]["sha256"] is None
+    entry = shards.read_manifest(run)["shards"][1]
+    assert (entry["sha256"], entry["counts"], entry["diverged"]) == (None, None, [])
 
 
 def test_a_finished_run_is_left_as_it_is(reference, tmp_path):
