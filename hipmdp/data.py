@@ -106,7 +106,7 @@ def atomic_write(path: str | os.PathLike, write, *, clean: bool = False) -> Path
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, _, tmp = _locked_temporary(
+    fd, held, tmp = _locked_temporary(
         lambda: tempfile.mkstemp(
             prefix=f".{path.name}.", suffix=".tmp", dir=path.parent
         ),
@@ -117,8 +117,11 @@ def atomic_write(path: str | os.PathLike, write, *, clean: bool = False) -> Path
             write(fh)
             fh.flush()
             os.fsync(fh.fileno())
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp's 0600 -> what open() would give
-        os.replace(tmp, path)
+            os.chmod(tmp, 0o666 & ~_umask())  # mkstemp's 0600 -> what open() gives
+            if held is not None:  # renamed under the lock: no cleaner takes it
+                os.replace(tmp, path)
+        if held is None:  # (where nothing locks, e.g. Windows: closed first)
+            os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -164,18 +167,33 @@ def _locked_temporary(make, lock) -> tuple[int | None, int | None, str]:
                 return fd, held, name
         except FileNotFoundError:
             pass  # os.stat: a cleaner removed it while this waited for the lock
-        except BaseException:
+        except BaseException:  # e.g. Ctrl-C while waiting for a cleaner's lock
             for each in {fd, held} - {None}:
                 os.close(each)
+            with contextlib.suppress(OSError):  # ours: no one else's to keep
+                os.rmdir(name) if fd is None else os.unlink(name)
             raise
         for each in {fd, held} - {None}:
             os.close(each)  # removed by another writer cleaning up: make another
     raise OSError(f"{name}: removed by another writer each time it was made")
 
 
+def _can_lock() -> bool:
+    """Whether this system has ``flock`` (POSIX): where it has not, nothing is
+    locked and a killed writer's temporary cannot be told from a live one's."""
+    try:
+        import fcntl  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
 def remove_unless_locked(path: Path) -> bool:
     """Remove the file or folder ``path``, a killed writer's temporary, unless a
-    live writer holds its lock (:func:`lock_folder`); whether it was removed.
+    live writer holds its lock (:func:`lock_folder`), or it cannot be locked
+    here to tell (a file system without working ``flock``, such as NFS: left
+    alone); whether it was removed. Where nothing locks (not POSIX), it is
+    removed.
     The lock is held while removing, so a writer that has just made ``path``
     and is waiting for the lock finds it gone and makes another
     (:func:`_locked_temporary`). One that another cleaner removes first counts
@@ -183,6 +201,11 @@ def remove_unless_locked(path: Path) -> bool:
     try:
         fd = lock_folder(path, wait=False)
     except BlockingIOError:
+        return False
+    if fd is None and _can_lock() and os.path.lexists(path):
+        # there but not lockable here (e.g. NFS, where flock is emulated and
+        # needs a descriptor open for writing): a live writer's, perhaps. A
+        # stray temporary is harmless; a live writer's removed is not
         return False
     try:
         with contextlib.suppress(FileNotFoundError):
@@ -231,12 +254,14 @@ def lock_folder(path: Path, *, wait: bool = True) -> int | None:
         return None
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
-    except BlockingIOError:
+    except OSError as err:
+        os.close(fd)
+        if isinstance(err, BlockingIOError):
+            raise
+        return None
+    except BaseException:  # e.g. Ctrl-C while waiting
         os.close(fd)
         raise
-    except OSError:
-        os.close(fd)
-        return None
     return fd
 
 

@@ -1203,3 +1203,70 @@ def test_a_killed_writers_temporary_is_removed_under_its_lock(tmp_path, monkeypa
     make().save(tmp_path / "d.npz")
     assert held == [True, True]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d.npz", "run"]
+
+
+def test_a_writer_renames_its_temporary_while_it_holds_the_lock(tmp_path, monkeypatch):
+    """Another writer's clean-up coming between the write and the rename: the
+    temporary was closed, so unlocked, before its rename, and the clean-up
+    removed it (the writer failed with FileNotFoundError). It is renamed
+    under the lock now."""
+    from hipmdp import data
+
+    chmod, tried = os.chmod, []
+
+    def another_cleans_up(path, mode, **kwargs):
+        chmod(path, mode, **kwargs)
+        tried.append(data.remove_unless_locked(Path(path)))
+
+    monkeypatch.setattr(os, "chmod", another_cleans_up)
+    data.atomic_write(tmp_path / "f.bin", lambda fh: fh.write(b"whole"))
+    assert tried == [False]
+    assert (tmp_path / "f.bin").read_bytes() == b"whole"
+    assert [p.name for p in tmp_path.iterdir()] == ["f.bin"]
+
+
+@pytest.mark.parametrize("kind", ["file", "folder"])
+def test_ctrl_c_while_waiting_for_a_temporary_s_lock_leaves_nothing(
+    kind, tmp_path, monkeypatch
+):
+    """Ctrl-C while a writer waits for the lock of its new temporary (a
+    cleaner holds it): the temporary, its descriptor and the parent folders
+    the call made are all gone (the file stayed, and the folder and its
+    parents)."""
+    from hipmdp import data
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    fds = len(os.listdir("/proc/self/fd")) if os.path.isdir("/proc/self/fd") else 0
+    out = tmp_path / "sub" / "out"
+    with pytest.raises(KeyboardInterrupt):
+        if kind == "file":
+            (tmp_path / "sub").mkdir()
+            monkeypatch.setattr(data, "_lock_file", interrupted)
+            data.atomic_write(out, lambda fh: fh.write(b"x"))
+        else:
+            monkeypatch.setattr(data, "lock_folder", interrupted)
+            with data.atomic_folder(out):
+                pass
+    left = sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*"))
+    assert left == (["sub"] if kind == "file" else [])
+    if fds:
+        assert len(os.listdir("/proc/self/fd")) == fds
+
+
+def test_a_temporary_that_cannot_be_locked_here_is_left(tmp_path, monkeypatch):
+    """Where flock exists but fails on a file (NFS emulates it with fcntl
+    locks, which need a descriptor open for writing), a live writer's
+    temporary cannot be told from a killed one's: it is left, not removed
+    under the writer."""
+    from hipmdp import data
+
+    stale = tmp_path / ".d.npz.abcd1234.tmp"
+    stale.write_bytes(b"a live writer's, perhaps")
+    monkeypatch.setattr(data, "lock_folder", lambda path, wait=True: None)
+    assert data.remove_unless_locked(stale) is False
+    assert stale.exists()
+    monkeypatch.setattr(data, "_can_lock", lambda: False)  # not POSIX: nothing locks
+    assert data.remove_unless_locked(stale) is True
+    assert not stale.exists()
