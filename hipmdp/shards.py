@@ -295,8 +295,8 @@ class Dataset:
         if manifest is None:
             npz = sorted(f.name for f in self.directory.glob("*.npz"))
             hint = (
-                f" (a folder of .npz files: load one of them by its path, e.g. "
-                f"{self.directory / npz[0]})"
+                f" (an experiment's run folder? read one of its .npz files with "
+                f"hipmdp.Transitions.load, e.g. {self.directory / npz[0]})"
                 if npz
                 else ""
             )

@@ -159,22 +159,39 @@ def _raise_terminated(signum: int, frame: Any) -> None:
     raise Terminated
 
 
+def _listing(folder: Path) -> dict[str, tuple[int, int]]:
+    """The (inode, mtime in ns) of each visible entry of ``folder``: an atomic
+    write gives its file a new inode, whatever the clocks say."""
+    found = {}
+    with contextlib.suppress(OSError):
+        for f in folder.iterdir():
+            if not f.name.startswith("."):
+                with contextlib.suppress(OSError):
+                    st = f.stat()
+                    found[f.name] = (st.st_ino, st.st_mtime_ns)
+    return found
+
+
 @contextlib.contextmanager
 def stops_reported(prog: str, out: Path):
     """Within: Ctrl-C and SIGTERM end an experiment's command with status 130 or
     143 and one line on stderr saying what its run folder ``out`` holds, not a
     traceback (or, for SIGTERM, nothing at all). A run stopped after it began
-    writing leaves the files it finished (each whole) and no ``metrics.json``;
-    the next run into ``out`` replaces them (:func:`run_dir`). SIGTERM is
-    handled only where its handler is the default one (not under a caller
-    that set its own) and in the main thread."""
+    writing leaves the files it finished, each whole, named in that line: those
+    that are new or replaced since the run began (another inode or mtime; no
+    clock is compared), ``metrics.json`` among them only if the run stopped
+    while making its figures or recording (:func:`writes_metrics`); the next
+    run into ``out`` replaces them (:func:`run_dir`). SIGTERM is handled only
+    where its handler is the default one (not under a caller that set its
+    own) and in the main thread; pool workers put the default back
+    (:func:`_init_worker`)."""
     previous = None
     if (
         threading.current_thread() is threading.main_thread()
         and signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
     ):
         previous = signal.signal(signal.SIGTERM, _raise_terminated)
-    began = time.time()
+    before = _listing(out)
     try:
         yield
     except (KeyboardInterrupt, Terminated) as stop:
@@ -183,16 +200,13 @@ def stops_reported(prog: str, out: Path):
             if isinstance(stop, Terminated)
             else (130, "interrupted (Ctrl-C)")
         )
-        config = out / "config.json"
-        if config.is_file() and config.stat().st_mtime >= began - 1:
-            written = sorted(
-                f.name
-                for f in out.iterdir()
-                if not f.name.startswith(".") and f.stat().st_mtime >= began - 1
-            )
+        after = _listing(out)
+        written = sorted(name for name, v in after.items() if before.get(name) != v)
+        if written:
+            tail = "" if "metrics.json" in written else " and no metrics.json"
             left = (
-                f"{out} holds the files it finished ({', '.join(written)}) and no "
-                "metrics.json; the next run into it replaces them"
+                f"{out} holds the files it finished ({', '.join(written)}){tail}; "
+                "the next run into it replaces them"
             )
         else:
             left = f"it had written nothing to {out}"
@@ -640,9 +654,9 @@ def run_time_line(seconds: dict[str, float]) -> str:
     """A report's "Run time" sentence from ``metrics.json``'s ``seconds``: the
     total and every part of at least half a second, in the order measured
     (underscores as spaces), then the rest of the total if at least a second
-    (what no part timed)."""
+    (what no part shown timed)."""
     parts = {k: v for k, v in seconds.items() if k != "total" and v >= 0.5}
-    rest = seconds["total"] - sum(v for k, v in seconds.items() if k != "total")
+    rest = seconds["total"] - sum(parts.values())
     words = [f"{k.replace('_', ' ')} {v:.0f} s" for k, v in parts.items()]
     if rest >= 1:
         words.append(f"the rest {rest:.0f} s")
@@ -764,6 +778,10 @@ def _init_worker(initializer, initargs: tuple, owner: int) -> None:
     """A pool worker's start: :func:`exit_with` the pool's ``owner``, one BLAS
     thread for its lifetime, then ``initializer(*initargs)``."""
     exit_with(owner)
+    # a forked worker inherits stops_reported's SIGTERM handler: the pool
+    # terminates workers with SIGTERM and must see them die
+    if signal.getsignal(signal.SIGTERM) is _raise_terminated:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
     threadpool_limits(limits=1)
     if initializer is not None:
         initializer(*initargs)

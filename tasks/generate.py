@@ -1257,7 +1257,7 @@ def main(argv: Sequence[str] | None = None) -> Generated:
         f"{_count(sum(c['transitions'] for c in counts), 'transition')}, "
         f"{_count(n_instances, 'instance')}, "
         f"{_count(sum(c['diverged_episodes'] for c in counts), 'diverged episode')} "
-        f"({len(result.redone)} generated now)"
+        f"({_count(len(result.redone), 'shard')} generated now)"
     )
     return result
 

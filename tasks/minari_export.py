@@ -222,11 +222,12 @@ def main(argv: Sequence[str] | None = None) -> Path:
     parser.add_argument("run", type=Path, help="run directory of tasks.generate")
     parser.add_argument(
         "--out", type=path_argument, required=True,
-        help="folder to write the dataset into (it holds OUT/<dataset id>/)",
+        help="parent folder of the dataset: it is written to OUT/<dataset id>/",
     )  # fmt: skip
     parser.add_argument(
         "--dataset-id", default=None,
-        help="Minari's dataset id, NAME-vN (default: <domain>-<policy>-v0)",
+        help="Minari's dataset id, [namespace/]name-vN (default: "
+        "<domain>-<policy>-v0)",
     )  # fmt: skip
     args = parser.parse_args(argv)
     try:

@@ -1162,3 +1162,59 @@ def test_z_is_shown_as_a_table_of_features_by_action():
     )
     with pytest.raises(ValueError, match=r"z: expected \(features, actions, 2\)"):
         experiment.z_table(z, ["dx", "dy"])
+
+
+def _sigterm_is_default(_job) -> bool:
+    import signal
+
+    return signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+
+
+def test_pool_workers_die_on_sigterm_under_a_stopped_run_s_handler(tmp_path):
+    """A forked pool worker inherited the run's SIGTERM handler: when another
+    worker died (the out-of-memory killer), the pool's SIGTERM to the others
+    raised in them instead of ending them, and the run hung instead of
+    failing. The workers put the default back."""
+    import signal
+
+    with experiment.stops_reported("prog", tmp_path):
+        assert signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL  # installed
+        default = experiment.pool_map(
+            _sigterm_is_default, [0, 1], workers=2, desc="", progress=False
+        )
+    assert default == [True, True]
+
+
+def test_a_stop_names_what_the_run_wrote_whatever_the_clocks_say(
+    tmp_path, monkeypatch, capsys
+):
+    """Files this run wrote, dated an hour back (a file server whose clock is
+    behind), are named; a previous run's file it replaced is named, one it
+    left is not; metrics.json, written when a stop comes during the figures
+    (writes_metrics), is named and not said to be missing."""
+    out = tmp_path / "run"
+    out.mkdir()
+    write_json(out / "config.json", {"name": "cartpole_prediction"})
+    write_json(out / "check.json", {})  # not this run's: left as it was
+    old = time.time() - 3600
+
+    def stopped_main(config, folder):
+        write_json(out / "config.json", {"name": config.name})  # replaced
+        write_json(out / "metrics.json", {})
+        for name in ("config.json", "metrics.json"):
+            os.utime(out / name, (old, old))
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cartpole_prediction, "main", stopped_main)
+    try:
+        cartpole_prediction.cli(["--no-record", "--out", str(out)])
+    except SystemExit as exited:
+        code = exited.code
+    except KeyboardInterrupt:  # would end pytest's session
+        code = "KeyboardInterrupt"
+    assert code == 130
+    assert capsys.readouterr().err == (
+        "python -m tasks.cartpole_prediction: interrupted (Ctrl-C) before the run "
+        f"ended: {out} holds the files it finished (config.json, metrics.json); "
+        "the next run into it replaces them\n"
+    )

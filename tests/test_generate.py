@@ -52,7 +52,7 @@ def test_main_writes_loadable_shards_and_a_manifest(tmp_path, capsys):
     assert len(dataset.load()) == 3 * 2 * 10
     assert capsys.readouterr().out == (
         f"wrote 2 shards and {out / 'manifest.json'}: 60 transitions, 3 instances, "
-        "0 diverged episodes (2 generated now)\n"
+        "0 diverged episodes (2 shards generated now)\n"
     )
     # run again on the finished folder: nothing written, and it says so
     generate.main(

@@ -133,7 +133,10 @@ def test_temporaries_are_removed_and_foreign_manifests_refused(tmp_path):
     with pytest.raises(ValueError, match=f"no manifest.json in {tmp_path}$"):
         shards.load_dataset(tmp_path)
     (tmp_path / "batch.npz").write_bytes(b"")  # an experiment's run folder
-    with pytest.raises(ValueError, match="load one of them by its path, e.g. .*batch"):
+    with pytest.raises(
+        ValueError,
+        match="read one of its .npz files with hipmdp.Transitions.load, e.g. .*batch",
+    ):
         shards.load_dataset(tmp_path)
     (tmp_path / "batch.npz").unlink()
     (tmp_path / "manifest.json").write_text('{"format": "something else"}')
