@@ -210,6 +210,9 @@ def stops_reported(prog: str, out: Path):
             )
         else:
             left = f"it had written nothing to {out}"
+            removed = sorted(before.keys() - after.keys())
+            if removed:  # run_dir deletes the previous run's files first
+                left += f", after removing the previous run's ({', '.join(removed)})"
         print(f"{prog}: {how} before the run ended: {left}", file=sys.stderr)
         raise SystemExit(code) from None
     finally:

@@ -1089,6 +1089,18 @@ def test_an_experiment_stopped_before_writing_says_so(tmp_path, monkeypatch, cap
         f"ended: it had written nothing to {out}\n"
     )
 
+    def stopped_after_run_dir(config, folder):  # it deletes the previous files
+        (out / "config.json").unlink()
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cartpole_prediction, "main", stopped_after_run_dir)
+    with contextlib.suppress(SystemExit, KeyboardInterrupt):
+        cartpole_prediction.cli(["--no-record", "--out", str(out)])
+    assert capsys.readouterr().err.endswith(
+        f"it had written nothing to {out}, after removing the previous run's "
+        "(config.json)\n"
+    )
+
 
 def test_a_caller_s_own_sigterm_handler_is_left_alone(tmp_path, monkeypatch):
     """An experiment run under a caller that handles SIGTERM itself: the caller's
