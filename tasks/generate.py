@@ -2,7 +2,7 @@
 each, write one shard per block of instances and a manifest.
 
     python -m tasks.generate --domain acrobot --instances 1000 \\
-        --episodes-per-instance 4 --policy open-loop --workers 2 --out runs/data
+        --episodes-per-instance 4 --policy open-loop --workers 2 --out runs/acrobot_1000
 
 Instances (`tasks.distributions`): the parameters named by `--vary NAME=LOW:HIGH`
 (default: the two link masses in [0.7, 1.3] for the acrobot, as in the paper; the
