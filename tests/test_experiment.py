@@ -600,7 +600,11 @@ def test_run_dir_replaces_the_previous_run_of_the_same_experiment(tmp_path, caps
     # with their temporaries; a check's file on the old run stays, and is named
     left = sorted(f.name for f in out.iterdir())
     assert left == [".notes.txt.z.tmp", "identified.json"]
-    assert "identified.json" in capsys.readouterr().err
+    assert capsys.readouterr().err == (
+        f"{out}: replaced the previous run's files; kept identified.json, which "
+        "this run does not write (any made from the previous run describe that "
+        "run, not this one)\n"
+    )
 
 
 def test_run_dir_in_a_folder_without_a_previous_run_says_nothing(tmp_path, capsys):
@@ -1027,7 +1031,8 @@ def test_a_stopped_experiment_says_what_its_folder_holds(
     """Ctrl-C or SIGTERM (a batch system's stop) while an experiment runs: status
     130 or 143 and one line naming the files the run finished (the previous
     run's, replaced, and a file it does not write are not named), not a
-    traceback (Ctrl-C) or silence (SIGTERM). The SIGTERM handler is put back."""
+    traceback (Ctrl-C) or silence (SIGTERM), nor the temporary file of one it
+    was writing. The SIGTERM handler is put back."""
     import signal
 
     out = tmp_path / "run"
@@ -1039,6 +1044,7 @@ def test_a_stopped_experiment_says_what_its_folder_holds(
     def stopped_main(config, folder):
         write_json(out / "config.json", {"name": config.name})
         write_json(out / "batch.npz", {})
+        (out / ".metrics.json.k2x9abcd.tmp").write_text('{"half')  # being written
         if stop == "ctrl-c":
             raise KeyboardInterrupt
         if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:  # would end pytest
@@ -1161,6 +1167,12 @@ def test_the_run_time_line_names_every_part_and_the_rest():
     assert experiment.run_time_line({"fit": 10.2, "total": 24.6}) == (
         "Run time: 25 s (fit 10 s, the rest 14 s)."
     )
+    # three parts of 0.4 s: not shown, so counted in the rest (the shown parts
+    # add up to the total)
+    seconds = {"fit": 10.0, "load": 0.4, "plan": 0.4, "save": 0.4, "total": 11.6}
+    assert experiment.run_time_line(seconds) == (
+        "Run time: 12 s (fit 10 s, the rest 2 s)."
+    )
 
 
 def test_z_is_shown_as_a_table_of_features_by_action():
@@ -1229,4 +1241,348 @@ def test_a_stop_names_what_the_run_wrote_whatever_the_clocks_say(
         "python -m tasks.cartpole_prediction: interrupted (Ctrl-C) before the run "
         f"ended: {out} holds the files it finished (config.json, metrics.json); "
         "the next run into it replaces them\n"
+    )
+
+
+def test_json_has_no_infinity_and_keeps_the_order_it_was_given(tmp_path):
+    """JSON has no NaN or infinity (Python's ``json`` writes them as ``NaN`` and
+    ``Infinity``, which other readers refuse): every non-finite float, numpy's or
+    Python's (``mean_ci`` of one sample gives ``float("nan")``), scalar or in an
+    array, is null. Keys stay in the order given (methods in the order the
+    experiment lists them), indented by two, with a final newline."""
+    obj = {"z": np.inf, "y": -np.float32("inf"), "x": float("nan"),
+           "w": np.array([np.nan, 1.5]), "v": [float("-inf")]}  # fmt: skip
+    plain = {"z": None, "y": None, "x": None, "w": [None, 1.5], "v": [None]}
+    assert to_jsonable(obj) == plain
+    path = write_json(tmp_path / "m.json", obj)
+    assert path.read_bytes() == (
+        b'{\n  "z": null,\n  "y": null,\n  "x": null,\n  "w": [\n    null,\n'
+        b'    1.5\n  ],\n  "v": [\n    null\n  ]\n}\n'
+    )
+
+
+def test_environment_lists_the_blas_libraries_alone_in_a_fixed_order(monkeypatch):
+    """threadpoolctl lists numpy's and scipy's BLAS in the order the process
+    loaded them, and OpenMP pools beside them: the record is the BLAS
+    libraries alone, the same whatever the order of loading."""
+    numpy_blas = {
+        "user_api": "blas",
+        "internal_api": "openblas",
+        "version": "0.3.27",
+        "architecture": "Haswell",
+        "num_threads": 1,
+    }
+    scipy_blas = {
+        "user_api": "blas",
+        "internal_api": "openblas",
+        "version": "0.3.21",
+        "architecture": "Zen",
+        "num_threads": 1,
+    }
+    openmp = {"user_api": "openmp", "internal_api": "openmp", "version": None,
+              "num_threads": 2}  # fmt: skip
+    listed = []
+    for order in ([numpy_blas, openmp, scipy_blas], [scipy_blas, numpy_blas, openmp]):
+        monkeypatch.setattr(experiment, "threadpool_info", lambda order=order: order)
+        listed.append(environment()["blas"])
+    assert listed[0] == listed[1]
+    assert sorted(b["version"] for b in listed[0]) == ["0.3.21", "0.3.27"]
+
+
+def test_the_machine_line_names_each_blas_its_threads_and_the_commit():
+    """report.md's one line of the environment: each BLAS with its kernel and
+    threads ("1 thread", "2 threads"), the commit's first 12 digits and
+    whether it was dirty; "not found" and "not a git checkout" where there is
+    none."""
+    env = {
+        "cpu": "Test CPU",
+        "packages": {"numpy": "2.0.1", "scipy": "1.14.0", "mujoco": "3.2.0"},
+        "blas": [
+            {"internal_api": "openblas", "version": "0.3.27",
+             "architecture": "Haswell", "num_threads": 1},
+            {"internal_api": "mkl", "version": "2024.1",
+             "architecture": "avx2", "num_threads": 2},
+        ],
+        "git_commit": "0123456789abcdef0123456789abcdef01234567+dirty",
+    }  # fmt: skip
+    assert describe_environment(env) == (
+        "Machine: Test CPU; numpy 2.0.1, scipy 1.14.0, mujoco 3.2.0; BLAS openblas "
+        "0.3.27 (Haswell, 1 thread), mkl 2024.1 (avx2, 2 threads); code "
+        "0123456789ab+dirty. The learned models' results depend on these through "
+        "round-off (`environment` in metrics.json)."
+    )
+    env = {**env, "blas": [], "git_commit": None}
+    assert "; BLAS not found; code not a git checkout. " in describe_environment(env)
+
+
+def test_a_stop_outside_the_main_thread_is_reported_and_sigterm_left_alone(
+    tmp_path, capsys
+):
+    """Python takes signal handlers in the main thread alone (``signal.signal``
+    raises ValueError elsewhere): a command run from another thread (a
+    notebook's worker, say) still reports its Ctrl-C, and SIGTERM keeps its
+    handler."""
+    import signal
+    import threading
+
+    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # the case tested
+    seen = []
+
+    def command():
+        try:
+            with experiment.stops_reported("prog", tmp_path / "run"):
+                seen.append(signal.getsignal(signal.SIGTERM))
+                raise KeyboardInterrupt
+        except BaseException as stop:  # noqa: BLE001 (what ended it, to look at)
+            seen.append(stop)
+
+    thread = threading.Thread(target=command)
+    thread.start()
+    thread.join(timeout=30)
+    assert not thread.is_alive() and seen[0] == signal.SIG_DFL
+    assert isinstance(seen[1], SystemExit) and seen[1].code == 130
+    assert capsys.readouterr().err == (
+        "prog: interrupted (Ctrl-C) before the run ended: it had written nothing "
+        f"to {tmp_path / 'run'}\n"
+    )
+
+
+def test_a_run_without_out_takes_runs_name_and_holds_it_by_any_path(
+    tmp_path, monkeypatch
+):
+    """No ``--out``: ``runs/<name>`` under the working directory. The run's lock
+    is its folder's, whatever path names it: the same folder by its absolute
+    path is the run's own, not another run's."""
+    monkeypatch.chdir(tmp_path)
+
+    @releases_run_folders
+    def main():
+        path = run_dir(None, "exp", ("config.json",))
+        assert path == Path("runs/exp") and (tmp_path / "runs" / "exp").is_dir()
+        assert run_dir(tmp_path / "runs" / "exp", "exp") == tmp_path / "runs" / "exp"
+        with pytest.raises(BlockingIOError):  # held while the main runs
+            os.close(lock_folder(path, wait=False))
+
+    main()
+    os.close(lock_folder(Path("runs/exp"), wait=False))  # released when it ends
+
+
+def test_a_main_releases_the_folders_it_took_and_no_others(tmp_path):
+    """A main run inside another releases its own folder and leaves the outer
+    one's held; a folder released is another process's to take, and refused
+    while it holds it (this process no longer counts it as its own)."""
+    outer, inner = tmp_path / "outer", tmp_path / "inner"
+
+    @releases_run_folders
+    def inner_main():
+        run_dir(inner, "exp")
+
+    @releases_run_folders
+    def outer_main():
+        run_dir(outer, "exp")
+        inner_main()
+        with pytest.raises(BlockingIOError):  # the outer run's, still held
+            os.close(lock_folder(outer, wait=False))
+        os.close(lock_folder(inner, wait=False))  # the inner run's, released
+
+    outer_main()
+    proc = _holder(outer)
+    try:
+        with pytest.raises(ValueError, match="^out: another run is writing to"):
+            run_dir(outer, "exp")
+    finally:
+        proc.stdin.close()
+        proc.wait()
+
+
+def test_process_stat_reads_past_a_command_name_holding_a_parenthesis(tmp_path):
+    """``/proc/PID/stat`` gives the command's name in parentheses, and a name may
+    hold ``) `` itself (a program named so): the fields are those after the
+    last one. A child that has ended and not been waited for is a zombie (Z),
+    and it started after this process (start times are clock ticks since
+    boot)."""
+    import shutil
+    import subprocess
+
+    program = tmp_path / "a) R 1 2"
+    program.symlink_to(shutil.which("true"))
+    child = subprocess.Popen([str(program)])
+    try:
+        os.waitid(os.P_PID, child.pid, os.WEXITED | os.WNOWAIT)  # ended, not reaped
+        state, start = experiment._process_stat(child.pid)
+        assert state == "Z"
+        assert int(start) >= int(experiment._process_stat(os.getpid())[1])
+    finally:
+        child.wait()
+
+
+_WATCHER = """
+import os, sys, time
+from tasks import experiment
+
+owner, case = int(sys.argv[1]), sys.argv[2]
+if case == "reused":  # from the second look on, another process has the owner's pid
+    real, looks = experiment._process_stat, []
+
+    def stat(pid):
+        state, start = real(pid)
+        looks.append(pid)
+        return state, start if len(looks) == 1 else str(int(start) + 1)
+
+    experiment._process_stat = stat
+else:  # the owner's pid now belongs to another user's process
+    kill = os.kill
+
+    def refused(pid, sig):
+        if pid == owner:
+            raise PermissionError(1, "Operation not permitted")
+        return kill(pid, sig)
+
+    os.kill = refused
+experiment.exit_with(owner, every=0.05)
+time.sleep(5)  # exit_with ends the process with status 1 before this ends
+"""
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
+@pytest.mark.parametrize("case", ["reused", "another user"])
+def test_a_worker_ends_when_its_owners_pid_is_another_process(tmp_path, case):
+    """The owner's pid given to another process (another start time), or one
+    this process may not signal (another user's), is the owner gone: the
+    worker ends (status 1), rather than serving a pool no one reads for
+    ever. The owner here is this test's process, alive, and the worker's
+    parent."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "worker.py"
+    script.write_text(_WATCHER)
+    source = str(Path(tasks.__file__).resolve().parents[1])  # as in the test above
+    path = os.pathsep.join(filter(None, [source, os.environ.get("PYTHONPATH")]))
+    worker = subprocess.run(
+        [sys.executable, str(script), str(os.getpid()), case],
+        env={**os.environ, "PYTHONPATH": path}, timeout=60,
+    )  # fmt: skip
+    assert worker.returncode == 1
+
+
+def test_each_weights_panel_plots_one_weight_against_one_parameter(
+    tmp_path, monkeypatch
+):
+    """Panel (k, j) of weights.png: latent weight k + 1 against parameter j, the
+    training instances' posterior means and the test instances' filtered
+    belief means; with no latent feature, one panel that says so."""
+    import matplotlib.pyplot as plt
+
+    figures = []
+    monkeypatch.setattr(
+        experiment, "save_figure", lambda fig, path: figures.append(fig) or path
+    )
+    train_params = np.array([[1.0, 10.0], [2.0, 20.0], [3.0, 30.0]])  # (B, p)
+    train_w = np.array([[0.1, 0.2, 0.3], [-1.0, -2.0, -3.0]])  # (K', B)
+    test_params, test_w = np.array([[4.0, 40.0]]), np.array([[0.4, -4.0]])
+    experiment.weights_figure(
+        tmp_path / "w.png", train_params, train_w, test_params, test_w,
+        ["m1", "m2"], "weights",
+    )  # fmt: skip
+    axes = figures[0].axes
+    assert len(axes) == 4  # rows: weights; columns: parameters
+    second_weight_by_m1, first_weight_by_m2 = axes[2], axes[1]
+    train, test = second_weight_by_m1.collections
+    np.testing.assert_array_equal(train.get_offsets(), [[1, -1], [2, -2], [3, -3]])
+    np.testing.assert_array_equal(test.get_offsets(), [[4, -4]])
+    assert (second_weight_by_m1.get_xlabel(), second_weight_by_m1.get_ylabel()) == (
+        "m1", "w2"
+    )  # fmt: skip
+    train, test = first_weight_by_m2.collections
+    np.testing.assert_array_equal(
+        train.get_offsets(), [[10, 0.1], [20, 0.2], [30, 0.3]]
+    )
+    np.testing.assert_array_equal(test.get_offsets(), [[40, 0.4]])
+    assert (first_weight_by_m2.get_xlabel(), first_weight_by_m2.get_ylabel()) == (
+        "m2", "w1"
+    )  # fmt: skip
+    experiment.weights_figure(
+        tmp_path / "w.png", train_params, np.zeros((0, 3)), test_params,
+        np.zeros((1, 0)), ["m1", "m2"], "weights",
+    )  # fmt: skip
+    assert [t.get_text() for t in figures[1].axes[0].texts] == [
+        "no latent features were inferred"
+    ]
+    for fig in figures:
+        plt.close(fig)
+
+
+_ORPHANED_OWNER = """
+import os, sys, time
+from pathlib import Path
+
+from tasks.experiment import pool_map
+
+folder = Path(sys.argv[1])
+
+
+def job(i):  # marks its worker, then works for 1.5 s (three of exit_with's polls)
+    (folder / f"{os.getpid()}.mark").write_text("")
+    time.sleep(1.5)
+    return i
+
+
+if __name__ == "__main__":
+    try:
+        result = repr(pool_map(job, [0, 1], workers=2, desc="", progress=False))
+    except BaseException as err:
+        result = f"failed: {err!r}"
+    (folder / "result").write_text(result)
+"""
+
+_LAUNCHER = """
+import subprocess, sys, time
+from pathlib import Path
+
+owner = subprocess.Popen([sys.executable, *sys.argv[1:]])
+deadline = time.monotonic() + 60
+while len(list(Path(sys.argv[2]).glob("*.mark"))) < 2 and time.monotonic() < deadline:
+    time.sleep(0.02)
+"""  # ends (not waiting for the owner) once both workers are in a job
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
+def test_pool_workers_outlive_the_owners_parent(tmp_path):
+    """A run started from a shell that then ends (``nohup``, a closed terminal):
+    the run's process lives on, and so must its pool's workers, which watch the
+    run's process, not the process that started it."""
+    import subprocess
+    import sys
+
+    (tmp_path / "owner.py").write_text(_ORPHANED_OWNER)
+    source = str(Path(tasks.__file__).resolve().parents[1])  # as in the test above
+    path = os.pathsep.join(filter(None, [source, os.environ.get("PYTHONPATH")]))
+    subprocess.run(
+        [sys.executable, "-c", _LAUNCHER, str(tmp_path / "owner.py"), str(tmp_path)],
+        env={**os.environ, "PYTHONPATH": path}, timeout=60, check=True,
+    )  # fmt: skip
+    deadline = time.monotonic() + 60  # the owner is no child of ours to wait for
+    while not (tmp_path / "result").exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert (tmp_path / "result").read_text() == "[0, 1]"
+
+
+def test_the_common_flags_reach_the_config_and_a_bad_out_is_named_by_its_flag(
+    tmp_path, monkeypatch, capsys
+):
+    """``--no-record`` and ``--no-progress`` turn off what the preset turns on;
+    an ``--out`` that cannot be a run folder is a usage error that names the
+    flag, as every other bad flag's is."""
+    monkeypatch.chdir(tmp_path)  # the default --out, runs/cartpole_prediction, here
+    config, _ = cartpole_prediction.parse_args([])
+    assert config.record and config.progress
+    config, _ = cartpole_prediction.parse_args(["--no-record", "--no-progress"])
+    assert not config.record and not config.progress
+    (tmp_path / "file").write_text("mine")
+    with pytest.raises(SystemExit) as stopped:
+        cartpole_prediction.parse_args(["--out", "file", "--no-record"])
+    assert stopped.value.code == 2
+    assert "error: --out (out): file exists and is not a folder" in (
+        capsys.readouterr().err
     )
