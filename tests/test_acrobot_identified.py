@@ -289,6 +289,14 @@ def test_rejects_a_folder_that_is_not_a_run_and_unknown_variants(tmp_path, run):
     file.write_text("")
     with pytest.raises(FileNotFoundError, match="file has no config.json"):
         acrobot_identified.main(file)
+    # a folder with a run's config and model but no batch data: named before the
+    # options are checked (the batch is what the model is matched against)
+    partial = tmp_path / "partial"
+    partial.mkdir()
+    for name in ("config.json", "hipmdp_model.npz"):
+        shutil.copy(run[0] / name, partial / name)
+    with pytest.raises(FileNotFoundError, match="partial has no batch.npz; is it a"):
+        acrobot_identified.main(partial, variants=("oracle",))
     with pytest.raises(ValueError, match="variants: expected some of"):
         acrobot_identified.main(run[0], variants=("oracle",))
     # a repeated variant ran its trials twice and counted them as twice the trials
