@@ -1146,7 +1146,8 @@ def weights_figure(
             ax.set_ylabel(f"w{j + 1}")
     if k == 0:
         axes[0, 0].text(0.1, 0.5, "no latent features were inferred")
-    axes[0, 0].legend(fontsize=7)
+    else:  # an empty panel's legend is only matplotlib's warning that it is empty
+        axes[0, 0].legend(fontsize=7)
     fig.suptitle(title)
     fig.tight_layout(rect=(0, 0, 1, 1 - 0.45 / fig.get_figheight()))  # room for it
     return save_figure(fig, file)
