@@ -1018,6 +1018,18 @@ def test_seed_zero_is_a_seed():
         seed_argument("-1")
 
 
+def _exit_status(module, argv: list[str]):
+    """The exit status of ``module.cli(argv)``; a KeyboardInterrupt that escapes
+    it (it would end pytest's session) as "KeyboardInterrupt"."""
+    try:
+        module.cli(argv)
+    except SystemExit as exited:
+        return exited.code
+    except KeyboardInterrupt:
+        return "KeyboardInterrupt"
+    return 0
+
+
 @pytest.mark.parametrize(
     "module", [acrobot_swingup, cartpole_prediction], ids=lambda m: m.__name__
 )
@@ -1055,13 +1067,7 @@ def test_a_stopped_experiment_says_what_its_folder_holds(
 
     before = signal.getsignal(signal.SIGTERM)
     monkeypatch.setattr(module, "main", stopped_main)
-    try:
-        module.cli(["--no-record", "--out", str(out)])
-    except SystemExit as exited:
-        code = exited.code
-    except KeyboardInterrupt:  # would end pytest's session
-        code = "KeyboardInterrupt"
-    assert code == status
+    assert _exit_status(module, ["--no-record", "--out", str(out)]) == status
     assert signal.getsignal(signal.SIGTERM) == before
     assert capsys.readouterr().err == (
         f"python -m {module.__name__}: {how} before the run ended: {out} holds the "
@@ -1083,13 +1089,7 @@ def test_an_experiment_stopped_before_writing_says_so(tmp_path, monkeypatch, cap
         raise KeyboardInterrupt
 
     monkeypatch.setattr(cartpole_prediction, "main", stopped_main)
-    try:
-        cartpole_prediction.cli(["--no-record", "--out", str(out)])
-    except SystemExit as exited:
-        code = exited.code
-    except KeyboardInterrupt:  # would end pytest's session
-        code = "KeyboardInterrupt"
-    assert code == 130
+    assert _exit_status(cartpole_prediction, ["--no-record", "--out", str(out)]) == 130
     assert capsys.readouterr().err == (
         "python -m tasks.cartpole_prediction: interrupted (Ctrl-C) before the run "
         f"ended: it had written nothing to {out}\n"
@@ -1230,13 +1230,7 @@ def test_a_stop_names_what_the_run_wrote_whatever_the_clocks_say(
         raise KeyboardInterrupt
 
     monkeypatch.setattr(cartpole_prediction, "main", stopped_main)
-    try:
-        cartpole_prediction.cli(["--no-record", "--out", str(out)])
-    except SystemExit as exited:
-        code = exited.code
-    except KeyboardInterrupt:  # would end pytest's session
-        code = "KeyboardInterrupt"
-    assert code == 130
+    assert _exit_status(cartpole_prediction, ["--no-record", "--out", str(out)]) == 130
     assert capsys.readouterr().err == (
         "python -m tasks.cartpole_prediction: interrupted (Ctrl-C) before the run "
         f"ended: {out} holds the files it finished (config.json, metrics.json); "
