@@ -171,7 +171,10 @@ def _locked_temporary(make, lock) -> tuple[int | None, int | None, str]:
             for each in {fd, held} - {None}:
                 os.close(each)
             with contextlib.suppress(OSError):  # ours: no one else's to keep
-                os.rmdir(name) if fd is None else os.unlink(name)
+                if fd is None:
+                    os.rmdir(name)
+                else:
+                    os.unlink(name)
             raise
         for each in {fd, held} - {None}:
             os.close(each)  # removed by another writer cleaning up: make another
@@ -194,6 +197,7 @@ def remove_unless_locked(path: Path) -> bool:
     here to tell (a file system without working ``flock``, such as NFS: left
     alone); whether it was removed. Where nothing locks (not POSIX), it is
     removed.
+
     The lock is held while removing, so a writer that has just made ``path``
     and is waiting for the lock finds it gone and makes another
     (:func:`_locked_temporary`). One that another cleaner removes first counts

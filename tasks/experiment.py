@@ -151,8 +151,9 @@ def wrote_line(out: Path, recording: str) -> str:
 
 
 class Terminated(BaseException):
-    """SIGTERM (what a batch system sends to stop a job) while an experiment
-    runs (:func:`stops_reported`): what KeyboardInterrupt is to Ctrl-C."""
+    """SIGTERM (what a batch system sends to stop a job) while an experiment or
+    ``tasks.generate`` runs (:func:`stops_reported`): what KeyboardInterrupt is
+    to Ctrl-C (a BaseException, as it is)."""
 
 
 def _raise_terminated(signum: int, frame: Any) -> None:
@@ -632,9 +633,8 @@ def z_table(z: Sequence, dims: Sequence[str]) -> str:
         for k in range(z.shape[0])
     ]
     header = ["feature", *(f"action {a}" for a in range(z.shape[1]))]
-    return f"Each cell: z for {', '.join(dims)}, in that order.\n\n" + markdown_table(
-        header, rows
-    )
+    legend = f"Each cell: z for {', '.join(dims)}, in that order."
+    return legend + "\n\n" + markdown_table(header, rows)
 
 
 def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:

@@ -93,8 +93,10 @@ from tasks.acrobot import AcrobotParams, book_inertia_range, with_book_inertia
 from tasks.collect import DOMAINS, collect, collect_sarsa, get_domain
 from tasks.distributions import KINDS, MAX_GRID_POINTS, SPLITS, Distribution, draw
 from tasks.experiment import (
+    Terminated,
     check_folder_out,
     check_integer,
+    count,
     exit_with,
     one_blas_thread,
     package_versions,
@@ -986,11 +988,6 @@ def _exit_quietly(signum: int, frame: Any) -> None:
     raise SystemExit(128 + signum)
 
 
-class Terminated(BaseException):
-    """SIGTERM (what batch systems send to stop a job) while `main` runs: what
-    KeyboardInterrupt is to Ctrl-C (a BaseException, as it is)."""
-
-
 class _Deferral:
     """While `depth` > 0 a stop signal is held in `pending` (`_signals_deferred`)."""
 
@@ -1253,18 +1250,13 @@ def main(argv: Sequence[str] | None = None) -> Generated:
     done = "nothing to do: already finished," if finished else "wrote"
     n_instances = sum(len(e["instances"]) for e in result.content["shards"])
     print(
-        f"{done} {_count(len(counts), 'shard')} and {result.manifest}: "
-        f"{_count(sum(c['transitions'] for c in counts), 'transition')}, "
-        f"{_count(n_instances, 'instance')}, "
-        f"{_count(sum(c['diverged_episodes'] for c in counts), 'diverged episode')} "
-        f"({_count(len(result.redone), 'shard')} generated now)"
+        f"{done} {count(len(counts), 'shard')} and {result.manifest}: "
+        f"{count(sum(c['transitions'] for c in counts), 'transition')}, "
+        f"{count(n_instances, 'instance')}, "
+        f"{count(sum(c['diverged_episodes'] for c in counts), 'diverged episode')} "
+        f"({count(len(result.redone), 'shard')} generated now)"
     )
     return result
-
-
-def _count(n: int, noun: str) -> str:
-    """ "1 shard", "12 shards"."""
-    return f"{n} {noun}{'' if n == 1 else 's'}"
 
 
 def _cluster_failure(error: BaseException) -> bool:
