@@ -548,16 +548,20 @@ def mean_ci(x: Sequence[float] | Array, axis: int = 0, level: float = 0.95) -> d
     return {"mean": mean, "low": mean - half, "high": mean + half, "n": n}
 
 
+def within_threshold(target: float | Array, margin: float = 0.1) -> float | Array:
+    """The lowest return "within ``margin``" of ``target``: returns are negative
+    step counts, so ``target - margin * |target|`` (−118.4 for −107.6 and
+    10%)."""
+    return target - margin * np.abs(target)
+
+
 def first_episode_within(
     curve: Array, target: float, margin: float = 0.1
 ) -> int | None:
-    """First episode (1-based) whose mean return is within ``margin`` of ``target``.
-
-    Returns are negative step counts, so "within 10%" means
-    ``curve[e] >= target - margin * |target|``. None if never reached.
-    """
+    """First episode (1-based) whose mean return is within ``margin`` of ``target``
+    (at or above :func:`within_threshold`); None if never reached."""
     curve = np.asarray(curve, dtype=float)
-    ok = np.flatnonzero(curve >= target - margin * abs(target))
+    ok = np.flatnonzero(curve >= within_threshold(target, margin))
     return int(ok[0]) + 1 if ok.size else None
 
 
@@ -579,8 +583,7 @@ def margin_to_target(
         )
     check_integer("window", window, 1)  # [:, -0:] would be every episode
     final = reference[:, -window:].mean(axis=1)
-    threshold = final - margin * np.abs(final)
-    return mean_ci(returns - threshold[:, None], axis=0)
+    return mean_ci(returns - within_threshold(final, margin)[:, None], axis=0)
 
 
 def paired_difference(

@@ -16,6 +16,7 @@ from tasks.experiment import (
     run_time_line,
     save_figure,
     weights_figure,
+    within_threshold,
     write_text,
     z_table,
 )
@@ -75,7 +76,7 @@ def _learning_curves(file: Path, metrics: dict) -> None:
     if target is not None:  # the threshold "episodes to within 10%" counts by
         final, margin = target["true_model_final_mean_return"], target["margin"]
         ax.axhline(
-            final - margin * abs(final), color="0.4", linestyle="--", linewidth=1,
+            within_threshold(final, margin), color="0.4", linestyle="--", linewidth=1,
             label=f"within {margin:.0%} of the true model's final mean",
         )  # fmt: skip
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # episodes are whole
