@@ -663,8 +663,7 @@ def parse_args(argv: list[str] | None = None) -> tuple[SwingupConfig, str | None
 
 def cli(argv: list[str] | None = None) -> int:
     config, out = parse_args(argv)
-    folder = Path(out) if out is not None else Path("runs") / config.name
-    with stops_reported("python -m tasks.acrobot_swingup", folder):
+    with stops_reported("python -m tasks.acrobot_swingup", out, config.name):
         results = main(config, out)
     from tasks import swingup_report
 

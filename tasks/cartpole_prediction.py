@@ -346,8 +346,7 @@ def parse_args(argv: list[str] | None = None) -> tuple[PredictionConfig, str | N
 
 def cli(argv: list[str] | None = None) -> int:
     config, out = parse_args(argv)
-    folder = Path(out) if out is not None else Path("runs") / config.name
-    with stops_reported("python -m tasks.cartpole_prediction", folder):
+    with stops_reported("python -m tasks.cartpole_prediction", out, config.name):
         results = main(config, out)
     from tasks import prediction_report
 

@@ -174,9 +174,10 @@ def _listing(folder: Path) -> dict[str, tuple[int, int]]:
 
 
 @contextlib.contextmanager
-def stops_reported(prog: str, out: Path):
+def stops_reported(prog: str, out: str | os.PathLike | None, name: str | None = None):
     """Within: Ctrl-C and SIGTERM end an experiment's command with status 130 or
-    143 and one line on stderr saying what its run folder ``out`` holds, not a
+    143 and one line on stderr saying what its run folder ``out`` (None:
+    ``runs/<name>``, as :func:`run_dir` takes it) holds, not a
     traceback (or, for SIGTERM, nothing at all). A run stopped after it began
     writing leaves the files it finished, each whole, named in that line: those
     that are new or replaced since the run began (another inode or mtime; no
@@ -186,6 +187,7 @@ def stops_reported(prog: str, out: Path):
     where its handler is the default one (not under a caller that set its
     own) and in the main thread; pool workers put the default back
     (:func:`_init_worker`)."""
+    out = Path(out) if out is not None else Path("runs") / str(name)
     previous = None
     if (
         threading.current_thread() is threading.main_thread()

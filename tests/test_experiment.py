@@ -1583,3 +1583,17 @@ def test_the_common_flags_reach_the_config_and_a_bad_out_is_named_by_its_flag(
     assert "error: --out (out): file exists and is not a folder" in (
         capsys.readouterr().err
     )
+
+
+def test_a_stop_without_out_names_the_default_run_folder(tmp_path, monkeypatch, capsys):
+    """No ``--out``: the line names ``runs/<name>``, the folder the run writes."""
+
+    def stopped_main(config, folder):
+        raise KeyboardInterrupt
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(cartpole_prediction, "main", stopped_main)
+    assert _exit_status(cartpole_prediction, ["--no-record"]) == 130
+    assert capsys.readouterr().err.endswith(
+        "it had written nothing to runs/cartpole_prediction\n"
+    )
