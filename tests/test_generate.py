@@ -612,6 +612,16 @@ def test_diverged_episodes_are_counted_and_named_in_the_manifest(tmp_path, monke
     assert len(Transitions.load(tmp_path / "shard-00000.npz")) == 3 * 10
 
 
+def _resumes_as_an_uninterrupted_run(resume, argv, out, tmp_path, redone):
+    """``resume`` (the command a stopped run printed) redoes the shards
+    ``redone``, and the run then has the bytes of an uninterrupted run of
+    ``argv`` (two shards)."""
+    assert generate.main(resume[3:]).redone == redone
+    generate.main([*argv, "--out", str(tmp_path / "whole")])
+    for name in ("manifest.json", "shard-00000.npz", "shard-00001.npz"):
+        assert (out / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()
+
+
 def test_workers_choose_in_process_or_a_process_pool():
     """`--workers 1` runs in the calling process; more, in a process pool (the
     bytes are the same, tests/test_generate_scale.py: only where they run)."""
@@ -653,10 +663,7 @@ def test_ctrl_c_keeps_the_finished_shards_and_says_how_to_resume(
         f"in {out}; resume with the same command plus --resume: {shlex.join(resume)}\n"
     )
     monkeypatch.setattr(generate, "run_shard", run_shard)
-    assert generate.main(resume[3:]).redone == (stopped_at,)
-    generate.main([*argv, "--out", str(tmp_path / "whole")])
-    for name in ("manifest.json", "shard-00000.npz", "shard-00001.npz"):
-        assert (out / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()
+    _resumes_as_an_uninterrupted_run(resume, argv, out, tmp_path, (stopped_at,))
 
 
 @pytest.mark.parametrize("cancelled", [0, 1])
@@ -697,10 +704,7 @@ def test_cancelled_shards_keep_the_finished_ones_and_say_how_to_resume(
         f"{shlex.join(resume)}\n"
     )
     monkeypatch.undo()
-    assert generate.main(resume[3:]).redone == (cancelled,)
-    generate.main([*argv, "--out", str(tmp_path / "whole")])
-    for name in ("manifest.json", "shard-00000.npz", "shard-00001.npz"):
-        assert (out / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()
+    _resumes_as_an_uninterrupted_run(resume, argv, out, tmp_path, (cancelled,))
 
 
 def test_a_shard_the_pool_finished_as_ctrl_c_came_is_kept(
@@ -748,10 +752,7 @@ def test_a_shard_the_pool_finished_as_ctrl_c_came_is_kept(
         f"in {out}; resume with the same command plus --resume: {shlex.join(resume)}\n"
     )
     monkeypatch.undo()
-    assert generate.main(resume[3:]).redone == (1,)
-    generate.main([*argv, "--out", str(tmp_path / "whole")])
-    for name in ("manifest.json", "shard-00000.npz", "shard-00001.npz"):
-        assert (out / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()
+    _resumes_as_an_uninterrupted_run(resume, argv, out, tmp_path, (1,))
 
 
 def test_a_resumed_run_stopped_again_says_to_run_its_own_command_again(
@@ -912,10 +913,7 @@ def test_a_worker_running_other_software_refuses_its_shard(
         f"--resume: {shlex.join(resume)}\n"
     )
     monkeypatch.undo()
-    assert generate.main(resume[3:]).redone == (1,)
-    generate.main([*argv, "--out", str(tmp_path / "whole")])
-    for name in ("manifest.json", "shard-00000.npz", "shard-00001.npz"):
-        assert (out / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()
+    _resumes_as_an_uninterrupted_run(resume, argv, out, tmp_path, (1,))
 
 
 def test_a_dask_worker_running_other_software_stops_the_run_before_any_file(
