@@ -149,24 +149,29 @@ def _method_entry(key: str, methods: set[str], other: dict) -> bool:
     return False
 
 
-def flatten(x: Any, prefix: str = "") -> dict[str, Any]:
-    """Nested dicts and lists as ``{"a.b.0": leaf}``."""
+def flatten(x: Any, prefix: str = "", lists: bool = True) -> dict[str, Any]:
+    """Nested dicts and lists as ``{"a.b.0": leaf}``; with ``lists=False`` a list
+    is a leaf (``{"a.b": [...]}``)."""
     if isinstance(x, dict) and x:
         items = x.items()
-    elif isinstance(x, list) and x:
+    elif isinstance(x, list) and x and lists:
         items = enumerate(x)
     else:  # a leaf, or an empty container (kept: {"a": []} is not {})
         return {prefix: x}
     out: dict[str, Any] = {}
     for k, v in items:
-        out.update(flatten(v, f"{prefix}.{k}" if prefix else str(k)))
+        out.update(flatten(v, f"{prefix}.{k}" if prefix else str(k), lists))
     return out
 
 
-def differences(a: dict, b: dict, skip: tuple[str, ...] = ()) -> dict[str, list]:
-    """Dotted keys whose leaves differ, ``[a's, b's]`` (None where absent);
-    keys whose last part is in ``skip`` are left out."""
-    fa, fb = flatten(a), flatten(b)
+def differences(
+    a: dict, b: dict, skip: tuple[str, ...] = (), lists: bool = True
+) -> dict[str, list]:
+    """Dotted keys whose leaves differ, ``[a's, b's]`` (None where absent), as
+    :func:`flatten` names them (with ``lists=False``, a list is one value:
+    ``methods: [[], ["x=m:A"]]``); keys whose last part is in ``skip`` are left
+    out."""
+    fa, fb = flatten(a, lists=lists), flatten(b, lists=lists)
     return {
         k: [fa.get(k), fb.get(k)]
         for k in sorted(fa.keys() | fb.keys())
@@ -377,7 +382,7 @@ def main(run_a: str | Path, run_b: str | Path, out: str | Path | None = None):
     a, b = Path(run_a), Path(run_b)
     config_a, metrics_a, env_a = read_run(a)
     config_b, metrics_b, env_b = read_run(b)
-    config = differences(config_a, config_b, PRESENTATION)
+    config = differences(config_a, config_b, PRESENTATION, lists=False)
     environment = differences(env_a, env_b) if env_a and env_b else "unrecorded"
     not_compared = tuple(
         key for key in ADDED_METRICS if (key in metrics_a) != (key in metrics_b)
@@ -425,8 +430,13 @@ def main(run_a: str | Path, run_b: str | Path, out: str | Path | None = None):
     return result
 
 
-def _show(items: dict, limit: int) -> list[str]:
-    lines = [f"  {k}: {v}" for k, v in list(items.items())[:limit]]
+def _show(items: dict, limit: int, pairs: bool = False) -> list[str]:
+    """``key: value`` lines, at most ``limit``; with ``pairs``, each value is
+    ``[a's, b's]``, shown as ``a's vs b's``."""
+    lines = [
+        f"  {k}: {v[0]!r} vs {v[1]!r}" if pairs else f"  {k}: {v}"
+        for k, v in list(items.items())[:limit]
+    ]
     if len(items) > limit:
         lines.append(f"  … and {len(items) - limit} more (--show N, or --out FILE)")
     return lines
@@ -455,13 +465,13 @@ def metric_groups(metrics: dict[str, list]) -> dict[str, str]:
 def report(result: Comparison, limit: int = 10) -> str:
     """The comparison as plain text."""
     lines = ["config: " + ("the same" if not result.config else "differs in")]
-    lines += _show(result.config, limit)
+    lines += _show(result.config, limit, pairs=True)
     env = result.environment
     if isinstance(env, str):
         lines.append(f"environment: {env} in at least one run")
     else:
         lines.append("environment: " + ("the same" if not env else "differs in"))
-        lines += _show(env, limit)
+        lines += _show(env, limit, pairs=True)
     same = [k for k, v in result.arrays.items() if v == "identical"]
     parted = {
         k: v for k, v in result.arrays.items() if v != "identical" and not _is_extra(v)

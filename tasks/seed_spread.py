@@ -269,7 +269,7 @@ def read_runs(
         raise ValueError(f"runs: expected distinct seeds, got {seeds}")
     for run, config in zip(runs[1:], configs[1:], strict=True):
         a, b = _settings(configs[0]), _settings(config)
-        differ = differences(a, b, PRESENTATION)
+        differ = differences(a, b, PRESENTATION, lists=False)
         if differ:
             raise ValueError(
                 f"{run}: its config differs from {runs[0]}'s in more than the seed: "

@@ -55,10 +55,12 @@ def test_an_experiment_older_than_a_field_counts_as_its_old_behaviour(tmp_path):
     assert main(a, b).config == {}
     c = _run(tmp_path / "c", config=old | {"split": "time", "methods": ["x=m:A"]})
     assert main(a, c).config == {
-        "methods": [[], None],  # flattened: an empty list is a leaf
-        "methods.0": [None, "x=m:A"],
+        "methods": [[], ["x=m:A"]],  # a list is one setting
         "split": ["random", "time"],
     }
+    assert "\n  methods: [] vs ['x=m:A']\n  split: 'random' vs 'time'\n" in report(
+        main(a, c)
+    )
     # and within the fit: before periodic and filter_weights, neither was on
     fit = {"n_sweeps": 60, "periodic": False}
     d = _run(
