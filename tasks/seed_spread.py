@@ -441,7 +441,23 @@ def report(result: dict[str, Any]) -> str:
         code = f"Note: the runs were made at different commits ({made}).\n\n"
     return (
         f"{result['experiment']}: {len(result['seeds'])} seeds "
-        f"({', '.join(result['runs'])})\n\n" + code + markdown_table(header, rows)
+        f"({', '.join(result['runs'])})\n\n"
+        + code
+        + few_seeds(len(result["seeds"]))
+        + markdown_table(header, rows)
+    )
+
+
+def few_seeds(n: int) -> str:
+    """A note on how wide the across-seeds intervals are with ``n`` < 5 seeds
+    (the Student-t quantile grows fast as degrees of freedom fall); "" from 5."""
+    if n >= 5:
+        return ""
+    t, t5 = stats.t.ppf(0.975, n - 1), stats.t.ppf(0.975, 4)
+    return (
+        f"Note: with {n} seeds an across-seeds interval is the mean ± {t:.3g} "
+        f"standard errors (Student t, {n - 1} degree{'s' * (n > 2)} of freedom), "
+        f"so it is wide; 5 seeds give ± {t5:.3g}.\n\n"
     )
 
 

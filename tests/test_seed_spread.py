@@ -503,3 +503,22 @@ def test_the_seeds_are_columns_in_the_order_the_runs_are_given(tmp_path):
     assert "| number | seed 2 | seed 0 | seed 1 |" in report(result)
     hip = _number(result, "episodes to near-optimal, hipmdp")["across_seeds"]
     assert hip == {"median": 3.0, "min": 2.0, "max": 5.0, "never": 0}
+
+
+def test_few_seeds_are_said_to_give_wide_intervals(tmp_path):
+    """Under 5 seeds the report says how many standard errors an across-seeds
+    interval spans (the t quantile: 12.7 with 2 seeds, 4.30 with 3), and from 5
+    seeds it says nothing."""
+
+    def text(name, ks):
+        (tmp_path / name).mkdir()
+        return report(main(_runs(tmp_path / name, ks=ks)))
+
+    two = text("two", (0.0, 1.0))
+    assert "with 2 seeds an across-seeds interval is the mean ± 12.7 standard " in two
+    assert "(Student t, 1 degree of freedom), so it is wide; 5 seeds give ± 2.78" in two
+    three = text("three", (0.0, 1.0, 3.0))
+    assert "with 3 seeds an across-seeds interval is the mean ± 4.3 " in three
+    assert "(Student t, 2 degrees of freedom)" in three
+    five = text("five", (0.0, 1.0, 3.0, 4.0, 6.0))
+    assert "5 seeds:" not in five and "Student t" not in five
