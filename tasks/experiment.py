@@ -949,9 +949,11 @@ def run_or_exit(parser, fn: Callable[[], Any]) -> Any:
 
 
 def plain_text(doc: str) -> str:
-    """A docstring's text for a terminal (``--help``): ``name`` and
-    :func:`name` (reStructuredText's literals and cross-references) as name."""
-    return re.sub(r":\w+:`~?([^`]+)`", r"\1", doc).replace("``", "")
+    """A docstring's text for a terminal (``--help``): ``name``, :func:`name`
+    (reStructuredText's literals and cross-references) and `name` (Markdown's
+    code) as name."""
+    text = re.sub(r":\w+:`~?([^`]+)`", r"\1", doc).replace("``", "")
+    return re.sub(r"`([^`\n]+)`", r"\1", text)
 
 
 def by_preset(presets: dict[str, Any], field: str) -> str:

@@ -101,6 +101,7 @@ from tasks.experiment import (
     one_blas_thread,
     package_versions,
     path_argument,
+    plain_text,
     seed_argument,
 )
 from tasks.rollout import MODULES, collect_open_loop
@@ -266,7 +267,7 @@ class Generated(NamedTuple):
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m tasks.generate",
-        description=__doc__,
+        description=plain_text(__doc__),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add = parser.add_argument

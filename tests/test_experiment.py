@@ -1152,6 +1152,7 @@ def test_help_gives_each_presets_default_and_plain_text(capsys):
     assert experiment.plain_text("``a`` and :func:`b` or :class:`~c.D`") == (
         "a and b or c.D"
     )
+    assert experiment.plain_text("`--vary NAME` (`x`)\n`y`") == "--vary NAME (x)\ny"
 
 
 def test_the_run_time_line_names_every_part_and_the_rest():

@@ -407,6 +407,8 @@ def test_help_describes_the_options(capsys):
         "--distribution", "--split",
     ):  # fmt: skip
         assert option in text
+    assert "`" not in text  # the docstring's Markdown code spans as plain text
+    assert "Instances (tasks.distributions): the parameters named by --vary" in text
 
 
 @pytest.mark.parametrize("split", ["all", "train", "extrapolation"])
