@@ -186,18 +186,21 @@ def stops_reported(prog: str, out: str | os.PathLike | None, name: str | None = 
     run into ``out`` replaces them (:func:`run_dir`). SIGTERM is handled only
     where its handler is the default one (not under a caller that set its
     own) and in the main thread; pool workers put the default back
-    (:func:`_init_worker`)."""
+    (:func:`_init_worker`). A second Ctrl-C or SIGTERM while the line is being
+    composed is ignored (in the main thread), so the line is whole."""
     out = Path(out) if out is not None else Path("runs") / str(name)
-    previous = None
-    if (
-        threading.current_thread() is threading.main_thread()
-        and signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
-    ):
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous, previous_int = None, None
+    if main_thread and signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:
         previous = signal.signal(signal.SIGTERM, _raise_terminated)
     before = _listing(out)
     try:
         yield
     except (KeyboardInterrupt, Terminated) as stop:
+        if main_thread:  # a second Ctrl-C or SIGTERM would cut the line short
+            previous_int = signal.signal(signal.SIGINT, signal.SIG_IGN)
+            ours = signal.signal(signal.SIGTERM, signal.SIG_IGN)
+            previous = ours if previous is None else previous
         code, how = (
             (143, "terminated (SIGTERM)")
             if isinstance(stop, Terminated)
@@ -221,6 +224,8 @@ def stops_reported(prog: str, out: str | os.PathLike | None, name: str | None = 
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+        if previous_int is not None:
+            signal.signal(signal.SIGINT, previous_int)
 
 
 def sort_blas(blas: list[dict[str, Any]]) -> list[dict[str, Any]]:

@@ -1586,6 +1586,46 @@ def test_the_common_flags_reach_the_config_and_a_bad_out_is_named_by_its_flag(
     )
 
 
+def test_a_second_stop_while_the_line_is_composed_is_ignored(
+    tmp_path, monkeypatch, capsys
+):
+    """Ctrl-C pressed again, or SIGTERM sent, while the stop's line is being
+    composed: still status 130 and the whole line, not a traceback; the two
+    handlers are put back afterwards."""
+    import signal
+
+    out = tmp_path / "run"
+    listing = experiment._listing
+    calls = []
+
+    def listing_under_a_second_stop(folder):
+        calls.append(folder)
+        if len(calls) == 2:  # the listing after the stop
+            if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:  # ends pytest
+                raise AssertionError("SIGTERM at its default while composing")
+            os.kill(os.getpid(), signal.SIGTERM)
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)  # the handlers, if any, run before this ends
+        return listing(folder)
+
+    def stopped_main(config, folder):
+        write_json(out / "config.json", {"name": config.name})
+        raise KeyboardInterrupt
+
+    before = signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)
+    monkeypatch.setattr(experiment, "_listing", listing_under_a_second_stop)
+    monkeypatch.setattr(cartpole_prediction, "main", stopped_main)
+    args = ["--no-record", "--out", str(out)]
+    assert _exit_status(cartpole_prediction, args) == 130
+    assert len(calls) == 2
+    assert (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)) == before
+    assert capsys.readouterr().err == (
+        "python -m tasks.cartpole_prediction: interrupted (Ctrl-C) before the run "
+        f"ended: {out} holds the files it finished (config.json) and no "
+        "metrics.json; the next run into it replaces them\n"
+    )
+
+
 def test_a_stop_without_out_names_the_default_run_folder(tmp_path, monkeypatch, capsys):
     """No ``--out``: the line names ``runs/<name>``, the folder the run writes."""
 
