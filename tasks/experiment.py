@@ -27,7 +27,7 @@ import tempfile
 import threading
 import time
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -189,43 +189,62 @@ def stops_reported(prog: str, out: str | os.PathLike | None, name: str | None = 
     (:func:`_init_worker`). A second Ctrl-C or SIGTERM while the line is being
     composed is ignored (in the main thread), so the line is whole."""
     out = Path(out) if out is not None else Path("runs") / str(name)
-    main_thread = threading.current_thread() is threading.main_thread()
-    previous, previous_int = None, None
-    if main_thread and signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:
+    previous = None
+    if (
+        threading.current_thread() is threading.main_thread()
+        and signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+    ):
         previous = signal.signal(signal.SIGTERM, _raise_terminated)
     before = _listing(out)
     try:
         yield
     except (KeyboardInterrupt, Terminated) as stop:
-        if main_thread:  # a second Ctrl-C or SIGTERM would cut the line short
-            previous_int = signal.signal(signal.SIGINT, signal.SIG_IGN)
-            ours = signal.signal(signal.SIGTERM, signal.SIG_IGN)
-            previous = ours if previous is None else previous
         code, how = (
             (143, "terminated (SIGTERM)")
             if isinstance(stop, Terminated)
             else (130, "interrupted (Ctrl-C)")
         )
-        after = _listing(out)
-        written = sorted(name for name, v in after.items() if before.get(name) != v)
-        if written:
-            tail = "" if "metrics.json" in written else " and no metrics.json"
-            left = (
-                f"{out} holds the files it finished ({', '.join(written)}){tail}; "
-                "the next run into it replaces them"
-            )
-        else:
-            left = f"it had written nothing to {out}"
-            removed = sorted(before.keys() - after.keys())
-            if removed:  # run_dir deletes the previous run's files first
-                left += f", after removing the previous run's ({', '.join(removed)})"
-        print(f"{prog}: {how} before the run ended: {left}", file=sys.stderr)
+        with stops_ignored():  # a second stop would cut the line short
+            after = _listing(out)
+            written = sorted(n for n, v in after.items() if before.get(n) != v)
+            if written:
+                tail = "" if "metrics.json" in written else " and no metrics.json"
+                left = (
+                    f"{out} holds the files it finished ({', '.join(written)})"
+                    f"{tail}; the next run into it replaces them"
+                )
+            else:
+                left = f"it had written nothing to {out}"
+                removed = sorted(before.keys() - after.keys())
+                if removed:  # run_dir deletes the previous run's files first
+                    left += (
+                        f", after removing the previous run's ({', '.join(removed)})"
+                    )
+            print(f"{prog}: {how} before the run ended: {left}", file=sys.stderr)
         raise SystemExit(code) from None
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
-        if previous_int is not None:
-            signal.signal(signal.SIGINT, previous_int)
+
+
+@contextlib.contextmanager
+def stops_ignored() -> Iterator[None]:
+    """Within: Ctrl-C and SIGTERM are ignored (in the main thread; elsewhere
+    signals cannot be set), for a command composing the line that says how it
+    stopped; the handlers are put back on leaving."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {
+        signum: signal.signal(signum, signal.SIG_IGN)
+        for signum in (signal.SIGINT, signal.SIGTERM)
+    }
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            if handler is not None:  # None: set outside Python, cannot be put back
+                signal.signal(signum, handler)
 
 
 def sort_blas(blas: list[dict[str, Any]]) -> list[dict[str, Any]]:

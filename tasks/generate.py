@@ -103,6 +103,7 @@ from tasks.experiment import (
     path_argument,
     plain_text,
     seed_argument,
+    stops_ignored,
 )
 from tasks.rollout import MODULES, collect_open_loop
 
@@ -1219,11 +1220,13 @@ def main(argv: Sequence[str] | None = None) -> Generated:
             started = True
             result = generate(config, prepared=prepared)
     except KeyboardInterrupt:
-        stopped = _interrupted(config, argv, started=started)
-        parser.exit(130, f"{parser.prog}: {stopped}\n")
+        with stops_ignored():  # a second stop would cut the line short
+            stopped = _interrupted(config, argv, started=started)
+            parser.exit(130, f"{parser.prog}: {stopped}\n")
     except Terminated:
-        stopped = _interrupted(config, argv, started=started, what="terminated")
-        parser.exit(143, f"{parser.prog}: {stopped}\n")
+        with stops_ignored():
+            stopped = _interrupted(config, argv, started=started, what="terminated")
+            parser.exit(143, f"{parser.prog}: {stopped}\n")
     except BusyError as error:  # another run took --out after `prepare` looked
         parser.error(str(error))
     except cf.CancelledError:  # Dask cancels every task when it loses the scheduler

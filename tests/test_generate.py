@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import shlex
 import signal
+import time
 
 import numpy as np
 import pytest
@@ -780,6 +782,42 @@ def test_a_resumed_run_stopped_again_says_to_run_its_own_command_again(
         f"python -m tasks.generate: interrupted: 1 of 2 shards finished are kept "
         f"in {out}; resume with the same command: "
         f"{shlex.join(['python', '-m', 'tasks.generate', *argv])}\n"
+    )
+
+
+def test_a_second_stop_while_the_line_is_composed_is_ignored(
+    tmp_path, capsys, monkeypatch
+):
+    """Ctrl-C pressed again, or SIGTERM sent, while the stopped run reads its
+    manifest to say what it kept: still status 130 and the whole line, not a
+    traceback; the handlers are put back."""
+    out = tmp_path / "stopped"
+    argv = ["--domain", "acrobot", "--seed", "3", *TINY, *QUIET, "--out", str(out)]
+    run_shard, interrupted = generate.run_shard, generate._interrupted
+
+    def ctrl_c_at_shard_1(job):
+        if job.index == 1:
+            raise KeyboardInterrupt
+        return run_shard(job)
+
+    def under_a_second_stop(*args, **kwargs):
+        if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:  # would end pytest
+            raise AssertionError("SIGTERM at its default while composing")
+        os.kill(os.getpid(), signal.SIGTERM)
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)  # the handlers, if any, run before this ends
+        return interrupted(*args, **kwargs)
+
+    before = signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)
+    monkeypatch.setattr(generate, "run_shard", ctrl_c_at_shard_1)
+    monkeypatch.setattr(generate, "_interrupted", under_a_second_stop)
+    with pytest.raises((SystemExit, KeyboardInterrupt)) as stopped:  # not pytest's
+        generate.main(argv)
+    assert stopped.type is SystemExit and stopped.value.code == 130
+    assert (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)) == before
+    assert capsys.readouterr().err.startswith(
+        f"python -m tasks.generate: interrupted: 1 of 2 shards finished are kept "
+        f"in {out}; resume with the same command plus --resume: "
     )
 
 
