@@ -335,9 +335,15 @@ class SimulatedEpisodes:
 
     def __post_init__(self) -> None:
         s0 = np.array(self.start_states, dtype=np.float64)
-        if s0.ndim != 2 or s0.shape[0] < 1 or not np.all(np.isfinite(s0)):
+        if s0.ndim != 2 or s0.shape[0] < 1:
             raise ValueError(
-                f"start_states: expected finite shape (N >= 1, D), got {s0.shape}"
+                f"start_states: expected shape (N >= 1, D), got {s0.shape}"
+            )
+        bad = np.argwhere(~np.isfinite(s0))
+        if bad.size:
+            raise ValueError(
+                f"start_states: expected finite values, got {s0[tuple(bad[0])]} at "
+                f"index {tuple(int(i) for i in bad[0])}"
             )
         self.states = s0
         self.steps = np.zeros(s0.shape[0], dtype=np.int64)

@@ -171,9 +171,15 @@ def test_stepwise_model_refuses_a_row_shaped_next_state():  # P-step shape
 
 
 def test_simulated_episodes_refuse_non_finite_start_states():
-    for bad in ([[np.nan]], [[np.inf], [0.0]]):
-        with pytest.raises(ValueError, match="start_states: expected finite"):
+    """The message named the (correct) shape, not the value or where it was."""
+    for bad, match in (
+        ([[np.nan]], r"expected finite values, got nan at index \(0, 0\)"),
+        ([[0.0], [np.inf]], r"expected finite values, got inf at index \(1, 0\)"),
+    ):
+        with pytest.raises(ValueError, match="start_states: " + match):
             SimulatedEpisodes(Corridor(), TASK, np.array(bad))
+    with pytest.raises(ValueError, match=r"start_states: expected shape \(N >= 1, D"):
+        SimulatedEpisodes(Corridor(), TASK, np.zeros(2))
 
 
 def test_reached_says_whether_a_terminal_state_was_reached_so_far():
