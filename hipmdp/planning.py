@@ -529,7 +529,7 @@ def _check_plan_arguments(
     """A ValueError naming the argument of :func:`plan` that is not of its kind
     (passed in another order, they failed as AttributeErrors deep in the loop),
     and for a model whose ``predict`` needs a belief (a bare HiP-MDP) or whose
-    action count differs from the agent's."""
+    action count differs from the agent's, or state dimension from the basis's."""
     for name, value, kind in (
         ("state", state, SarsaState), ("basis", basis, FourierBasis),
         ("config", config, SarsaConfig), ("task", task, PlanningTask),
@@ -560,6 +560,12 @@ def _check_plan_arguments(
         raise ValueError(
             f"state.weights: the agent has {state.weights.shape[0]} actions, the "
             f"model {int(n_actions)}"
+        )
+    d = _state_dim(inner)
+    if d is not None and d != basis.state_dim:
+        raise ValueError(
+            f"basis: expected a basis over the model's {d} state dimensions, got "
+            f"one over {basis.state_dim}"
         )
 
 

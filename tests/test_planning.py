@@ -518,6 +518,21 @@ def test_plan_refuses_an_agent_with_another_number_of_actions_than_the_model():
                  rng=np.random.default_rng(0))  # fmt: skip
 
 
+def test_plan_refuses_a_basis_over_another_state_dimension_than_the_models():
+    """A 3-D basis with a 2-D model blamed the (right) start states."""
+
+    class TwoDims(PlainModel):
+        state_dim = 2
+
+    basis = FourierBasis(1, np.zeros(3), np.ones(3))
+    for model in (TwoDims(), LearnedModel(TwoDims())):
+        with pytest.raises(ValueError, match="basis: expected a basis over the "
+                           "model's 2 state dimensions, got one over 3"):  # fmt: skip
+            plan(init_state(2, basis.n_features), basis, SarsaConfig(), model,
+                 CORRIDOR_TASK, np.zeros((1, 2)), 1,
+                 rng=np.random.default_rng(0))  # fmt: skip
+
+
 @pytest.mark.parametrize(
     "reward, terminal, match",
     [
