@@ -21,6 +21,7 @@ Pipeline (DESIGN §2):
 from __future__ import annotations
 
 import numbers
+import warnings
 from dataclasses import asdict, dataclass, replace
 
 import numpy as np
@@ -30,7 +31,7 @@ from tqdm.auto import tqdm
 from hipmdp.data import Transitions, check_integer, check_rng
 from hipmdp.filter import prior_belief, update_belief
 from hipmdp.gibbs import GibbsData, GibbsPriors, run_chains
-from hipmdp.gp import HyperSet, condition, fit_hyper_set, subsample
+from hipmdp.gp import MIN_SCALE, HyperSet, condition, fit_hyper_set, subsample
 from hipmdp.kernels import se_kernel
 from hipmdp.model import FILTER_WEIGHTS, HipMDP
 from hipmdp.support import select_support
@@ -171,7 +172,8 @@ def check_batch(data: Transitions, config: FitConfig) -> None:
     instances, every action 0..A-1 observed in every instance, magnitudes up to
     MAX_MAGNITUDE, and enough distinct states for the support points. (Shapes and
     finiteness are checked by Transitions itself and again here, in case arrays
-    were modified in place.)"""
+    were modified in place.) Warns (RuntimeWarning) if an action's changes in a
+    dimension are nonzero but of mean square below `hipmdp.gp.MIN_SCALE`."""
     if not isinstance(data, Transitions):
         raise ValueError(
             f"data: expected hipmdp.Transitions, got {type(data).__name__}"
@@ -211,6 +213,21 @@ def check_batch(data: Transitions, config: FitConfig) -> None:
             f"FitConfig.n_support: expected at most {n_distinct} (distinct states in "
             f"data), got {config.n_support}"
         )
+    deltas = data.deltas
+    for a in range(data.n_actions):
+        ms = np.mean(deltas[data.actions == a] ** 2, axis=0)
+        small = np.flatnonzero((ms > 0) & (ms < MIN_SCALE))
+        if len(small):
+            d = int(small[0])
+            warnings.warn(
+                f"data.deltas: action {a}, dimension {d} has mean squared change "
+                f"{ms[d]:.3g}, below {MIN_SCALE:g}, where the GP hyperparameter "
+                "search stops scaling its bounds to the data (hipmdp.gp.MIN_SCALE): "
+                "the fit will likely be poor; rescale the states (e.g. to SI units)",
+                RuntimeWarning,
+                stacklevel=3,
+            )
+            break
 
 
 def smooth_onto_support(

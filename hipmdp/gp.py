@@ -30,6 +30,11 @@ Array = np.ndarray
 _LENGTH_RANGE = 1e2  # ℓ_j within [std_j / 100, std_j * 100]
 _SIGNAL_RANGE = (1e-4, 1e2)  # σ_f² within this factor of mean(y²)
 _NOISE_RANGE = (1e-8, 1.0)  # σ_n² within this factor of mean(y²)
+#: The floor of the targets' scale mean(y²) that the bounds are relative to: targets
+#: whose mean square is below it get bounds that are not scaled to them (a
+#: pendulum's changes scaled by 1e-10, mean square ~1e-20, fitted a one-feature
+#: HiP-MDP with a held-out MSE about the changes' variance; unscaled, 3e-6 of it).
+MIN_SCALE = 1e-12
 
 
 class GPHyper(NamedTuple):
@@ -156,7 +161,7 @@ def _bounds(
     y = np.concatenate([g[1] for g in groups])
     std = X.std(0)
     std = np.where(std > 0, std, 1.0)
-    scale = max(float(np.mean(y * y)), 1e-12)
+    scale = max(float(np.mean(y * y)), MIN_SCALE)
     theta0 = np.concatenate([np.log(std), [np.log(scale), np.log(1e-2 * scale)]])
     lr = np.log(_LENGTH_RANGE)
     bounds = [(float(np.log(s) - lr), float(np.log(s) + lr)) for s in std]

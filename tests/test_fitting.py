@@ -176,6 +176,26 @@ def test_check_batch_counts_distinct_states_for_the_support():
         check_batch(twice, FitConfig(n_support=n + 1, n_candidates=n + 1))
 
 
+def test_check_batch_warns_of_changes_too_small_for_the_hyperparameter_bounds():
+    """Changes of mean square below 1e-12 fitted a useless model without a word:
+    the bounds of the hyperparameter search stop following the data there. A
+    dimension that never changes (mean square 0) is not warned of."""
+    data = _batch(np.random.default_rng(0))
+    config = FitConfig(n_support=10, n_candidates=10)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_batch(data, config)
+        still = data.next_states.copy()
+        still[:, 1] = data.states[:, 1]
+        check_batch(Transitions(data.states, data.actions, still, data.instances),
+                    config)  # fmt: skip
+    tiny = Transitions(data.states * 1e-10, data.actions, data.next_states * 1e-10,
+                       data.instances)  # fmt: skip
+    with pytest.warns(RuntimeWarning, match=r"data.deltas: action 0, dimension 0 "
+                      r"has mean squared change .* below 1e-12"):  # fmt: skip
+        check_batch(tiny, config)
+
+
 def test_fit_hands_the_sampler_rows_a_d_and_takes_the_dense_weights(monkeypatch):
     """What `fit` gives the sampler and makes of its best sample, against plain
     formulas. Rows r = a·D + d: Y[r, b] the dense GP mean of all of instance b's
