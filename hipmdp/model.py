@@ -341,7 +341,12 @@ class HipMDP:
 
     # -- online filtering ------------------------------------------------------------
     def prior(self) -> Belief:
-        """Belief over an unseen instance's weights k = 2..K: N(μ_w, σ_w² I)."""
+        """Belief over an unseen instance's weights k = 2..K: N(μ_w, σ_w² I).
+
+        In the arrays' 0-based indexing these are rows 1..K-1 of `weights` (row
+        0, the mean dynamics, is the constant 1): `belief.mean[j]` is the new
+        instance's counterpart of `weights[j + 1]`, and `mu_w[1:]` the prior mean.
+        """
         return prior_belief(self.mu_w[1:], self.sigma_w, model=self.basis_key)
 
     def _check_belief(self, belief: Belief) -> None:
