@@ -122,15 +122,17 @@ class LearnedModel:
             ``LearnedModel`` with the updated one.
         angle_dims: state dimensions that are angles; for a model that records
             the angles it was fitted with (``info["angle_dims"]``, as a fitted
-            HiP-MDP does), the same ones, or a ValueError says they differ. They
-            are checked against ``D`` here when the model (or the mean predictor
-            built from it) has a ``state_dim``, otherwise against the states
-            given to ``predict``, before the model is called.
+            HiP-MDP does), the same ones, or a ValueError says they differ.
+            ``None`` (the default): the model's recorded ones, or none for a
+            model that records none. They are checked against ``D`` here when
+            the model (or the mean predictor built from it) has a
+            ``state_dim``, otherwise against the states given to ``predict``,
+            before the model is called.
     """
 
     model: Any
     belief: Any = None
-    angle_dims: tuple[int, ...] = ()
+    angle_dims: tuple[int, ...] | None = None
     _mean: Callable[[Array, NDArray[np.int64]], Array] | None = field(
         init=False, repr=False, compare=False, default=None
     )
@@ -155,11 +157,14 @@ class LearnedModel:
                 check_angle_dims(self.angle_dims, _state_dim(self._mean))
 
     def _checked_angle_dims(self, d: int | None) -> tuple[int, ...]:
-        dims = check_angle_dims(self.angle_dims, d)
         # a fitted HiP-MDP records the angles of its batch (hipmdp.fit): planning
         # must wrap the same ones
         info = getattr(self.model, "info", None)
         fitted = info.get("angle_dims") if isinstance(info, dict) else None
+        given = self.angle_dims
+        if given is None:
+            given = () if fitted is None else fitted
+        dims = check_angle_dims(given, d)
         if fitted is not None and tuple(fitted) != dims:
             raise ValueError(
                 f"angle_dims: {dims} differs from the fitted model's {tuple(fitted)}"

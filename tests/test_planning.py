@@ -128,6 +128,7 @@ def test_learned_model_checks_angles_and_belief_when_built() -> None:
             return lambda states, actions: states
 
     assert LearnedModel(Fitted(), "b", [np.int64(0), 1]).angle_dims == (0, 1)
+    assert LearnedModel(Fitted(), "b").angle_dims == (0, 1)  # the recorded ones
     for dims, match in [
         ((), r"angle_dims: \(\) differs from the fitted model's \(0, 1\)"),
         ((1, 0), r"differs"),
@@ -148,6 +149,7 @@ def test_learned_model_checks_angles_and_belief_when_built() -> None:
     with pytest.raises(ValueError, match="belief: the model's mean_predictor takes"):
         LearnedModel(Average(), "b")
     assert LearnedModel(Average(), None, (5,)).angle_dims == (5,)  # no state_dim
+    assert LearnedModel(Average()).angle_dims == ()  # none recorded: none
     # a model and belief passed the other way round failed at the first predict
     with pytest.raises(ValueError, match="model: expected a model of Δs with predict"):
         LearnedModel("b", Fitted())
