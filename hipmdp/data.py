@@ -845,6 +845,24 @@ class Transitions:
 
     # -- shape facts ------------------------------------------------------------------
 
+    def __repr__(self) -> str:
+        """A summary, not the arrays: ``Transitions(N=2400, D=2, actions=3,
+        instances=8, rewards, angle_dims=(0,), dt=0.1)``."""
+        parts = [
+            f"N={len(self)}",
+            f"D={self.state_dim}",
+            f"actions={self.n_actions}",
+            f"instances={len(self.instance_ids)}",
+        ]
+        parts += [
+            name for name in ("rewards", "dones") if getattr(self, name) is not None
+        ]
+        if self.angle_dims:
+            parts.append(f"angle_dims={self.angle_dims}")
+        if self.dt is not None:
+            parts.append(f"dt={self.dt:g}")
+        return f"Transitions({', '.join(parts)})"
+
     def __len__(self) -> int:
         return self.states.shape[0]
 

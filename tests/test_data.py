@@ -86,6 +86,21 @@ def test_shape_facts():
     np.testing.assert_array_equal(t.instance_ids, np.unique(t.instances))
 
 
+def test_repr_summarises_instead_of_printing_the_arrays():
+    """A batch of thousands of transitions printed a screenful of arrays."""
+    n = 3000
+    rng = np.random.default_rng(0)
+    s = rng.normal(size=(n, 2))
+    data = Transitions(s, np.arange(n) % 3, s + 0.1, np.arange(n) // 375,
+                       rewards=np.zeros(n), angle_dims=(0,), dt=0.05)  # fmt: skip
+    assert repr(data) == (
+        "Transitions(N=3000, D=2, actions=3, instances=8, rewards, angle_dims=(0,), "
+        "dt=0.05)"
+    )
+    plain = Transitions(s[:4], [0, 1, 1, 0], s[:4], [5, 5, 6, 6])
+    assert repr(plain) == "Transitions(N=4, D=2, actions=2, instances=2)"
+
+
 def test_select_by_instance_and_action():
     t = make(n=200)
     sub = t.select(instances=[1, 2], actions=0)
