@@ -356,6 +356,7 @@ def fit(data: Transitions, config: FitConfig, *, rng: np.random.Generator) -> Hi
         n_subsample=config.n_hyper,
         rng=rng_hyper,
         periodic=config.periodic_dims(data),
+        progress=config.progress,
     )
     support = select_support(
         data.states,

@@ -20,6 +20,7 @@ from typing import NamedTuple
 
 import numpy as np
 from scipy import linalg, optimize
+from tqdm.auto import tqdm
 
 from hipmdp.data import check_integer, check_rng, read_only
 from hipmdp.kernels import check_periodic, se_kernel, se_kernel_grad
@@ -290,6 +291,7 @@ def fit_hyper_set(
     n_subsample: int,
     rng: np.random.Generator,
     periodic: tuple[int, ...] = (),
+    progress: bool = False,
 ) -> HyperSet:
     """Fit the hyperparameters of every `(a, d)` GP on a reproducible subsample.
 
@@ -297,8 +299,8 @@ def fit_hyper_set(
     For each action a, at most `max(2, n_subsample // B)` transitions per instance
     are drawn (without replacement, from `rng`), and for each d the summed
     per-instance marginal likelihood is maximised (`fit_hyperparameters`);
-    periodic: the angle dimensions of the states (`hipmdp.kernels`). Returns a
-    HyperSet.
+    periodic: the angle dimensions of the states (`hipmdp.kernels`); progress: a
+    bar over the `(a, d)` fits. Returns a HyperSet.
     """
     states, deltas = np.asarray(states, float), np.asarray(deltas, float)
     actions, instances = np.asarray(actions), np.asarray(instances)
@@ -333,13 +335,15 @@ def fit_hyper_set(
     ell = np.empty((n_actions, D, D))
     sf2 = np.empty((n_actions, D))
     sn2 = np.empty((n_actions, D))
-    for a in range(n_actions):
-        rows = []
-        for b in ids:
-            idx = np.flatnonzero((actions == a) & (instances == b))
-            rows.append(idx[subsample(len(idx), per_instance, rng=rng)])
-        for d in range(D):
-            groups = [(states[r], deltas[r, d]) for r in rows if len(r)]
-            h = fit_hyperparameters(groups, periodic)
-            ell[a, d], sf2[a, d], sn2[a, d] = h[:3]
+    with tqdm(total=n_actions * D, desc="hyperparameters", disable=not progress) as bar:
+        for a in range(n_actions):
+            rows = []
+            for b in ids:
+                idx = np.flatnonzero((actions == a) & (instances == b))
+                rows.append(idx[subsample(len(idx), per_instance, rng=rng)])
+            for d in range(D):
+                groups = [(states[r], deltas[r, d]) for r in rows if len(r)]
+                h = fit_hyperparameters(groups, periodic)
+                ell[a, d], sf2[a, d], sn2[a, d] = h[:3]
+                bar.update()
     return HyperSet(ell, sf2, sn2, periodic)

@@ -4,6 +4,7 @@ posterior weights."""
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 
 import numpy as np
@@ -108,6 +109,25 @@ def test_data_at_the_magnitude_limit_fit_without_overflow():
         warnings.simplefilter("error")  # an overflow warns before it shows
         model = fit(big, config, rng=np.random.default_rng(1))
     assert np.all(np.isfinite(model.f)) and np.all(np.isfinite(model.weights))
+
+
+def test_fit_shows_a_bar_per_stage_when_asked(capsys):
+    """Every stage that takes a while has a bar (the hyperparameters had none:
+    seconds of silence before the first), and none without ``progress``; the
+    bars change nothing."""
+    data = _batch(np.random.default_rng(0))
+    config = FitConfig(n_support=20, n_sweeps=2, n_chains=1)
+    shown = fit(data, config, rng=np.random.default_rng(1))
+    err = capsys.readouterr().err
+    for stage in ("hyperparameters", "support points", "smoothing", "gibbs"):
+        assert f"{stage}:" in err
+    assert "hyperparameters: 100%" in err and "| 6/6 " in err  # A × D fits
+    quiet = fit(
+        data, dataclasses.replace(config, progress=False), rng=np.random.default_rng(1)
+    )
+    assert capsys.readouterr().err == ""
+    np.testing.assert_array_equal(shown.f, quiet.f)
+    np.testing.assert_array_equal(shown.hyper.lengthscales, quiet.hyper.lengthscales)
 
 
 @pytest.mark.parametrize(
