@@ -20,14 +20,19 @@ every step adds a sum over rows, one update with n transitions equals n single u
 
 from __future__ import annotations
 
+import json
+import os
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from scipy import linalg
 
-from hipmdp.data import is_real_number, read_only
+from hipmdp.data import atomic_write, is_real_number, load_npz, npz_bytes, read_only
 
 Array = np.ndarray
+#: What a belief file's metadata says it is (:meth:`Belief.save`).
+BELIEF_KIND = "hipmdp.Belief"
 
 
 @dataclass(frozen=True, eq=False)
@@ -89,6 +94,44 @@ class Belief:
         if self.dim == 0:
             return np.zeros((0, 0))
         return linalg.cho_solve(linalg.cho_factor(self.P, lower=True), np.eye(self.dim))
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write ``h``, ``P`` and ``model`` to one .npz, atomically, no pickle (to
+        go on filtering an instance in another process: :meth:`load`). The
+        bytes depend only on the belief. Returns the path."""
+        path = Path(path)
+        if path.suffix != ".npz":
+            raise ValueError(f"path: expected a .npz file name, got {path.name!r}")
+        meta = {"kind": BELIEF_KIND, "format_version": 1, "model": self.model}
+        data = npz_bytes({"h": self.h, "P": self.P, "meta_json": json.dumps(meta)})
+        return atomic_write(path, lambda fh: fh.write(data), clean=True)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> Belief:
+        """Read a belief written by :meth:`save` (allow_pickle=False); a
+        ValueError names the file and what is wrong with it."""
+        with load_npz(path) as npz:
+            names = sorted(npz.files)
+            if names != ["P", "h", "meta_json"]:
+                raise ValueError(
+                    f"{path}: not a belief file (expected arrays h, P and "
+                    f"meta_json, got {', '.join(names) or 'none'})"
+                )
+            h, P, raw = npz["h"], npz["P"], str(npz["meta_json"])
+        try:
+            meta = json.loads(raw)
+        except ValueError:
+            raise ValueError(f"{path}: meta_json is not valid JSON") from None
+        if not isinstance(meta, dict) or meta.get("kind") != BELIEF_KIND:
+            raise ValueError(f"{path}: not a belief file (meta_json's kind)")
+        if meta.get("format_version") != 1:
+            raise ValueError(
+                f"{path}: expected format_version 1, got {meta.get('format_version')}"
+            )
+        try:
+            return cls(h, P, model=meta.get("model"))
+        except ValueError as error:
+            raise ValueError(f"{path}: {error}") from None
 
 
 def prior_belief(mu_w: Array, sigma_w: float, model: str | None = None) -> Belief:

@@ -406,3 +406,62 @@ def test_interpolation_variance_is_never_negative():
     v = model.interpolation_var(states, actions)
     assert np.all(v >= 0.0)
     assert v.max() < 1e-9  # round-off of 1e4·1e-16 per term, summed over 60 terms
+
+
+def test_a_saved_belief_loads_as_it_was_and_goes_on_filtering(tmp_path):
+    """A belief filtered on some transitions, saved and loaded, is the same
+    belief (h, P and the model it is over), the model takes it, and the file's
+    bytes depend only on the belief."""
+    model = _model()
+    rng = np.random.default_rng(3)
+    s = rng.uniform(-1, 1, size=(5, D))
+    data = Transitions(s, np.arange(5) % A, s + 0.1, np.zeros(5, int))
+    belief = model.update(model.prior(), data)
+    path = belief.save(tmp_path / "belief.npz")
+    loaded = Belief.load(path)
+    np.testing.assert_array_equal(loaded.h, belief.h)
+    np.testing.assert_array_equal(loaded.P, belief.P)
+    assert loaded.model == belief.model == model.basis_key
+    more = Transitions(s, (np.arange(5) + 1) % A, s - 0.1, np.zeros(5, int))
+    np.testing.assert_array_equal(
+        model.update(loaded, more).h, model.update(belief, more).h
+    )
+    again = loaded.save(tmp_path / "again.npz")
+    assert again.read_bytes() == path.read_bytes()
+    by_hand = Belief.load(Belief(np.zeros(2), np.eye(2)).save(tmp_path / "h.npz"))
+    assert by_hand.model is None
+
+
+def test_a_belief_file_that_is_not_one_is_refused(tmp_path):
+    """Another .npz, a model file, a damaged one, or one whose precision is not
+    positive definite: a ValueError naming the file and what is wrong."""
+    from hipmdp.data import npz_bytes
+
+    with pytest.raises(ValueError, match=r"path: expected a \.npz file name"):
+        Belief(np.zeros(1), np.eye(1)).save(tmp_path / "belief.json")
+    model_file = _model().save(tmp_path / "model.npz")
+    with pytest.raises(ValueError, match=r"model.npz: not a belief file \(expected"):
+        Belief.load(model_file)
+    good = Belief(np.ones(2), 2 * np.eye(2)).save(tmp_path / "b.npz").read_bytes()
+    cut = tmp_path / "cut.npz"
+    cut.write_bytes(good[: len(good) // 2])
+    with pytest.raises(ValueError, match="cut.npz: not an .npz archive"):
+        Belief.load(cut)
+
+    def written(name, meta, sign=1.0):
+        path = tmp_path / name
+        arrays = {"h": np.zeros(2), "P": sign * np.eye(2), "meta_json": meta}
+        path.write_bytes(npz_bytes(arrays))
+        return path
+
+    kind = '"kind": "hipmdp.Belief"'
+    for path, match in [
+        (written("k.npz", '{"kind": "x", "format_version": 1}'), "meta_json's kind"),
+        (written("j.npz", "{"), "meta_json is not valid JSON"),
+        (written("v.npz", "{" + kind + ', "format_version": 2}'),
+         "expected format_version 1, got 2"),
+        (written("p.npz", "{" + kind + ', "format_version": 1}', -1.0),
+         "p.npz: Belief: expected a positive-definite precision P"),
+    ]:  # fmt: skip
+        with pytest.raises(ValueError, match=match):
+            Belief.load(path)
