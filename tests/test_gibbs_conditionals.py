@@ -127,14 +127,49 @@ def test_new_feature_llr_near_singular_kernel_matches_dense(k):
     np.testing.assert_allclose(got, want, atol=TOL, rtol=TOL)
 
 
+def _llr_without_cancellation(E, W, K, noise):
+    """The dense llr of `dense.marginal_llr` written so that no two large terms
+    cancel: with M = (W Wᵀ ⊗ K)/σ² = Q diag(μ) Qᵀ (a dense eigh of the full
+    (B·m)² matrix) and t = Qᵀ vec(E),
+
+        llr = ½ Σ_i [t_i² μ_i / (σ² (1 + μ_i)) − log1p(μ_i)].
+
+    Returns (llr, Σ_i |each term|): the scale of its round-off."""
+    M = np.kron(W @ W.T, K) / noise
+    mu, Q = np.linalg.eigh(0.5 * (M + M.T))
+    t = Q.T @ E.ravel()
+    quad, logdet = t * t * mu / (noise * (1 + mu)), np.log1p(mu)
+    return 0.5 * (quad.sum() - logdet.sum()), np.abs(quad).sum() + np.abs(logdet).sum()
+
+
+def test_the_cancellation_free_reference_is_the_dense_llr():
+    """At unit scale (no cancellation to speak of) the reference of the series
+    test below is `dense.marginal_llr`, to round-off of the two log densities
+    that `marginal_llr` subtracts (~ε·B·m·|log N(y; 0, σ²I)|)."""
+    data, _, rng = random_problem(9, B=3)
+    E, K, noise = rng.normal(size=(3, 5)), data.K[0], data.noise[0]
+    for k in (1, 2):
+        W = rng.normal(size=(3, k))
+        want = dense.marginal_llr(E, W, K, noise)
+        scale = abs(normal_logpdf(E.ravel(), 0.0, noise))
+        got, _ = _llr_without_cancellation(E, W, K, noise)
+        assert abs(got - want) < E.size * np.finfo(float).eps * scale
+
+
 @pytest.mark.parametrize("k", [1, 2])
 def test_new_feature_llr_with_every_direction_on_the_series_path_matches_dense(k):
     """K scaled so that x = γ_max λ_j/σ² ≤ 5e-6 < SMALL for every j: new_llr is
-    then the series alone, and its second-order terms are what differ from a
-    first-order answer. A wrong one errs by ~x relative (x ~ 1e-6 here, spread by
-    K's spectrum); the series' own error is ≤ x³ ~ 1e-16, and the dense
-    reference's round-off ~ε·|log N(y; 0, σ²I)| ≈ 1e-14 against llr ≳ 1e-3, so
-    the two must agree to 1e-8 relative (no absolute slack, which would hide it)."""
+    then the series alone. The llr is then tiny (1e-6 to 1e-4) against the two
+    log densities (~100) whose difference `dense.marginal_llr` takes: that
+    reference's round-off is ~1e-8 of the llr, as large as what a missing
+    series term changes (a tolerance of 1e-8 relative passed it by a factor
+    0.85 and could not see a dropped x² or x³ term). So the reference here is
+    the same dense llr summed without cancellation (`_llr_without_cancellation`,
+    checked against `marginal_llr` above), and the tolerance is the round-off of
+    a sum of B·m terms, B·m·ε·Σ|terms| (Higham's worst-case bound; the series'
+    own truncation, ≤ x³ ~ 1e-16 of a term, is below it). A series missing
+    its x² term errs by ~x² ~ 1e-11 of the terms, 1000× this tolerance; a
+    first-order one by ~x, 1e8×."""
     rng = np.random.default_rng(30 + k)
     B, m, noise = 3, 6, 0.05
     A = rng.normal(size=(m, m))
@@ -146,8 +181,8 @@ def test_new_feature_llr_with_every_direction_on_the_series_path_matches_dense(k
     assert np.all(cache.lam[0] / noise * gmax <= fast.SMALL)  # the series path only
     E = rng.normal(size=(B, m))
     got = fast.new_llr(E @ cache.U[0], W, cache.lam[0], noise)
-    want = [dense.marginal_llr(E, Wn, K, noise) for Wn in W]
-    np.testing.assert_allclose(got, want, rtol=1e-8, atol=0)
+    want, terms = np.array([_llr_without_cancellation(E, Wn, K, noise) for Wn in W]).T
+    assert np.all(np.abs(got - want) < B * m * np.finfo(float).eps * terms)
 
 
 def test_the_dense_and_structured_algebras_agree_row_by_row():
