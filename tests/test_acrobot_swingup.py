@@ -8,6 +8,7 @@ import fnmatch
 import json
 import re
 import shutil
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -791,6 +792,70 @@ def test_each_added_method_has_a_colour_of_its_own():
     colours = [swingup_report.color(m, methods) for m in methods]
     assert len(set(colours)) == len(methods)
     assert colours[3:] == list(swingup_report.ADDED_COLORS[:3])
+
+
+def test_learning_curves_number_episodes_from_1_and_draw_the_10_percent_line(
+    monkeypatch,
+):
+    """learning_curves.png on hand-made curves of 3 episodes over 4 trials: each
+    method's mean at real episodes 1, 2, 3 (numbered as report.md's tables),
+    under its label, and the dashed line "episodes to near-optimal" counts by,
+    10% below the true model's final mean return: -100 - 0.1 * 100 = -110."""
+    import matplotlib.pyplot as plt
+
+    figures = []
+    monkeypatch.setattr(
+        swingup_report, "save_figure", lambda fig, file: figures.append(fig)
+    )
+    means = {
+        "true": [-120.0, -105.0, -100.0],
+        "average": [-200.0, -180.0, -170.0],
+        "hipmdp": [-150.0, -115.0, -108.0],
+    }
+    metrics = {
+        "returns": {
+            m: {"mean": v, "low": [x - 5 for x in v], "high": [x + 5 for x in v],
+                "n_trials": 4}
+            for m, v in means.items()
+        },
+        "near_optimal_target": {"true_model_final_mean_return": -100.0,
+                                "margin": 0.1},
+    }  # fmt: skip
+    swingup_report._learning_curves("learning_curves.png", metrics)
+    (fig,) = figures
+    (ax,) = fig.axes
+    lines = {line.get_label(): line for line in ax.get_lines()}
+    plt.close(fig)
+    for m, mean in means.items():
+        line = lines[swingup_report.label(m)]
+        np.testing.assert_array_equal(line.get_xdata(), [1, 2, 3])
+        np.testing.assert_array_equal(line.get_ydata(), mean)
+    target = lines["within 10% of the true model's final mean"]
+    np.testing.assert_allclose(target.get_ydata(), [-110.0, -110.0])
+    assert "over 4 trials" in ax.get_title()
+
+
+def test_weights_figure_plots_the_latent_weights_against_each_settings_masses(
+    monkeypatch,
+):
+    """weights.png is given the training weights without row 0 (the mean
+    dynamics, w = 1, not a latent weight) and, per test setting in order, that
+    setting's mean final belief: hand-made, 2 latent weights, 3 test settings."""
+    given = {}
+    monkeypatch.setattr(
+        swingup_report, "weights_figure", lambda *args: given.update(args=args)
+    )
+    config = dataclasses.replace(TINY, test_masses=((0.9, 1.1), (1.1, 0.9), (1.3, 0.7)))
+    hip = SimpleNamespace(weights=[[1.0, 1.0, 1.0], [2.0, 3.0, 4.0], [5.0, 6.0, 7.0]])
+    metrics = {"test_belief_means": {"0": [10.0, 11.0], "1": [20.0, 21.0],
+                                     "2": [30.0, 31.0]}}  # fmt: skip
+    swingup_report._weights_figure("weights.png", config, metrics, hip)
+    _, train_m, train_w, test_m, test_w, labels, _ = given["args"]
+    np.testing.assert_array_equal(train_w, [[2.0, 3.0, 4.0], [5.0, 6.0, 7.0]])
+    np.testing.assert_array_equal(test_w, [[10, 11], [20, 21], [30, 31]])
+    np.testing.assert_array_equal(train_m, TINY.train_masses)
+    np.testing.assert_array_equal(test_m, config.test_masses)
+    assert labels == ("m1 (kg)", "m2 (kg)")
 
 
 def test_every_file_a_run_writes_is_an_artefact_it_replaces(run):
