@@ -843,8 +843,10 @@ def test_recording_shows_each_settings_mse_belief_and_first_episode(run, monkeyp
 
 def test_report_puts_the_numbers_in_their_places(run, tmp_path):
     """report.md of the run's metrics under a config with distinct counts: the
-    counts in their sentence, and each ratio with its interval low first (a
-    dimension without a ratio as a dash)."""
+    counts in their sentence (TINY: 2 test and 3 training settings; 4 fits), the
+    method added with --method named before the MSE table, each ratio with its
+    interval low first (a dimension without a ratio as a dash), z of run 0
+    (hand-made: run 0 uses every dimension, run 1 none) and the run time."""
     import dataclasses
 
     from tasks.prediction_report import write_report
@@ -860,12 +862,31 @@ def test_report_puts_the_numbers_in_their_places(run, tmp_path):
         "dx": {"low": 0.15, "high": 0.35}, "dtheta": None,
         "dx_dot": {"low": 0.45, "high": 0.55}, "dtheta_dot": None,
     }  # fmt: skip
-    config = dataclasses.replace(TINY, n_train=7, n_test=9, record=False)
+    metrics["z"] = [np.ones((1, 2, 4)), np.zeros((1, 2, 4))]  # 2 actions
+    metrics["seconds"] = {"fit": 12.0, "prediction": 3.0, "total": 20.0}
+    config = dataclasses.replace(
+        TINY, n_runs=4, n_train=7, n_test=9, record=False,
+        methods=("mine=my.module:Mine",),
+    )  # fmt: skip
     write_report(tmp_path, config, metrics)
     text = (tmp_path / "report.md").read_text()
-    assert "× 7 train / 9\ntest transitions" in text
+    n_batch = metrics["n_batch_transitions"]
+    assert (
+        "2 test settings × 7 train / 9\ntest transitions (random split); HiP-MDP "
+        f"fitted 4 times on\n{n_batch} batch transitions from 3 training settings."
+    ) in text
+    assert (
+        "## Test log-likelihood (HiP-MDP minus method, over 9 test transitions)" in text
+    )
+    mse = text.split("## MSE of Δs")[1].split("| method |")[0]
+    assert (
+        "Added with `--method` (see `tasks/methods.py`): mine (`my.module:Mine`)" in mse
+    )
     assert "| 0.25 [0.15, 0.35] | — | 0.5 [0.45, 0.55] | 2 |" in text
     assert f"Latent features per run: {metrics['n_latent_features']}" in text
+    assert "| 0 (mean dynamics) | 1111 | 1111 |" in text
+    assert "| 0 (mean dynamics) | 0000 | 0000 |" not in text
+    assert "Run time: 20 s (fit 12 s, prediction 3 s, the rest 5 s)." in text
 
 
 def test_weights_figure_plots_each_settings_own_weights(monkeypatch):
