@@ -3,6 +3,7 @@ config and writes every artefact with the documented schema."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from types import SimpleNamespace
 
@@ -12,6 +13,7 @@ from threadpoolctl import threadpool_limits
 
 import hipmdp
 from hipmdp.planning import LearnedModel
+from tasks.cartpole import CartpoleParams
 from tasks.cartpole_prediction import (
     DIM_NAMES,
     N_BOOTSTRAP,
@@ -208,8 +210,20 @@ def test_gather_split_keeps_learning_until_it_has_enough():
         (dict(seed=-5), "seed: expected >= 0"),
         (dict(n_runs=2.0), "n_runs: expected an integer"),
         (dict(record="yes"), "record: expected True or False"),
-        (dict(n_train=0), "n_train: expected"),
-        (dict(workers=0), "workers: expected"),
+        *(
+            (dict.fromkeys([count], 0), f"{count}: expected")
+            for count in (
+                "batch_repetitions",
+                "batch_episodes",
+                "batch_max_steps",
+                "n_runs",
+                "average_n_max",
+                "n_train",
+                "n_test",
+                "gather_episodes",
+                "workers",
+            )
+        ),  # fmt: skip
     ],
 )
 def test_bad_settings(kw, match):
@@ -847,8 +861,6 @@ def test_report_puts_the_numbers_in_their_places(run, tmp_path):
     method added with --method named before the MSE table, each ratio with its
     interval low first (a dimension without a ratio as a dash), z of run 0
     (hand-made: run 0 uses every dimension, run 1 none) and the run time."""
-    import dataclasses
-
     from tasks.prediction_report import write_report
 
     metrics = json.loads((run.out / "metrics.json").read_text())
@@ -931,7 +943,6 @@ def test_main_hands_each_step_its_part_of_the_config(tmp_path, monkeypatch):
     RERUN=off, so this run records nothing and its config.json and report say
     so."""
     import copy
-    import dataclasses
 
     from tasks import cartpole_prediction as cp
     from tasks import prediction, prediction_report
@@ -1000,6 +1011,13 @@ def test_main_hands_each_step_its_part_of_the_config(tmp_path, monkeypatch):
         assert kw["n_episodes"] == 2 and kw["split"] == "time"
         settings.append((params.pole_mass, params.pole_half_length))
         streams.append(stream)
+        # the pole's mass and half-length vary, the rest stays nominal (1 kg cart)
+        nominal = dataclasses.replace(
+            CartpoleParams(),
+            pole_mass=settings[-1][0],
+            pole_half_length=settings[-1][1],
+        )
+        assert params == nominal
     assert settings == list(config.test_settings)
     splits = calls["hip"][0][1]
     assert not np.array_equal(splits[1].train.states, splits[2].train.states)
@@ -1109,6 +1127,23 @@ def test_ratio_intervals_divide_by_a_named_baseline_on_the_same_resamples():
     }
 
 
+def test_ratio_intervals_give_none_where_a_resample_can_divide_by_zero():
+    """Two settings, the best baseline exact (MSE 0) on dx_dot of the first
+    only: a quarter of the resamples hold that setting alone and have no ratio,
+    so dx_dot has no interval (its ratio of means over both settings exists);
+    every other dimension has one, the HiP-MDP at half the baseline: [0.5, 0.5]."""
+    base = np.ones((2, 4))
+    base[0, 2] = 0.0
+    per_setting = {"hipmdp": 0.5 * np.ones((2, 4)), "batch only": base,
+                   "train only": 2.0 * np.ones((2, 4))}  # fmt: skip
+    mse = {m: {d: {"mean": v[:, j].mean()} for j, d in enumerate(DIM_NAMES)}
+           for m, v in per_setting.items()}  # fmt: skip
+    got = ratio_intervals(per_setting, mse, rng=np.random.default_rng(0))
+    assert got["dx_dot"] is None
+    for d in ("dx", "dtheta", "dtheta_dot"):
+        assert got[d]["low"] == pytest.approx(0.5) == got[d]["high"], d
+
+
 def test_the_paper_preset_is_the_papers_protocol(tmp_path):
     """The module docstring's protocol (the paper's Table 1): the seven training
     settings as printed, (0.3, 0.4) twice; the 5 × 5 grid of pole masses
@@ -1134,7 +1169,8 @@ def test_the_paper_preset_is_the_papers_protocol(tmp_path):
 def test_cli_runs_the_parsed_config_and_prints_the_ratios(
     tmp_path, monkeypatch, capsys
 ):
-    """What the command prints: where it wrote, and per dimension the HiP-MDP's
+    """What the command prints: where it wrote (its recording, cartpole.rrd,
+    too), and per dimension the HiP-MDP's
     MSE over the best baseline's, with its bootstrap interval where the run has
     one and that baseline's name, or none where the baseline predicts the
     dimension exactly (main stubbed: the parsed config reaches it)."""
@@ -1152,14 +1188,15 @@ def test_cli_runs_the_parsed_config_and_prints_the_ratios(
 
     def fake_main(config, out):
         given.append((config, out))
+        (tmp_path / "cartpole.rrd").touch()  # the run recorded
         return cp.Results(tmp_path, metrics)
 
     monkeypatch.setattr(cp, "main", fake_main)
-    assert cp.cli(["--runs", "3", "--no-record", "--out", str(tmp_path)]) == 0
+    assert cp.cli(["--runs", "3", "--out", str(tmp_path)]) == 0
     ((config, out),) = given
     assert config.n_runs == 3 and str(out) == str(tmp_path)
     assert capsys.readouterr().out.splitlines() == [
-        f"wrote {tmp_path}/ (report.md, metrics.json, figures)",
+        f"wrote {tmp_path}/ (report.md, metrics.json, figures, recording)",
         "HiP-MDP MSE / the best baseline's (95% bootstrap interval over the test "
         "settings; below 1: the HiP-MDP is better):",
         "  dx: 0.5 [0.25, 1.5] against train only",
