@@ -1152,12 +1152,17 @@ def test_a_one_episode_summary_has_no_episode_2_target():
 
 
 def test_cli_prints_where_it_wrote_and_the_summary(tmp_path, monkeypatch, capsys):
+    """The folder, with its recording (acrobot.rrd) if the run wrote one, the
+    summary lines, and where the report is."""
     metrics = _summary_metrics((5.0, 1.0, 9.0), (20.0, 4.0, 36.0))
-    monkeypatch.setattr(
-        swingup, "main", lambda config, out: swingup.Results(tmp_path, metrics)
-    )
-    assert swingup.cli(["--no-record", "--out", str(tmp_path)]) == 0
+
+    def fake_main(config, out):
+        (tmp_path / "acrobot.rrd").touch()  # the run recorded
+        return swingup.Results(tmp_path, metrics)
+
+    monkeypatch.setattr(swingup, "main", fake_main)
+    assert swingup.cli(["--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out.splitlines()
-    assert out[0].startswith(f"wrote {tmp_path}/")
+    assert out[0] == f"wrote {tmp_path}/ (report.md, metrics.json, figures, recording)"
     assert out[1:-1] == swingup_report.summary_lines(metrics)
     assert out[-1] == f"tables and plain-language results: {tmp_path / 'report.md'}"
