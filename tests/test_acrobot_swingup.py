@@ -784,6 +784,27 @@ def test_report_tables_show_the_episodes_they_name(run, tmp_path):
     assert [r[0] for r in rows] == list(metrics["loglik_difference"])
 
 
+def test_report_puts_the_runs_counts_in_their_sentences(run, tmp_path):
+    """report.md of the run's metrics under a config whose counts all differ:
+    2 test settings × 4 trials, 3 training settings, and 7 train and 9 test
+    transitions per setting in the prediction table."""
+    config = dataclasses.replace(
+        TINY, test_masses=((0.9, 1.1), (1.1, 0.9)), n_trials=4, mse_train=7,
+        mse_test=9,
+    )  # fmt: skip
+    metrics = _nan_bounds(json.loads((run.out / "metrics.json").read_text()))
+    swingup_report.write_report(tmp_path, config, metrics)
+    report = (tmp_path / "report.md").read_text()
+    n_batch, n_features = metrics["n_batch_transitions"], metrics["n_latent_features"]
+    assert (
+        "\n2 test mass settings × 4 trials per method;\nHiP-MDP fitted on "
+        f"{n_batch} batch transitions from\n3 training settings; {n_features} latent"
+    ) in report
+    assert "so it answers for these 2 settings;" in report
+    assert "7 train and 9 test transitions per setting\n(random split)" in report
+    assert "Test log-likelihood over 9 test transitions" in report
+
+
 def test_each_added_method_has_a_colour_of_its_own():
     """In learning_curves.png and the recording, methods added with --method
     take ADDED_COLORS in turn: each differs from the others and from the three
@@ -1120,6 +1141,12 @@ def _summary_metrics(margin_2: tuple, ahead: tuple, n_episodes: int = 3) -> dict
             (2.0, None, None),
             ("(not settled)", "(not clearly ahead)"),
         ),
+        # an interval that reaches 0 does not lie wholly on one side of it
+        (
+            (5.0, 0.0, 9.0),
+            (-20.0, -36.0, 0.0),
+            ("(not settled)", "(not clearly ahead)"),
+        ),
     ],
 )
 def test_the_printed_summary_states_each_target_by_its_interval(
@@ -1149,6 +1176,17 @@ def test_a_one_episode_summary_has_no_episode_2_target():
     )
     assert lines[0].endswith("(episode 1):")
     assert not any("by episode 2" in line for line in lines)
+
+
+def test_a_two_episode_summary_states_the_episode_2_target():
+    lines = swingup_report.summary_lines(
+        _summary_metrics((5.0, 1.0, 9.0), (1.0, 0.5, 1.5), n_episodes=2)
+    )
+    assert lines[0].endswith("(episode 1, 2):")
+    assert lines[4] == (
+        "HiP-MDP within 10% of the true model by episode 2, margin per trial: "
+        f"{fmt_ci({'mean': 5.0, 'low': 1.0, 'high': 9.0}, signed=True)} (met)"
+    )
 
 
 def test_cli_prints_where_it_wrote_and_the_summary(tmp_path, monkeypatch, capsys):
