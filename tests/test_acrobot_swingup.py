@@ -805,6 +805,30 @@ def test_report_puts_the_runs_counts_in_their_sentences(run, tmp_path):
     assert "Test log-likelihood over 9 test transitions" in report
 
 
+def test_report_shows_the_floor_and_z_under_their_headings(run, tmp_path):
+    """The approximation floor section holds the floor's table, not the test
+    settings' one; z (hand-made: feature 1 uses only dtheta1, on every action)
+    is a row of 1000 per action under a legend naming the dimensions in
+    metrics' order."""
+    metrics = _nan_bounds(json.loads((run.out / "metrics.json").read_text()))
+    dims = list(metrics["mse"]["hipmdp"])
+    assert dims == ["dtheta1", "dtheta2", "dtheta1_dot", "dtheta2_dot"]
+    floor = {m: {d: {"mean": 0.5 * (i + 1), "low": 0.0, "high": 1.0 * (i + 1),
+                     "n": 3} for i, d in enumerate(dims)}
+             for m in metrics["mse"]}  # fmt: skip
+    z = np.ones((2, 3, 4), dtype=int)
+    z[1] = [1, 0, 0, 0]
+    metrics |= {"approximation_floor": floor, "z": z.tolist()}
+    swingup_report.write_report(tmp_path, TINY, metrics)
+    report = (tmp_path / "report.md").read_text()
+    section = report.split("## Approximation floor")[1].split("## ")[0]
+    assert prediction.mse_table(floor) in section
+    assert prediction.mse_table(metrics["mse"]) not in section
+    latent = report.split("## Latent structure")[1]
+    assert "z for dtheta1, dtheta2, dtheta1_dot, dtheta2_dot, in that order" in latent
+    assert "| 1 | 1000 | 1000 | 1000 |" in latent
+
+
 def test_each_added_method_has_a_colour_of_its_own():
     """In learning_curves.png and the recording, methods added with --method
     take ADDED_COLORS in turn: each differs from the others and from the three
