@@ -161,13 +161,20 @@ class LearnedModel:
         # must wrap the same ones
         info = getattr(self.model, "info", None)
         fitted = info.get("angle_dims") if isinstance(info, dict) else None
-        given = self.angle_dims
-        if given is None:
-            given = () if fitted is None else fitted
-        dims = check_angle_dims(given, d)
-        if fitted is not None and tuple(fitted) != dims:
+        dims = None if self.angle_dims is None else check_angle_dims(self.angle_dims, d)
+        if fitted is not None:
+            try:  # the model's own record, not the argument, when it is wrong
+                fitted = check_angle_dims(fitted, d)
+            except ValueError as error:
+                raise ValueError(
+                    "model: info['angle_dims'], the angles it records (and the "
+                    "default of angle_dims): " + str(error).removeprefix("angle_dims: ")
+                ) from None
+        if dims is None:
+            return () if fitted is None else fitted
+        if fitted is not None and fitted != dims:
             raise ValueError(
-                f"angle_dims: {dims} differs from the fitted model's {tuple(fitted)}"
+                f"angle_dims: {dims} differs from the fitted model's {fitted}"
             )
         return dims
 

@@ -150,6 +150,17 @@ def test_learned_model_checks_angles_and_belief_when_built() -> None:
         LearnedModel(Average(), "b")
     assert LearnedModel(Average(), None, (5,)).angle_dims == (5,)  # no state_dim
     assert LearnedModel(Average()).angle_dims == ()  # none recorded: none
+    # a model whose record is wrong is named, not the angle_dims nobody passed
+    for recorded, match in [
+        ([0, 3], r"expected distinct indices in \[0, 3\), got \(0, 3\)"),
+        (1, r"expected a sequence of indices, got 1"),  # was a TypeError if given
+    ]:
+        bad = Fitted()
+        bad.info = {"angle_dims": recorded}
+        for given in ((), ((0, 1),)):
+            with pytest.raises(ValueError, match=r"^model: info\['angle_dims'\], "
+                               r"the angles it records .*: " + match):  # fmt: skip
+                LearnedModel(bad, "b", *given)
     # a model and belief passed the other way round failed at the first predict
     with pytest.raises(ValueError, match="model: expected a model of Δs with predict"):
         LearnedModel("b", Fitted())
