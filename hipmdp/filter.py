@@ -124,10 +124,14 @@ class Belief:
             raise ValueError(f"{path}: meta_json is not valid JSON") from None
         if not isinstance(meta, dict) or meta.get("kind") != BELIEF_KIND:
             raise ValueError(f"{path}: not a belief file (meta_json's kind)")
-        if meta.get("format_version") != 1:
-            raise ValueError(
-                f"{path}: expected format_version 1, got {meta.get('format_version')}"
-            )
+        version = meta.get("format_version")
+        if type(version) is not int or version != 1:  # not true, not 1.0
+            raise ValueError(f"{path}: expected format_version 1, got {version!r}")
+        for name, value in (("h", h), ("P", P)):
+            if value.dtype.kind not in "fiu":  # complex lost its imaginary part
+                raise ValueError(
+                    f"{path}: {name}: expected real numbers, got dtype {value.dtype}"
+                )
         try:
             return cls(h, P, model=meta.get("model"))
         except ValueError as error:

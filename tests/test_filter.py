@@ -460,6 +460,12 @@ def test_a_belief_file_that_is_not_one_is_refused(tmp_path):
         (written("j.npz", "{"), "meta_json is not valid JSON"),
         (written("v.npz", "{" + kind + ', "format_version": 2}'),
          "expected format_version 1, got 2"),
+        (written("t.npz", "{" + kind + ', "format_version": true}'),
+         "expected format_version 1, got True"),
+        (written("f.npz", "{" + kind + ', "format_version": 1.0}'),
+         "expected format_version 1, got 1.0"),
+        (written("c.npz", "{" + kind + ', "format_version": 1}', 1.0 + 0j),
+         "c.npz: P: expected real numbers, got dtype complex128"),
         (written("p.npz", "{" + kind + ', "format_version": 1}', -1.0),
          "p.npz: Belief: expected a positive-definite precision P"),
     ]:  # fmt: skip
