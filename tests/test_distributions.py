@@ -68,15 +68,42 @@ def test_random_splits_land_in_their_regions(kind):
     assert outside.params[0] == AcrobotParams(*outside.values[0])
 
 
-def test_uniform_extrapolation_is_uniform_on_the_outer_minus_inner_box():
-    """Outer box [0.6, 1.4] x [0.8, 1.2] with inner [0.8, 1.2] x [0.9, 1.1]: in
-    units of the widths the ring has area 1 - 1/4 = 3/4, of which the part with the
-    first coordinate inside its inner interval (and the second outside) has area
-    1/2 · 1/2 = 1/4, so P = 1/3; 4 standard errors of a binomial proportion."""
-    n = 4000
-    points = draw(dist(split="extrapolation"), n, rng=np.random.default_rng(3)).varied
-    share = np.mean((points[:, 0] >= 0.8) & (points[:, 0] <= 1.2))
-    assert abs(share - 1 / 3) < 4 * np.sqrt((1 / 3) * (2 / 3) / n)
+@pytest.mark.parametrize("kind", ["uniform", "relative-normal"])
+@pytest.mark.parametrize("split", ["all", "train", "interpolation", "extrapolation"])
+def test_draws_follow_their_law_on_the_splits_region(kind, split):
+    """Each parameter's law on the split's box (U[low, high], or N(θ₀, (σ θ₀)²)
+    truncated to it, from scipy), independently, restricted to the split's
+    region: the inner box [0.8, 1.2] x [0.9, 1.1] for train and interpolation,
+    the outer [0.6, 1.4] x [0.8, 1.2] for all, the outer minus the inner for
+    extrapolation. Counts in an 8 x 8 grid of equal cells of the box (the inner
+    box is exactly the outer one's central 4 x 4) against the law's cell
+    probabilities: Pearson's chi-square, false-alarm probability 1e-4. A share
+    or a mean alone missed one u drawn for both coordinates (every point on the
+    diagonal) and strips of the ring drawn one side at a time."""
+    n, k = 4000, 8
+    d = dist(kind=kind, split=split, sigma=0.3)
+    points = draw(d, n, rng=np.random.default_rng(3)).varied
+    inner = split in ("train", "interpolation")
+    lows, highs = d.inner_box() if inner else (d.lows, d.highs)
+    p = []  # per parameter: its law's probability of each of the k cells
+    for lo, hi, mu in zip(lows, highs, d.nominal(), strict=True):
+        edges = np.linspace(lo, hi, k + 1)
+        if kind == "uniform":
+            cdf = (edges - lo) / (hi - lo)
+        else:
+            s = d.sigma * mu
+            cdf = stats.truncnorm.cdf(edges, (lo - mu) / s, (hi - mu) / s, mu, s)
+        p.append(np.diff(cdf))
+    share = np.outer(*p)
+    region = np.ones((k, k), dtype=bool)
+    if split == "extrapolation":
+        region[2:6, 2:6] = False
+    cell = np.clip(np.floor((points - lows) / (highs - lows) * k), 0, k - 1)
+    counts = np.zeros((k, k))
+    np.add.at(counts, tuple(cell.astype(int).T), 1)
+    assert counts[~region].sum() == 0
+    want = n * share[region] / share[region].sum()
+    assert stats.chisquare(counts[region], want).pvalue > 1e-4
 
 
 @pytest.mark.parametrize(
@@ -92,9 +119,10 @@ def test_uniform_extrapolation_is_uniform_on_the_outer_minus_inner_box():
 )
 def test_relative_normal_is_the_truncated_normal_around_the_nominal(low, high, sigma):
     """Pole mass ~ N(0.1, (σ · 0.1)²) truncated to [low, high]: sample mean and
-    variance within 4 standard errors of scipy's truncated-normal moments, and no
-    point stacked on a bound (clipping would put 16% on the lower one in the
-    first case, 84% in the second, and all on the far one in the last two)."""
+    variance within 4 standard errors of scipy's truncated-normal moments, its
+    law scipy's by Kolmogorov-Smirnov (false-alarm probability 1e-4), and no point
+    stacked on a bound (clipping would put 16% on the lower one in the first
+    case, 84% in the second, and all on the far one in the last two)."""
     d = Distribution(
         CartpoleParams, {"pole_mass": (low, high)}, kind="relative-normal", sigma=sigma
     )
@@ -107,6 +135,7 @@ def test_relative_normal_is_the_truncated_normal_around_the_nominal(low, high, s
     # integral is NaN this far out in the tail)
     mu4 = np.mean((x - x.mean()) ** 4)
     assert abs(x.var() - law.var()) < 4 * np.sqrt((mu4 - law.var() ** 2) / n)
+    assert stats.kstest(x, law.cdf).pvalue > 1e-4
     assert x.min() > low and x.max() < high
 
 
