@@ -464,7 +464,11 @@ def test_per_setting_differences_group_trials_by_setting():
     assert hip_avg[0]["mean"] == pytest.approx(10.0)
     assert hip_avg[0]["low"] == pytest.approx(10.0)  # no spread: a zero-width interval
     assert hip_avg[1]["mean"] == pytest.approx(-1.0)
-    assert hip_avg[1]["low"] < -4.0 < 2.0 < hip_avg[1]["high"]
+    # setting 1: the t-interval of its 2 trials' gains (the unit is the trial, so
+    # 1 degree of freedom; the episodes of a trial are not independent samples)
+    half = stats.t.ppf(0.975, 1) * np.std([-4.0, 2.0], ddof=1) / np.sqrt(2)
+    low, high = hip_avg[1]["low"], hip_avg[1]["high"]
+    assert [low, high] == pytest.approx([-1.0 - half, -1.0 + half], rel=1e-12)
     assert all(r["mean"] == pytest.approx(0.0) for r in rows["average - true"])
 
 
