@@ -88,8 +88,9 @@ from tqdm import tqdm
 
 from hipmdp import shards
 from hipmdp.data import atomic_temporaries, folder_locked, lock_folder
-from tasks._common import parameter_matrix
+from tasks._common import parameter_matrix, parameter_names
 from tasks.acrobot import AcrobotParams, book_inertia_range, with_book_inertia
+from tasks.agents import DOMAINS as agent_domains
 from tasks.collect import DOMAINS, collect, collect_sarsa, get_domain
 from tasks.distributions import KINDS, MAX_GRID_POINTS, SPLITS, Distribution, draw
 from tasks.experiment import (
@@ -275,14 +276,30 @@ def build_parser() -> argparse.ArgumentParser:
     add("--domain", required=True, choices=sorted(DOMAINS))
     add("--instances", type=int, default=None, help="instances drawn (default 4)")
     add("--episodes-per-instance", type=int, default=2, help="episodes (default 2)")
-    add("--seed", type=seed_argument, default=0, help="the one seed of every stream")
+    add(
+        "--seed",
+        type=seed_argument,
+        default=0,
+        help="the one seed of every stream (default 0)",
+    )
     add(
         "--out",
         type=path_argument,
         default=Path("runs/data"),
         help="run directory (default runs/data)",
     )
-    add("--vary", action="append", metavar="NAME=LOW:HIGH", help="repeatable")
+    add(
+        "--vary",
+        action="append",
+        metavar="NAME=LOW:HIGH",
+        help="repeatable; NAME one of "
+        + "; ".join(
+            f"{name}: {', '.join(parameter_names(domain.params_type))}"
+            for name, domain in sorted(DOMAINS.items())
+        )
+        + " (units, nominal values and bounds: the docstrings of "
+        "tasks.acrobot.AcrobotParams and tasks.cartpole.CartpoleParams)",
+    )
     add("--distribution", choices=KINDS, default=None, help="default: uniform")
     add("--grid", type=int, metavar="K", help="K points per parameter (grid)")
     add(
@@ -312,9 +329,24 @@ def build_parser() -> argparse.ArgumentParser:
         "mass and length change (default: inertia scales as mass x length^2)",
     )
     add("--policy", choices=sorted(POLICIES), default="random", help="default: random")
-    add("--max-steps", type=int, default=None, help="step limit (default: task's)")
-    add("--shard-size", type=int, default=16, help="instances per shard")
-    add("--workers", type=int, default=1, help="local worker processes")
+    add(
+        "--max-steps",
+        type=int,
+        default=None,
+        help="step limit per episode (default: the task's, "
+        + ", ".join(
+            f"{domain.max_steps} for {name}"
+            for name, domain in sorted(agent_domains.items())
+        )
+        + ")",
+    )
+    add("--shard-size", type=int, default=16, help="instances per shard (default 16)")
+    add(
+        "--workers",
+        type=int,
+        default=1,
+        help="local worker processes (default 1: in this process)",
+    )
     add("--scheduler", metavar="ADDRESS", help="Dask scheduler (tcp://host:port)")
     add("--resume", action="store_true", help="continue the run in --out")
     add(

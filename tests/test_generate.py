@@ -413,6 +413,25 @@ def test_help_describes_the_options(capsys):
     assert "Instances (tasks.distributions): the parameters named by --vary" in text
 
 
+def test_help_states_the_defaults_and_the_parameter_names(capsys):
+    """`--help` gives every default that `test_defaults_are_the_documented_ones`
+    checks (seed 0, shards of 16, 1 worker), each task's step limit, and the
+    names `--vary` takes, so a run can be described from it alone."""
+    with pytest.raises(SystemExit):
+        generate.main(["--help"])
+    text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines
+    for phrase in (
+        "the one seed of every stream (default 0)",
+        "instances per shard (default 16)",
+        "local worker processes (default 1: in this process)",
+        "(default: the task's, 500 for acrobot, 300 for cartpole)",
+        "acrobot: link_mass_1, link_mass_2, link_length_1, link_length_2, "
+        "link_shape_1, link_shape_2",
+        "cartpole: cart_mass, pole_mass, pole_half_length",
+    ):
+        assert phrase in text, phrase
+
+
 @pytest.mark.parametrize("split", ["all", "train", "extrapolation"])
 def test_instances_and_episodes_come_from_the_splits_own_streams(tmp_path, split):
     """The instances from `SeedSequence(seed, spawn_key=(0, split))`, instance
