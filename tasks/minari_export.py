@@ -167,13 +167,22 @@ def check_dataset_id(dataset_id: str) -> None:
 
 
 def episode_ends(
-    transitions: Transitions, table: ParameterTable, domain: str, max_steps: int
+    transitions: Transitions,
+    table: ParameterTable,
+    domain: str,
+    max_steps: int | None = None,
 ) -> list[tuple[int, int, bool]]:
     """``(start, stop, terminal)`` of each episode in ``transitions`` (ended by
     its ``dones``): ``terminal`` if its last next state ends the task of its own
     instance (its parameters from ``table``: the acrobot's goal height, say,
-    depends on its link lengths), else the episode was truncated."""
+    depends on its link lengths), else the episode was truncated.
+
+    ``max_steps`` is the run's step limit; None (the default, and a run
+    manifest's ``config["max_steps"]`` when ``--max-steps`` was not given) is
+    the task's default."""
     spec = get_domain(domain)
+    if max_steps is None:
+        max_steps = agents.DOMAINS[domain].max_steps
     ends = np.flatnonzero(transitions.dones) + 1
     out = []
     for start, stop in zip(np.r_[0, ends[:-1]], ends, strict=True):

@@ -300,3 +300,21 @@ def test_episode_ends_are_labelled_by_their_own_instances_task():
     )  # fmt: skip
     ends = minari_export.episode_ends(transitions, table, "acrobot", 500)
     assert ends == [(0, 2, True), (2, 4, False)]
+
+
+def test_episode_ends_take_the_manifests_step_limit_as_it_is(tmp_path):
+    """A run made without `--max-steps` records `max_steps: null`; passing it (or
+    nothing) to `episode_ends` means the task's limit, as `generate` does."""
+    from hipmdp.shards import Dataset
+    from tasks import generate
+
+    out = tmp_path / "run"
+    generate.main(["--domain", "acrobot", "--out", str(out), "--no-progress"])
+    dataset = Dataset(out)
+    data, table = dataset.load(), dataset.parameters
+    recorded = dataset.manifest["config"]["max_steps"]
+    assert recorded is None
+    expected = minari_export.episode_ends(data, table, "acrobot", 500)
+    assert len(expected) == 8
+    assert minari_export.episode_ends(data, table, "acrobot", recorded) == expected
+    assert minari_export.episode_ends(data, table, "acrobot") == expected
