@@ -16,10 +16,11 @@ sets each drawn instance's link shapes so that its links keep the book's
 1 kg·m² moment of inertia (`tasks.acrobot.book_inertia`) instead of scaling it
 with mass × length²; the shapes are then derived, not varied.
 
-Policies: `random` (uniform actions on the dm_control environment), `sarsa` (an
-ε-greedy Sarsa(λ) agent learning per instance; the paper gathers with Sarsa on a
-Fourier basis) and `open-loop` (random action sequences, many instances at once
-with `mujoco.rollout`).
+Policies: `random` (uniform actions on the dm_control environment), `sarsa` (a
+Sarsa(λ) agent on a Fourier basis learning per instance, as the paper gathers:
+greedy, ε = 0, with optimistic initial values and ties broken at random; its
+settings per domain in `tasks.agents`) and `open-loop` (uniform random action
+sequences, the law of `random`, many instances at once with `mujoco.rollout`).
 
 Output (`hipmdp.shards`): `OUT/shard-XXXXX.npz`, one per `--shard-size` instances,
 each written to a temporary name and renamed, and `OUT/manifest.json` (config, seed,

@@ -415,8 +415,9 @@ def test_help_describes_the_options(capsys):
 
 def test_help_states_the_defaults_and_the_parameter_names(capsys):
     """`--help` gives every default that `test_defaults_are_the_documented_ones`
-    checks (seed 0, shards of 16, 1 worker), each task's step limit, and the
-    names `--vary` takes, so a run can be described from it alone."""
+    checks (seed 0, shards of 16, 1 worker), each task's step limit, the
+    names `--vary` takes and where the Sarsa agent's settings are (its ε is 0),
+    so a run can be described from it alone."""
     with pytest.raises(SystemExit):
         generate.main(["--help"])
     text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines
@@ -428,8 +429,13 @@ def test_help_states_the_defaults_and_the_parameter_names(capsys):
         "acrobot: link_mass_1, link_mass_2, link_length_1, link_length_2, "
         "link_shape_1, link_shape_2",
         "cartpole: cart_mass, pole_mass, pole_half_length",
+        "greedy, ε = 0, with optimistic initial values",  # tasks.agents.DOMAINS
+        "its settings per domain in tasks.agents",
     ):
         assert phrase in text, phrase
+    from tasks.agents import DOMAINS as AGENTS
+
+    assert {domain.sarsa.epsilon for domain in AGENTS.values()} == {0.0}
 
 
 @pytest.mark.parametrize("split", ["all", "train", "extrapolation"])
