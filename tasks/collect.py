@@ -4,9 +4,10 @@ Symbols: `b` instance id, `s` state `(qpos, qvel)` with angles wrapped, shape `(
 `a` discrete action index in `[0, A)`, `N` transitions.
 
 A policy is any callable `state -> action index`; `random_policy` draws actions
-uniformly. `collect_sarsa` instead runs an ε-greedy Sarsa(λ) agent that learns on
-each instance from scratch (`tasks.agents.learn`, the paper's way of gathering
-data) and keeps every transition it saw. A simulation that diverges (MuJoCo raises
+uniformly. `collect_sarsa` instead runs a Sarsa(λ) agent that learns on each
+instance from scratch (`tasks.agents.learn`, the paper's way of gathering data;
+greedy, ε = 0, exploring through optimistic initial values, ties broken at
+random) and keeps every transition it saw. A simulation that diverges (MuJoCo raises
 a warning, which dm_control turns into `PhysicsError`, or a state is not finite)
 ends its episode; the whole episode is then dropped from the data and reported in
 `Collection.diverged`.
