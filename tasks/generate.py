@@ -1249,6 +1249,13 @@ def main(argv: Sequence[str] | None = None) -> Generated:
                 parser.error(str(error))
             for warning in config.distribution.far_from_nominal():
                 print(f"{parser.prog}: warning: {warning}", file=sys.stderr)
+            if config.resume and shards.read_manifest(config.out) is None:
+                # a batch script may always pass --resume; a mistyped --out is told
+                print(
+                    f"{parser.prog}: --resume: {config.out} holds no run yet; "
+                    "starting one",
+                    file=sys.stderr,
+                )
             finished = prepared[0]["complete"] and not prepared[1]
             started = True
             result = generate(config, prepared=prepared)

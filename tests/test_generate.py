@@ -804,10 +804,25 @@ def test_a_resumed_run_stopped_again_says_to_run_its_own_command_again(
         generate.main(argv)
     assert stopped.type is SystemExit and stopped.value.code == 130
     assert capsys.readouterr().err == (
+        f"python -m tasks.generate: --resume: {out} holds no run yet; starting one\n"
         f"python -m tasks.generate: interrupted: 1 of 2 shards finished are kept "
         f"in {out}; resume with the same command: "
         f"{shlex.join(['python', '-m', 'tasks.generate', *argv])}\n"
     )
+
+
+def test_resume_says_when_there_is_no_run_to_resume(tmp_path, capsys):
+    """--resume into a folder without a run starts one and says so (a mistyped
+    --out would otherwise pass unnoticed); resuming a run says nothing of it."""
+    out = tmp_path / "typo"
+    argv = ["--domain", "cartpole", *TINY, *QUIET, "--out", str(out), "--resume"]
+    generate.main(argv)
+    err = capsys.readouterr().err
+    assert err == f"python -m tasks.generate: --resume: {out} holds no run yet; " + (
+        "starting one\n"
+    )
+    generate.main(argv)
+    assert "holds no run" not in capsys.readouterr().err
 
 
 def test_a_second_stop_while_the_line_is_composed_is_ignored(
