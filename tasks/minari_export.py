@@ -11,7 +11,10 @@ Writes `OUT/<dataset_id>/data/` as Minari's `ArrowStorage` lays it out (Minari �
   its `supported_dataset_versions`, e.g. 0.5.4 takes 0.4.0 to 0.5.4, and refused
   the `>=0.5.0` written until 2026-12-04), `data_format`, `total_episodes`,
   `total_steps`, and the observation space `Box(-inf, inf, (D,), float64)` and
-  action space `Discrete(A)` serialised as Minari does;
+  action space `Discrete(A)` serialised as Minari does; and, beside Minari's
+  fields, the run's generating config (`hipmdp_manifest`) and what a step is
+  (`hipmdp_task`: state names and units, angle dimensions wrapped to (-π, π],
+  the action values and their unit, `dt` in seconds, the step limit);
 - per episode `e`, `data/<e>/part-0.arrow` (an Arrow IPC file) with the columns
   `observations` (`T + 1` rows, `s_0 … s_T`), `actions`, `rewards`, `terminations`
   and `truncations` (`T` rows padded with one zero row, as Minari stores them);
@@ -43,7 +46,7 @@ import numpy as np
 
 from hipmdp import shards
 from hipmdp.data import ParameterTable, Transitions, atomic_folder
-from tasks import agents
+from tasks import acrobot, agents, cartpole
 from tasks.collect import get_domain
 from tasks.experiment import check_folder_out, path_argument
 
@@ -52,6 +55,29 @@ Array = np.ndarray
 # the first release with the Arrow layout; Minari checks this field by membership
 # in its set of supported dataset versions, so it must be one release
 MINARI_VERSION = "0.5.0"
+
+#: What a step of each domain is, so that an export describes itself
+#: (``hipmdp_task`` in ``data/metadata.json``; the modules' docstrings say more).
+TASKS = {
+    "acrobot": {
+        "documentation": "tasks.acrobot",
+        "state": ["theta1", "theta2", "theta1_dot", "theta2_dot"],
+        "state_units": ["rad", "rad", "rad/s", "rad/s"],
+        "angle_dims": list(acrobot.ANGLE_DIMS),
+        "action": "elbow torque held for dt (N·m), by action index",
+        "action_values": acrobot.ACTIONS.tolist(),
+        "dt": acrobot.CONTROL_TIMESTEP,
+    },
+    "cartpole": {
+        "documentation": "tasks.cartpole",
+        "state": ["x", "theta", "x_dot", "theta_dot"],
+        "state_units": ["m", "rad", "m/s", "rad/s"],
+        "angle_dims": list(cartpole.ANGLE_DIMS),
+        "action": "force on the cart held for dt (N), by action index",
+        "action_values": cartpole.ACTIONS.tolist(),
+        "dt": cartpole.CONTROL_TIMESTEP,
+    },
+}
 
 
 def export(run: str | Path, out: str | Path, *, dataset_id: str | None = None) -> Path:
@@ -146,6 +172,7 @@ def _export(dataset, data: Path, dataset_id: str, spec, max_steps: int, table):
                 {"type": "Discrete", "dtype": "int64", "start": 0, "n": spec.n_actions}
             ),
             "hipmdp_manifest": dataset.manifest["config"],
+            "hipmdp_task": TASKS[domain] | {"max_steps": max_steps},
         },
     )
 

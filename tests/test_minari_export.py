@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from hipmdp import shards
-from tasks import cartpole, generate, minari_export
+from tasks import acrobot, agents, cartpole, generate, minari_export
 
 pa = pytest.importorskip("pyarrow")
 pa_dataset = pytest.importorskip("pyarrow.dataset")
@@ -121,6 +121,17 @@ def test_columns_and_spaces_are_typed_as_minari_writes_them(run, tmp_path):
     assert re.fullmatch(r"\d+\.\d+\.\d+", version), version
     assert Version(version) >= Version("0.5.0")
     assert meta["hipmdp_manifest"] == shards.Dataset(run).manifest["config"]
+    # and what a step is: dt as the data's, the action table, the step limit
+    dataset = shards.Dataset(run)
+    domain = dataset.manifest["config"]["domain"]
+    task = meta["hipmdp_task"]
+    assert task["dt"] == dataset.load().dt
+    module = {"acrobot": acrobot, "cartpole": cartpole}[domain]
+    assert task["action_values"] == module.ACTIONS.tolist()
+    assert task["angle_dims"] == list(module.ANGLE_DIMS)
+    assert len(task["state"]) == len(task["state_units"]) == 4
+    limit = dataset.manifest["config"]["max_steps"]
+    assert task["max_steps"] == (limit or agents.DOMAINS[domain].max_steps)
     for e in range(meta["total_episodes"]):
         table = episode_table(data, e)
         assert table.schema.field("observations").type == pa.list_(pa.float64(), 4)
