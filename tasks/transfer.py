@@ -251,7 +251,16 @@ def run_trial(job: TrialJob) -> TrialResult:
         if added is not None:  # adapted to every transition so far, as filtered
             data = _trial_data(seen, domain, env.control_timestep())
             key = (3, job.setting, job.trial, len(seen))
-            return LearnedModel(added.adapt(data, key), None, domain.angle_dims)
+            try:
+                predictor = added.adapt(data, key)
+            except Exception as err:  # the user's adapt: say where, as planning does
+                err.add_note(
+                    f"(adapting method {added.name}, added with --method, to "
+                    f"{len(data)} transitions after {len(seen)} real episodes; "
+                    f"setting {job.setting}, trial {job.trial})"
+                )
+                raise
+            return LearnedModel(predictor, None, domain.angle_dims)
         return LearnedModel(hip, belief, domain.angle_dims)
 
     def fresh_state():

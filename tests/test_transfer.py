@@ -146,6 +146,26 @@ def test_an_added_model_adapts_per_trial_on_a_fresh_copy_to_one_instance():
         assert all(set(ids) <= {0} for *_, ids in Remembers.seen)
 
 
+class FailsAfterAnEpisode(Remembers):
+    """Adapts to no transitions (a trial's first planning), and raises on any."""
+
+    def adapt(self, train, *, rng):
+        if len(train):
+            raise KeyError("no adapt on real transitions")
+        return self
+
+
+def test_an_error_in_adapt_during_a_trial_names_the_setting_and_trial():
+    # not through fit_all, whose try adapts to batch transitions
+    added = Added(MethodSpec("late", "m", "A"), FailsAfterAnEpisode(), 0)
+    set_models(ACROBOT, TINY, None, None, added=(added,))
+    with pytest.raises(KeyError, match="no adapt on real") as err:
+        run_trial(TrialJob("late", 2, 1, PARAMS, (5, (2, 1)), False))
+    note = "".join(err.value.__notes__)
+    assert "in method late: adapt" in note
+    assert "after 1 real episodes; setting 2, trial 1" in note
+
+
 class Belief(NamedTuple):
     mean: np.ndarray
     cov: np.ndarray
