@@ -403,19 +403,26 @@ def score_settings(
         )  # fmt: skip
         if splits is not None:
             splits.append(parts)
-        scores.append(
-            score_instance(
-                hips,
-                average,
-                batch,
-                parts.train,
-                parts.test,
-                rng=rng,
-                n_max=n_max,
-                added=added,
-                key=(table, i),
+        try:
+            scores.append(
+                score_instance(
+                    hips,
+                    average,
+                    batch,
+                    parts.train,
+                    parts.test,
+                    rng=rng,
+                    n_max=n_max,
+                    added=added,
+                    key=(table, i),
+                )
             )
-        )
+        except Exception as err:  # which setting, to find it again
+            err.add_note(
+                f"(scoring {desc}: setting {i + 1} of {len(instances)}, {params}; "
+                f"{len(parts.train)} train and {len(parts.test)} test transitions)"
+            )
+            raise
     return scores
 
 

@@ -14,7 +14,7 @@ import pytest
 
 import hipmdp
 from tasks import methods
-from tasks.cartpole_prediction import main, parse_args
+from tasks.cartpole_prediction import _params, main, parse_args
 from tasks.methods import Added, BayesianLinear, MethodSpec, method_seed
 from tasks.prediction import PREDICTION_METHODS, score_instance
 from tasks.recording import rrd_contents
@@ -714,6 +714,31 @@ def test_a_method_that_breaks_does_so_before_the_fits(tmp_path):
         main(dataclasses.replace(TINY, methods=(bad,)), out=tmp_path)
     assert (tmp_path / "batch.npz").exists()
     assert not list(tmp_path.glob("hipmdp_run*.npz"))
+
+
+class FailsOnTheSecondSetting(Constant):
+    """Adapts as fit_all's try and the first test setting ask, then raises."""
+
+    adapted = 0
+
+    def adapt(self, train, *, rng):
+        FailsOnTheSecondSetting.adapted += 1  # on the class: each call has a copy
+        if FailsOnTheSecondSetting.adapted > 2:
+            raise KeyError("third adapt")
+        return self
+
+
+def test_an_error_in_a_prediction_table_names_the_setting(tmp_path):
+    FailsOnTheSecondSetting.adapted = 0
+    late = "late=tests.test_methods:FailsOnTheSecondSetting"
+    config = dataclasses.replace(TINY, methods=(late,), record=False)
+    with pytest.raises(KeyError, match="third adapt") as err:
+        main(config, out=tmp_path)
+    note = "".join(err.value.__notes__)
+    assert "in method late: adapt" in note
+    params = _params(*TINY.test_settings[1])
+    assert f"(scoring test settings: setting 2 of 2, {params}; " in note
+    assert f"{TINY.n_train} train and {TINY.n_test} test transitions)" in note
 
 
 def test_readmes_example_method_runs_as_written(tmp_path, monkeypatch):
