@@ -402,16 +402,18 @@ def main(config: SwingupConfig, out: str | os.PathLike | None = None) -> Results
     t0 = time.perf_counter()
     trials = run_transfer(config, hip, average, ss_trials, added)
     timings["transfer"] = time.perf_counter() - t0
+    # now, so that the trials outlive a failure in the prediction table (an added
+    # method's predict on more transitions than its try's)
+    arrays = trial_arrays(config, trials)
+    atomic_write(
+        path / "trials.npz", lambda fh: fh.write(npz_bytes(arrays)), clean=True
+    )
 
     t0 = time.perf_counter()
     models = tuple(a for a in added if not a.is_policy)  # policies do not predict
     mse = prediction_table(config, hip, average, batch, ss_mse, models)
     timings["prediction"] = time.perf_counter() - t0
 
-    arrays = trial_arrays(config, trials)
-    atomic_write(
-        path / "trials.npz", lambda fh: fh.write(npz_bytes(arrays)), clean=True
-    )
     metrics = transfer_metrics(config, trials)
     metrics.update(
         mse=mse["test"]["mse"],

@@ -289,6 +289,41 @@ def test_a_failing_figure_keeps_the_metrics(tmp_path, monkeypatch):
     assert len(metrics["returns"]["hipmdp"]["mean"]) == TINY.transfer.n_episodes
 
 
+class PredictsOnlyForItsTries:
+    """A model whose predict fails once adapted to more transitions than
+    fit_all's tries give it (as a prediction table's train split does), and
+    whose predict_mean, which planning calls, never fails."""
+
+    def fit(self, batch, *, rng):
+        pass
+
+    def adapt(self, train, *, rng):
+        self.n = len(train)
+        return self
+
+    def predict_mean(self, states, actions):
+        return np.zeros(np.shape(states))
+
+    def predict(self, states, actions):
+        if self.n > 10:
+            raise RuntimeError("predict on a long train split")
+        return np.zeros(np.shape(states)), np.ones(np.shape(states))
+
+
+def test_a_failing_prediction_table_keeps_the_trials(tmp_path):
+    """The prediction table comes after the transfer trials, the run's long
+    stage: their trials.npz is written before it."""
+    late = "late=tests.test_acrobot_swingup:PredictsOnlyForItsTries"
+    config = dataclasses.replace(TINY, methods=(late,), record=False)
+    assert config.mse_train > 10
+    with pytest.raises(RuntimeError, match="predict on a long train split"):
+        main(config, out=tmp_path)
+    assert not (tmp_path / "metrics.json").exists()
+    with np.load(tmp_path / "trials.npz", allow_pickle=False) as f:
+        assert list(f["methods"]) == [*METHODS, "late"]
+        assert f["returns"].shape[-1] == TINY.transfer.n_episodes
+
+
 def test_cli_presets_and_bad_options(capsys):
     config, out = parse_args(["--preset", "paper", "--seed", "3", "--workers", "1"])
     assert config.seed == 3 and config.workers == 1 and len(config.test_masses) == 16
