@@ -178,7 +178,22 @@ def load(spec: MethodSpec) -> Any:
     try:
         module = importlib.import_module(spec.module)
     except ImportError as err:
-        raise ValueError(f"{where}: cannot import {spec.module!r} ({err})") from None
+        # the spec's module itself (or a package of it) not found: say where
+        # Python looks, the usual fix (a module that is there but imports a
+        # missing one is named as it is)
+        top = spec.module.split(".")
+        missing = isinstance(err, ModuleNotFoundError) and err.name in {
+            ".".join(top[: i + 1]) for i in range(len(top))
+        }
+        hint = (
+            "; Python looks in the working directory and on PYTHONPATH: run from "
+            "the folder that holds it, or add that folder to PYTHONPATH"
+            if missing
+            else ""
+        )
+        raise ValueError(
+            f"{where}: cannot import {spec.module!r} ({err}){hint}"
+        ) from None
     except Exception as err:  # the user's module failed as it ran
         raise ValueError(
             f"{where}: importing {spec.module!r} raised {type(err).__name__}: {err}"

@@ -341,9 +341,13 @@ class Failing:
 
 def test_methods_that_cannot_be_loaded_are_refused(tmp_path, monkeypatch):
     (tmp_path / "broken_method.py").write_text("raise RuntimeError('boom')\n")
+    (tmp_path / "imports_a_missing_one.py").write_text("import no_such_dep\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     for spec, match in [
         ("x=tasks.no_such_module:A", "cannot import 'tasks.no_such_module'"),
+        ("x=no_such_module:A", "add that folder to PYTHONPATH"),
+        # found, but what it imports is not: no hint about where to run from
+        ("x=imports_a_missing_one:A", "No module named 'no_such_dep'\\)$"),
         ("x=broken_method:A", "importing 'broken_method' raised RuntimeError: boom"),
         ("x=tasks.methods:NoSuchClass", "has no class or function 'NoSuchClass'"),
         # there, but an int
