@@ -21,6 +21,7 @@ from tasks.experiment import (
     z_table,
 )
 from tasks.prediction import (
+    PREDICTION_METHODS,
     added_text,
     best_baseline,
     coverage_text,
@@ -219,7 +220,8 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
     """What the command prints when the run ends: per dimension, the HiP-MDP's
     MSE over the best baseline's (a ratio of means, below 1: the HiP-MDP is
     better) with its bootstrap interval over the test settings and that
-    baseline's name."""
+    baseline's name; then, per method added with ``--method``, its MSE over
+    the HiP-MDP's per dimension (a ratio of means)."""
     intervals = metrics.get("mse_ratio_to_best_baseline_interval") or {}
     lines = [
         "HiP-MDP MSE / the best baseline's (95% bootstrap interval over the test "
@@ -233,4 +235,14 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
             continue
         bounds = f" [{ci['low']:.2g}, {ci['high']:.2g}]" if ci else ""
         lines.append(f"  {d}: {v:.2g}{bounds} against {base}")
+    mse = metrics["mse"]
+    for name in (m for m in mse if m not in PREDICTION_METHODS):  # --method's
+        ratios = ", ".join(
+            f"{d} {x['mean'] / h['mean']:.2g}" if h["mean"] > 0 else f"{d} n/a"
+            for (d, x), h in zip(mse[name].items(), mse["hipmdp"].values(), strict=True)
+        )
+        lines.append(
+            f"{name} (added) MSE / the HiP-MDP's (ratio of means; above 1: the "
+            f"HiP-MDP is better): {ratios}"
+        )
     return lines

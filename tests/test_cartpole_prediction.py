@@ -1203,3 +1203,11 @@ def test_cli_runs_the_parsed_config_and_prints_the_ratios(
         "  dtheta: none (batch only predicts it exactly)",
         f"tables and plain-language results: {tmp_path / 'report.md'}",
     ]
+    # a method added with --method: its MSE over the HiP-MDP's, per dimension
+    metrics["mse"]["mine"] = {"dx": {"mean": 240.0}, "dtheta": {"mean": 0.5}}
+    (tmp_path / "cartpole.rrd").unlink()  # not a run's folder: run_dir refuses it
+    assert cp.cli(["--out", str(tmp_path)]) == 0
+    assert capsys.readouterr().out.splitlines()[-2] == (
+        "mine (added) MSE / the HiP-MDP's (ratio of means; above 1: the HiP-MDP is "
+        "better): dx 2.4e+02, dtheta 0.5"
+    )
