@@ -77,6 +77,8 @@ Array = np.ndarray
 ACTIONS = np.array([-1.0, 0.0, 1.0])
 #: State `(θ₁, θ₂, θ̇₁, θ̇₂)`: its dimension and which entries are angles.
 STATE_DIM = 4
+#: The state's entries by name (data descriptions, tables).
+STATE_NAMES = ("theta1", "theta2", "theta1_dot", "theta2_dot")
 ANGLE_DIMS = (0, 1)
 #: Seconds per action; MuJoCo RK4 steps of 10 ms per action at most (`sub_steps`).
 CONTROL_TIMESTEP = 0.2

@@ -38,6 +38,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from hipmdp.planning import LearnedModel, open_loop_errors
+from tasks import acrobot
 from tasks.acrobot_identified import average_model, check_run, read_run
 from tasks.acrobot_swingup import run_test_instances
 from tasks.agents import ACROBOT
@@ -57,7 +58,7 @@ from tasks.prediction import gather_split
 
 MODELS = ("average", "prior", "identified")
 # errors are in the predicted state s_{t+k}, not in a change
-STATE_NAMES = ("theta1", "theta2", "theta1_dot", "theta2_dot")
+STATE_NAMES = acrobot.STATE_NAMES
 
 
 class Results(NamedTuple):

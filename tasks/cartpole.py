@@ -60,6 +60,8 @@ Array = np.ndarray
 ACTIONS = np.array([-10.0, 10.0])
 #: State `(x, θ, ẋ, θ̇)`: its dimension and which entries are angles.
 STATE_DIM = 4
+#: The state's entries by name (data descriptions, tables).
+STATE_NAMES = ("x", "theta", "x_dot", "theta_dot")
 ANGLE_DIMS = (1,)
 #: Seconds per action; MuJoCo RK4 steps of 10 ms per action.
 CONTROL_TIMESTEP = 0.02

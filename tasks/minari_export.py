@@ -61,7 +61,7 @@ MINARI_VERSION = "0.5.0"
 TASKS = {
     "acrobot": {
         "documentation": "tasks.acrobot",
-        "state": ["theta1", "theta2", "theta1_dot", "theta2_dot"],
+        "state": list(acrobot.STATE_NAMES),
         "state_units": ["rad", "rad", "rad/s", "rad/s"],
         "angle_dims": list(acrobot.ANGLE_DIMS),
         "action": "elbow torque held for dt (N·m), by action index",
@@ -70,7 +70,7 @@ TASKS = {
     },
     "cartpole": {
         "documentation": "tasks.cartpole",
-        "state": ["x", "theta", "x_dot", "theta_dot"],
+        "state": list(cartpole.STATE_NAMES),
         "state_units": ["m", "rad", "m/s", "rad/s"],
         "angle_dims": list(cartpole.ANGLE_DIMS),
         "action": "force on the cart held for dt (N), by action index",
