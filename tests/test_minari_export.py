@@ -129,7 +129,8 @@ def test_columns_and_spaces_are_typed_as_minari_writes_them(run, tmp_path):
     module = {"acrobot": acrobot, "cartpole": cartpole}[domain]
     assert task["action_values"] == module.ACTIONS.tolist()
     assert task["angle_dims"] == list(module.ANGLE_DIMS)
-    assert len(task["state"]) == len(task["state_units"]) == 4
+    assert task["state"] == list(module.STATE_NAMES)
+    assert len(task["state_units"]) == module.STATE_DIM
     limit = dataset.manifest["config"]["max_steps"]
     assert task["max_steps"] == (limit or agents.DOMAINS[domain].max_steps)
     for e in range(meta["total_episodes"]):
