@@ -178,13 +178,14 @@ def load(spec: MethodSpec) -> Any:
     try:
         module = importlib.import_module(spec.module)
     except ImportError as err:
-        # the spec's module itself (or a package of it) not found: say where
-        # Python looks, the usual fix (a module that is there but imports a
-        # missing one is named as it is)
-        top = spec.module.split(".")
-        missing = isinstance(err, ModuleNotFoundError) and err.name in {
-            ".".join(top[: i + 1]) for i in range(len(top))
-        }
+        # the spec's top-level module or package not found: say where Python
+        # looks, the usual fix. A package that is found but lacks the module
+        # (a mistyped name: the folder is on the path already), or a module
+        # that is there but imports a missing one, is named as it is.
+        missing = (
+            isinstance(err, ModuleNotFoundError)
+            and err.name == spec.module.partition(".")[0]
+        )
         hint = (
             "; Python looks in the working directory and on PYTHONPATH: run from "
             "the folder that holds it, or add that folder to PYTHONPATH"
