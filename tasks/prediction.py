@@ -419,7 +419,7 @@ def score_settings(
             )
         except Exception as err:  # which setting, to find it again
             err.add_note(
-                f"(scoring {desc}: setting {i + 1} of {len(instances)}, {params}; "
+                f"(scoring {desc}: setting {i} of 0-{len(instances) - 1}, {params}; "
                 f"{len(parts.train)} train and {len(parts.test)} test transitions)"
             )
             raise

@@ -743,7 +743,7 @@ def test_an_error_in_a_prediction_table_names_the_setting(tmp_path):
     note = "".join(err.value.__notes__)
     assert "in method late: adapt" in note
     params = _params(*TINY.test_settings[1])
-    assert f"(scoring test settings: setting 2 of 2, {params}; " in note
+    assert f"(scoring test settings: setting 1 of 0-1, {params}; " in note
     assert f"{TINY.n_train} train and {TINY.n_test} test transitions)" in note
 
 
