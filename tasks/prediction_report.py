@@ -237,9 +237,12 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
         lines.append(f"  {d}: {v:.2g}{bounds} against {base}")
     mse = metrics["mse"]
     for name in (m for m in mse if m not in PREDICTION_METHODS):  # --method's
+        hip = mse["hipmdp"]
         ratios = ", ".join(
-            f"{d} {x['mean'] / h['mean']:.2g}" if h["mean"] > 0 else f"{d} n/a"
-            for (d, x), h in zip(mse[name].items(), mse["hipmdp"].values(), strict=True)
+            f"{d} {x['mean'] / hip[d]['mean']:.2g}"
+            if hip.get(d, {}).get("mean", 0) > 0
+            else f"{d} n/a"
+            for d, x in mse[name].items()
         )
         lines.append(
             f"{name} (added) MSE / the HiP-MDP's (ratio of means; above 1: the "

@@ -1211,3 +1211,9 @@ def test_cli_runs_the_parsed_config_and_prints_the_ratios(
         "mine (added) MSE / the HiP-MDP's (ratio of means; above 1: the HiP-MDP is "
         "better): dx 2.4e+02, dtheta 0.5"
     )
+    # paired by dimension name, not position; none where the HiP-MDP has none
+    metrics["mse"]["mine"] = {"dtheta": {"mean": 0.5}, "dx": {"mean": 240.0}}
+    metrics["mse"]["hipmdp"]["dtheta"] = {"mean": 0.0}
+    (tmp_path / "cartpole.rrd").unlink()
+    assert cp.cli(["--out", str(tmp_path)]) == 0
+    assert capsys.readouterr().out.splitlines()[-2].endswith(": dtheta n/a, dx 2.4e+02")
