@@ -113,7 +113,7 @@ def export(run: str | Path, out: str | Path, *, dataset_id: str | None = None) -
     if target.exists():
         raise ValueError(f"{target} exists; choose another --out or dataset id")
     spec = get_domain(domain)
-    max_steps = config["max_steps"] or agents.DOMAINS[domain].max_steps
+    max_steps = step_limit(domain, config["max_steps"])
     table = dataset.parameters
     dataset.verify()  # every shard, before anything is written
     with atomic_folder(target) as building:
@@ -193,6 +193,12 @@ def check_dataset_id(dataset_id: str) -> None:
         )
 
 
+def step_limit(domain: str, max_steps: int | None) -> int:
+    """A run's step limit: ``max_steps``, or the task's where it is None (a
+    manifest's ``config["max_steps"]`` when ``--max-steps`` was not given)."""
+    return agents.DOMAINS[domain].max_steps if max_steps is None else max_steps
+
+
 def episode_ends(
     transitions: Transitions,
     table: ParameterTable,
@@ -204,12 +210,9 @@ def episode_ends(
     instance (its parameters from ``table``: the acrobot's goal height, say,
     depends on its link lengths), else the episode was truncated.
 
-    ``max_steps`` is the run's step limit; None (the default, and a run
-    manifest's ``config["max_steps"]`` when ``--max-steps`` was not given) is
-    the task's default."""
+    ``max_steps`` is the run's step limit, None the task's (:func:`step_limit`)."""
     spec = get_domain(domain)
-    if max_steps is None:
-        max_steps = agents.DOMAINS[domain].max_steps
+    max_steps = step_limit(domain, max_steps)
     ends = np.flatnonzero(transitions.dones) + 1
     out = []
     for start, stop in zip(np.r_[0, ends[:-1]], ends, strict=True):

@@ -236,8 +236,8 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
         bounds = f" [{ci['low']:.2g}, {ci['high']:.2g}]" if ci else ""
         lines.append(f"  {d}: {v:.2g}{bounds} against {base}")
     mse = metrics["mse"]
+    hip = mse["hipmdp"]
     for name in (m for m in mse if m not in PREDICTION_METHODS):  # --method's
-        hip = mse["hipmdp"]
         ratios = ", ".join(
             f"{d} {x['mean'] / hip[d]['mean']:.2g}"
             if hip.get(d, {}).get("mean", 0) > 0
