@@ -78,7 +78,14 @@ from tasks.prediction import (
     summarise,
 )
 from tasks.recording import resolve_record
-from tasks.transfer import METHODS, TransferConfig, TrialJob, run_trial, set_models
+from tasks.transfer import (
+    METHODS,
+    TransferConfig,
+    TrialJob,
+    run_trial,
+    set_models,
+    trial_label,
+)
 
 # The paper's settings (m1, m2); the test grid is DESIGN's corrected one.
 TRAIN_MASSES = (
@@ -326,6 +333,7 @@ def run_transfer(
         run_trial, jobs, workers=config.workers, desc="transfer trials",
         progress=config.progress, initializer=set_models,
         initargs=(ACROBOT, config.transfer, hip, average, None, added),
+        label=trial_label,
     )  # fmt: skip
 
 

@@ -751,6 +751,7 @@ def pool_map(
     progress: bool,
     initializer=None,
     initargs: tuple = (),
+    label=None,
 ) -> list:
     """``[fn(job) for job in jobs]`` in order, with a progress bar.
 
@@ -758,19 +759,18 @@ def pool_map(
     process pool of ``workers`` runs the jobs, never more processes than jobs (a
     pool starts all its workers at once). Either way at one BLAS thread (see
     :func:`one_blas_thread`). Results never depend on ``workers``: every job
-    carries its own seed.
+    carries its own seed. ``label(job)``, if given, names on the bar the job it
+    waits for (results come in order: with a pool, later jobs may be running
+    too), so a bar that stops moving says which job is slow.
     """
     from concurrent.futures import ProcessPoolExecutor
-
-    from tqdm.auto import tqdm
 
     workers = max(1, min(workers, len(jobs)))
     if workers == 1:
         with threadpool_limits(limits=1):  # as the workers below
             if initializer is not None:
                 initializer(*initargs)
-            it = map(fn, jobs)
-            return list(tqdm(it, total=len(jobs), desc=desc, disable=not progress))
+            return _in_order(map(fn, jobs), jobs, desc, progress, label)
     with ProcessPoolExecutor(
         workers,
         initializer=_init_worker,
@@ -778,11 +778,28 @@ def pool_map(
     ) as pool:
         it = pool.map(functools.partial(_sendable_errors, fn), jobs)
         try:
-            return list(tqdm(it, total=len(jobs), desc=desc, disable=not progress))
+            return _in_order(it, jobs, desc, progress, label)
         except BaseException:
             # a job failed (or Ctrl-C): drop the queued ones rather than run them
             pool.shutdown(wait=True, cancel_futures=True)
             raise
+
+
+def _in_order(results, jobs: Sequence[Any], desc: str, progress: bool, label):
+    """``list(results)`` (one per job, in order) behind a progress bar that names,
+    with ``label``, the job it waits for."""
+    from tqdm.auto import tqdm
+
+    out = []
+    with tqdm(total=len(jobs), desc=desc, disable=not progress) as bar:
+        for job in jobs:
+            if label is not None:
+                bar.set_postfix_str(label(job))
+            out.append(next(results))
+            bar.update()
+        if label is not None:
+            bar.set_postfix_str("")
+    return out
 
 
 def _sendable_errors(fn, job):

@@ -138,6 +138,12 @@ class TrialJob(NamedTuple):
     record: bool
 
 
+def trial_label(job: TrialJob) -> str:
+    """A trial as a progress bar names it: ``"hipmdp, setting 3, trial 0"``
+    (settings and trials counted from 0)."""
+    return f"{job.method}, setting {job.setting}, trial {job.trial}"
+
+
 class EpisodeTrace(NamedTuple):
     """What the recording shows of one real episode (``T`` steps, ``K`` weights).
 

@@ -988,10 +988,12 @@ def test_transfer_jobs_share_seeds_across_methods_and_trace_one_trial(monkeypatc
     its own; only setting 0, trial 0 is traced, and nothing with record off."""
     jobs = []
 
-    def pool_map(fn, given, **kwargs):  # record the jobs, run none
+    def pool_map(fn, given, label, **kwargs):  # record the jobs, run none
         jobs.extend(given)
+        labels.extend(map(label, given))
         return []
 
+    labels = []
     monkeypatch.setattr(swingup, "pool_map", pool_map)
     config = dataclasses.replace(
         TINY, test_masses=((0.7, 0.9), (1.3, 1.1)), n_trials=3, record=True
@@ -999,7 +1001,8 @@ def test_transfer_jobs_share_seeds_across_methods_and_trace_one_trial(monkeypatc
     swingup.run_transfer(config, None, None, np.random.SeedSequence(5))
     seeds = trial_seeds(np.random.SeedSequence(5), 2, 3)
     assert len(jobs) == len(METHODS) * 2 * 3
-    for job in jobs:
+    for job, label in zip(jobs, labels, strict=True):  # the bar names the trial
+        assert label == f"{job.method}, setting {job.setting}, trial {job.trial}"
         assert job.seed == seeds[job.setting][job.trial]
         masses = job.params.link_mass_1, job.params.link_mass_2
         assert masses == pytest.approx(config.test_masses[job.setting])

@@ -370,6 +370,38 @@ def test_pool_jobs_run_one_blas_thread_after_the_initializer(two_blas_threads, w
     assert got == [([1], ["models"])] * 3
 
 
+def test_the_bar_names_the_job_it_waits_for(capsys):
+    """A slow job (an added method's trial, say) stops the bar: the bar names it,
+    and names nothing once every job is done."""
+    shown = []
+
+    def job(name: str) -> str:
+        shown.append(capsys.readouterr().err.rsplit("\r", 1)[-1])  # the bar now
+        return name.upper()
+
+    got = pool_map(job, ["a", "b", "c"], workers=1, desc="trials", progress=True,
+                   label=lambda name: f"job {name}")  # fmt: skip
+    assert got == ["A", "B", "C"]
+    assert [("job a" in s, "job b" in s, "job c" in s) for s in shown] == [
+        (True, False, False), (False, True, False), (False, False, True)
+    ]  # fmt: skip
+    last = capsys.readouterr().err.rsplit("\r", 1)[-1]
+    assert "3/3" in last and "job" not in last
+
+
+def _upper(name: str) -> str:
+    return name.upper()
+
+
+def test_the_bar_names_the_jobs_at_two_workers(capsys):
+    got = pool_map(_upper, ["a", "b", "c"], workers=2, desc="trials",
+                   progress=True, label=lambda name: f"job {name}")  # fmt: skip
+    err = capsys.readouterr().err
+    assert got == ["A", "B", "C"]
+    assert 0 <= err.index("job a") < err.index("job b") < err.index("job c")
+    assert "job" not in err.rsplit("\r", 1)[-1]
+
+
 class TwoPartError(Exception):
     """An exception pickle cannot rebuild: __init__ takes two arguments and
     passes one on, as a user's own exception class might."""

@@ -15,7 +15,7 @@ from tasks import acrobot, methods, transfer
 from tasks.acrobot import AcrobotParams
 from tasks.agents import ACROBOT
 from tasks.methods import Added, MethodSpec
-from tasks.transfer import TransferConfig, TrialJob, run_trial, set_models
+from tasks.transfer import TransferConfig, TrialJob, run_trial, set_models, trial_label
 
 PARAMS = AcrobotParams(link_mass_1=0.9, link_mass_2=1.1)
 #: real episodes of 5 steps (no random start swings up that fast), little planning
@@ -265,3 +265,8 @@ def test_an_unknown_method_is_refused_naming_the_known_ones():
     set_models(ACROBOT, TINY, CountingHipMDP(), None)
     with pytest.raises(ValueError, match=r"^method: expected one of \('true', "):
         run_trial(TrialJob("HiP-MDP", 0, 0, PARAMS, (5, (0, 0)), False))
+
+
+def test_a_trial_label_names_method_setting_and_trial_from_0():
+    job = TrialJob("NAME", 3, 0, PARAMS, (5, (3, 0)), False)
+    assert trial_label(job) == "NAME, setting 3, trial 0"
