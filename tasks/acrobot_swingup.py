@@ -108,10 +108,12 @@ def run_methods(config: SwingupConfig) -> tuple[str, ...]:
 
 
 def run_pairs(config: SwingupConfig) -> tuple[tuple[str, str], ...]:
-    """PAIRS, then for each added method: the HiP-MDP against it, and it against
-    the true model."""
+    """PAIRS, then for each added method: the HiP-MDP against it, it against the
+    average model (transfer against none), and it against the true model."""
     added = run_methods(config)[len(METHODS) :]
-    return PAIRS + tuple(p for m in added for p in (("hipmdp", m), (m, "true")))
+    return PAIRS + tuple(
+        p for m in added for p in (("hipmdp", m), (m, "average"), (m, "true"))
+    )
 
 
 DIM_NAMES = ("dtheta1", "dtheta2", "dtheta1_dot", "dtheta2_dot")

@@ -19,7 +19,8 @@ reports, from the first place results can part to the last:
    and largest relative difference (every value, with both sides, in
    ``--out``). A metric added since (``ADDED_METRICS``) that one run has and the
    other lacks is named, not compared: the run without it is taken to be older
-   than the metric.
+   than the metric; so is a pair added since (``ADDED_PAIRS``: ``NAME -
+   average``) of a method both runs added.
 5. ``extra``: the entries of a method one run added (``--method``, named in its
    config) and the other did not: its metric values (counted per top-level key)
    and its rows of ``trials.npz`` (compared on the methods both runs ran). The
@@ -67,6 +68,11 @@ IGNORED_METRICS = ("seconds",)
 #: the other (written before it existed) lacks it, it is not compared, and the
 #: report says so.
 ADDED_METRICS = ("per_setting_loglik", "mse_ratio_to_best_baseline_interval")
+#: Built-in methods that an added method (``--method``) has been paired with
+#: since the first runs: ``NAME - average`` (2026-12-05). Where one run has such
+#: a pair of a method both runs added and the other run lacks it, it is not
+#: compared, as an ``ADDED_METRICS`` metric.
+ADDED_PAIRS = ("average",)
 #: Settings that change how a run is shown or scheduled, never its results.
 PRESENTATION = ("progress", "workers", "record")
 
@@ -83,8 +89,9 @@ class Comparison(NamedTuple):
     method are then compared on the shared methods);
     ``only_in`` lists the ``.npz`` files that one folder has and the other lacks;
     ``extra``, per run folder, the metric keys (dotted) that only it has;
-    ``not_compared``, the metrics (of ``ADDED_METRICS``) that one run has and the
-    other, older one lacks.
+    ``not_compared``, the metrics (of ``ADDED_METRICS``) and the pairs (of
+    ``ADDED_PAIRS``, dotted up to the pair) that one run has and the other, older
+    one lacks.
     """
 
     config: dict[str, list]
@@ -147,6 +154,26 @@ def _method_entry(key: str, methods: set[str], other: dict) -> bool:
             return False
         node = node[part]
     return False
+
+
+def _added_pair(key: str, methods: set[str], other: dict) -> str | None:
+    """If the dotted metric ``key``, which one run has and ``other`` (the other
+    run's metrics) lacks, is in a pair added since (``ADDED_PAIRS``) of one of
+    ``methods`` (added by both runs), and ``other`` holds the dict that pair
+    would be a key of, without it: ``key`` up to the pair
+    (``"paired_difference.NAME - average"``). Else None."""
+    pairs = {f"{m} - {b}" for m in methods for b in ADDED_PAIRS}
+    parts = key.split(".")
+    node: Any = other
+    for i, part in enumerate(parts):
+        if not isinstance(node, dict):
+            return None
+        if part in pairs:
+            return ".".join(parts[: i + 1]) if part not in node else None
+        if part not in node:
+            return None
+        node = node[part]
+    return None
 
 
 def flatten(x: Any, prefix: str = "", lists: bool = True) -> dict[str, Any]:
@@ -392,6 +419,13 @@ def main(run_a: str | Path, run_b: str | Path, out: str | Path | None = None):
         metrics_b.pop(key, None)
     flat_a, flat_b = flatten(metrics_a), flatten(metrics_b)
     added_a, added_b = added_methods(config_a), added_methods(config_b)
+    newer_pairs: dict[str, str] = {}  # key: its pair's prefix
+    for key in flat_a.keys() ^ flat_b.keys():
+        other = metrics_b if key in flat_a else metrics_a
+        pair = _added_pair(key, added_a & added_b, other)
+        if pair is not None:  # one run is older than the pair
+            newer_pairs[key] = pair
+    not_compared += tuple(sorted(set(newer_pairs.values())))
     extra = {
         str(a): [k for k in sorted(flat_a.keys() - flat_b.keys())
                  if _method_entry(k, added_a - added_b, metrics_b)],
@@ -403,7 +437,9 @@ def main(run_a: str | Path, run_b: str | Path, out: str | Path | None = None):
     metrics = {
         k: [flat_a.get(k), flat_b.get(k)]
         for k in sorted(flat_a.keys() | flat_b.keys())
-        if k not in apart and flat_a.get(k, absent) != flat_b.get(k, absent)
+        if k not in apart
+        and k not in newer_pairs
+        and flat_a.get(k, absent) != flat_b.get(k, absent)
     }
     names_a = {p.name for p in a.glob("*.npz")}
     names_b = {p.name for p in b.glob("*.npz")}

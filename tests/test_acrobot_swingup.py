@@ -1095,7 +1095,7 @@ def test_added_methods_are_paired_with_the_hipmdp_and_the_true_model():
     )
     want = {
         "hipmdp - average": 5.0, "hipmdp - true": -5.0, "average - true": -10.0,
-        "hipmdp - mine": 15.0, "mine - true": -20.0,
+        "hipmdp - mine": 15.0, "mine - average": -10.0, "mine - true": -20.0,
     }  # fmt: skip
     got = m["paired_difference"]
     assert list(got) == list(want)

@@ -177,6 +177,50 @@ def test_a_metric_added_since_is_named_not_compared(tmp_path):
     assert not result.identical and not result.shared_identical
 
 
+def test_an_added_methods_pair_added_since_is_named_not_compared(tmp_path):
+    """Runs with the same added method, one from before its ``NAME - average``
+    pair existed: the pair is named, not compared, wherever it sits (as a
+    metric of ADDED_METRICS is); where both have it, it counts; another pair
+    one run lacks, or the pair of a method the runs did not both add, is not
+    taken for it."""
+    added = {"seed": 0, "progress": True, "methods": ["d=mine:D"]}
+    old = {
+        "paired_difference": {"hipmdp - average": -0.5, "d - true": -1.0},
+        "split": {"pairs": {"d - true": {"gap": 2.0}}},
+    }
+    new = {
+        "paired_difference": old["paired_difference"] | {"d - average": 0.5},
+        "split": {"pairs": old["split"]["pairs"] | {"d - average": {"gap": 1.0}}},
+    }
+    a = _run(tmp_path / "a", metrics=old, config=added)
+    b = _run(tmp_path / "b", metrics=new, config=added)
+    result = main(a, b)
+    assert result.identical and result.not_compared == (
+        "paired_difference.d - average", "split.pairs.d - average"
+    )  # fmt: skip
+    assert result == main(b, a)._replace(extra=result.extra)  # either order
+    assert (
+        "not compared (one run is older than them): paired_difference.d - average, "
+        "split.pairs.d - average"
+    ) in report(result)
+    changed = json.loads(json.dumps(new))
+    changed["paired_difference"]["d - average"] = 0.7
+    c = _run(tmp_path / "c", metrics=changed, config=added)
+    result = main(b, c)
+    assert result.metrics == {"paired_difference.d - average": [0.5, 0.7]}
+    assert not result.not_compared and not result.identical
+    # a pair that is not new: a difference
+    lacking = json.loads(json.dumps(new))
+    del lacking["paired_difference"]["d - true"]
+    d = _run(tmp_path / "d", metrics=lacking, config=added)
+    assert main(b, d).metrics == {"paired_difference.d - true": [-1.0, None]}
+    # the method only one run added: its entries, the pair among them
+    e = _run(tmp_path / "e", metrics=new, config={"seed": 0, "progress": True})
+    result = main(a, e)
+    assert "d - average" not in " ".join(result.not_compared)
+    assert not result.shared_identical  # e lacks d's config: its entries differ
+
+
 def test_a_run_with_an_added_method_is_compared_on_what_both_ran(tmp_path):
     """A run with a method added (``--method``) against one without: the
     built-in methods' rows of trials.npz and every shared metric are compared,
