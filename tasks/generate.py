@@ -52,7 +52,8 @@ Execution (`concurrent.futures`): in-process (`--workers 1`), a local process po
 `pip install -e ".[dask]"`; a scheduler that does not answer within Dask's
 connect timeout, `distributed.comm.timeouts.connect`, 30 s by default, stops the
 run before anything is written, even one that accepts the connection and stays
-silent; two shards per thread of the cluster, as workers join, at least 64, are
+silent, and after 2 s without an answer a line says what the run waits for; two
+shards per thread of the cluster, as workers join, at least 64, are
 kept in flight; a cluster with no worker for 30 s is warned of, once). Every
 shard carries the client's `software` record, and a worker running other
 software (another package version, an edited source) refuses it, naming its
@@ -973,7 +974,10 @@ def _check_scheduler_answers(address: str) -> None:
     address that accepts the connection and stays silent (another server, the
     dashboard's port) made `Client` wait for ever, `Client(timeout=...)` too.
     A connection of our own, the handshake included, gets the deadline; the
-    error is Dask's own for a scheduler that cannot be reached."""
+    error is Dask's own for a scheduler that cannot be reached. Without an
+    answer after ``min(2 s, timeout / 2)`` (Dask retries a refused connection
+    until the timeout: a scheduler may be starting), a line on stderr says what
+    the run waits for."""
     import asyncio
 
     import dask
@@ -989,9 +993,17 @@ def _check_scheduler_answers(address: str) -> None:
     arguments = Security().get_connection_args("client")
 
     async def handshake() -> None:
-        comm = await asyncio.wait_for(
-            connect(address, timeout=timeout, **arguments), timeout
+        answer = asyncio.ensure_future(
+            asyncio.wait_for(connect(address, timeout=timeout, **arguments), timeout)
         )
+        done, _ = await asyncio.wait({answer}, timeout=min(2.0, timeout / 2))
+        if not done:
+            print(
+                f"--scheduler {address}: no answer yet; waiting up to {timeout:g} s "
+                "(distributed.comm.timeouts.connect)",
+                file=sys.stderr,
+            )
+        comm = await answer
         await comm.close()
 
     try:  # in a thread of its own: the caller may run an event loop

@@ -354,7 +354,15 @@ def test_a_scheduler_that_does_not_answer_stops_the_run_before_any_file(
             with pytest.raises(SystemExit) as stopped:
                 generate.main([*RUN, "--out", str(out), "--scheduler", address])
     assert stopped.value.code == 1
-    assert address in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert address in err
+    # said before Dask's retries end (they are its own: a scheduler may be
+    # starting), and before its error
+    waiting = (
+        f"--scheduler {address}: no answer yet; waiting up to 1 s "
+        "(distributed.comm.timeouts.connect)\n"
+    )
+    assert err.startswith(waiting) and err.count(address) == 2
     assert not out.exists()
 
 
@@ -398,6 +406,8 @@ def test_a_server_that_accepts_but_never_answers_stops_the_run_before_any_file(
     assert accepted  # it was reached, and stayed silent
     assert stopped.value.code == 1
     assert capsys.readouterr().err == (
+        f"--scheduler {address}: no answer yet; waiting up to 1 s "
+        "(distributed.comm.timeouts.connect)\n"
         f"python -m tasks.generate: error: Timed out trying to connect to {address} "
         "after 1 s (it accepted the connection but did not answer as a Dask "
         "scheduler)\n"
