@@ -1198,8 +1198,7 @@ def generate(
                     pending.discard(future)
                     keep(future)
         except BaseException:  # stopped: the shards not started are not run ...
-            for future in pending:
-                future.cancel()
+            _cancel_waiting(pool, pending)
             for future in pending:  # ... and those finished meanwhile are kept
                 if future.done() and not _failed(future):
                     keep(future)
@@ -1208,6 +1207,20 @@ def generate(
     shards.write_manifest(out, manifest)
     shards.remove_progress(out)
     return Generated(path, manifest, tuple(todo))
+
+
+def _cancel_waiting(pool: cf.Executor, futures: set[cf.Future]) -> None:
+    """Cancel the ``futures`` of ``pool`` that have not started. A process pool
+    cancels its own (``shutdown(wait=False, cancel_futures=True)``): a future
+    cancelled here, as the pool's manager thread failed the futures of a worker
+    killed by the same stop (SIGTERM to the process group), raised
+    InvalidStateError in that thread, printed as its traceback, and the pool
+    skipped its clean-up (CPython gh-107219, fixed in 3.12)."""
+    if isinstance(pool, cf.ProcessPoolExecutor):
+        pool.shutdown(wait=False, cancel_futures=True)
+    else:
+        for future in futures:
+            future.cancel()
 
 
 #: Seconds a Dask run waits with no worker before it warns (once; it waits on).

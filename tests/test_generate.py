@@ -8,6 +8,7 @@ import json
 import os
 import shlex
 import signal
+import threading
 import time
 
 import numpy as np
@@ -879,6 +880,37 @@ def test_two_stop_signals_while_a_shard_is_written_raise_the_first(first, second
             written.append("shard")
     assert written == ["shard"]
     assert stopped.type is expected[first]
+
+
+def test_a_stop_as_the_pools_worker_dies_leaves_no_traceback():
+    """SIGTERM to a run's process group (a batch system's stop) ends the pool's
+    workers and stops the run at once: the run cancelled the shards not started
+    as the pool's thread failed them for the dead worker, which raised
+    InvalidStateError in that thread (CPython gh-107219, fixed in 3.12): a
+    traceback after the stop line, 3 of 4 times by hand. Here in the order that
+    raised it: the shards cancelled, then the worker killed. The pool cancels
+    its own now."""
+    errors = []
+    previous, threading.excepthook = threading.excepthook, errors.append
+    try:
+        with generate.executor_for(2, None) as pool:
+            # "running": in a worker or in the pool's call queue (workers + 1
+            # places, filled as the pool's thread wakes); the last one waits
+            futures = [pool.submit(time.sleep, 60) for _ in range(6)]
+            for _ in range(600):  # a guard of a minute, not a timing check
+                if sum(f.running() for f in futures) >= 3:
+                    break
+                time.sleep(0.1)
+            assert sum(f.running() for f in futures) >= 3
+            assert not futures[-1].running()
+            workers = list(pool._processes.values())  # (no public way)
+            generate._cancel_waiting(pool, set(futures))
+            for process in workers:
+                process.kill()
+    finally:
+        threading.excepthook = previous
+    assert errors == []
+    assert all(f.cancelled() or f.exception() for f in futures)
 
 
 def test_pool_workers_end_quietly_on_ctrl_c():
