@@ -13,7 +13,9 @@ Pipeline (DESIGN §2):
    σ² I)⁻¹ Δ_b(S_ab)` on (a subsample of) instance b's action-a transitions;
 4. blocked Gibbs sampling of z, w, f, μ_w (`hipmdp.gibbs.run_chains`), best sample;
 5. the returned weights are the conditional posterior means E[w_b | z, f, μ_w, Y], and
-   the prior mean for a new instance is E[μ_w | those weights];
+   the prior mean for a new instance is the mean training weight: E[μ_w | those
+   weights] with a flat hyperprior (the model's own, σ_w0, would shrink it toward 0;
+   see the comment in `fit`);
 6. the model-error terms of the predictive variance per `(a, d)` (`model_error`),
    on a reproducible subsample of the batch.
 """
@@ -170,7 +172,8 @@ MAX_MAGNITUDE = float(np.finfo(float).max) ** 0.25
 def check_batch(data: Transitions, config: FitConfig) -> None:
     """Raise ValueError unless `data` can be fitted: a Transitions with at least two
     instances, every action 0..A-1 observed in every instance, magnitudes up to
-    MAX_MAGNITUDE, and enough distinct states for the support points. (Shapes and
+    MAX_MAGNITUDE, angle_dims declared if `config.periodic`, and enough distinct
+    states for the support points. (Shapes and
     finiteness are checked by Transitions itself and again here, in case arrays
     were modified in place.) Warns (RuntimeWarning) if an action's changes in a
     dimension are nonzero but of mean square below `hipmdp.gp.MIN_SCALE`."""

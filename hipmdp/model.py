@@ -2,8 +2,8 @@
 
 Symbols: `k` latent parameter (k = 0 here is the paper's k = 1, the mean dynamics),
 `a` action, `d` state dimension, `b` training instance, `m` support points `S*`
-(m, D); `z[k,a,d]` filter, `f[k,a,d](S*)` basis values, `w[k,b]` weights, `σ²[a,d]`
-noise. The model is
+(m, D); `z[k,a,d]` on/off flags, `f[k,a,d](S*)` basis values, `w[k,b]` weights,
+`σ²[a,d]` noise. The model is
 
     Δs_d = Σ_k z[k,a,d] w[k,b] f[k,a,d](s) + ε,   ε ~ N(0, σ²[a,d]),
 
@@ -47,7 +47,9 @@ uses the variance above without the weight-uncertainty term, by default
 (`filter_weights="prior_mean"`) with the weights at their prior mean μ_w, which `fit`
 sets to the mean training weight:
 
-    τ²[i,d] = σ² + c[a,d] v_ad(s_i) (1 + Σ_{k>1} z[k,a,d] μ_w[k]²) + r0[a,d].
+    τ²[i,d] = σ² + c[a,d] v_ad(s_i) (1 + Σ_{k≥1} z[k,a,d] μ_w[k]²) + r0[a,d]
+
+(k ≥ 1 here: every latent feature; the 1 is the mean dynamics' weight).
 
 c was calibrated with each training instance's own weights (`fitting.model_error`);
 that factor's mean keeps the weights' spread, mean_b w² = μ_w² + var_b w, and is

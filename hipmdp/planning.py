@@ -2,7 +2,8 @@
 
 Symbols: ``N`` states in a batch (or episodes in lockstep), ``D`` state dimension,
 ``s`` states ``(N, D)``, ``a`` discrete actions ``(N,)``, ``s'`` next states ``(N, D)``,
-``Δ = s' − s`` with angle dimensions wrapped to ``(−π, π]``.
+``Δ = s' − s`` (angle changes as ``hipmdp.Transitions.deltas`` gives them; the
+angle dimensions of ``s'`` are wrapped to ``(−π, π]``).
 
 - :class:`DynamicsModel`: anything with ``predict(states, actions) -> next_states``
   (batched). Implementations: the true simulator of an instance
