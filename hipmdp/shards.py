@@ -17,8 +17,11 @@ holds:
 - `shards`: per shard its `index`, `file`, `instances` (ids), `parameters` (one row
   per instance, the `ParameterTable` values), and once written its `sha256`,
   `counts` (`episodes`, `transitions`, `diverged_episodes`) and `diverged`
-  episodes; `sha256` is null until the shard file is in place;
-- `complete`: every shard written.
+  episodes; `sha256` is null until the shard file is in place (`tasks.generate`
+  also records each instance's MuJoCo steps per action, `sub_steps`);
+- `complete`: every shard written;
+- written by `tasks.generate`: `software` (package versions and a digest of the
+  source) and, for a run continued by other software, `earlier_software`.
 
 While the run goes on, each finished shard's `sha256`, `counts` and `diverged`
 are appended as one line to `progress.jsonl` (flushed to disk), not written into

@@ -415,7 +415,9 @@ def run_dir(
         ValueError: before anything is deleted or written, if ``out`` exists and
             is not a folder, or holds files named like the artefacts without a
             ``config.json`` of a ``name`` run (a folder that is not this
-            experiment's run folder), or another run is writing to it.
+            experiment's run folder), or holds a ``tasks.generate`` dataset
+            (``manifest.json``), or cannot be made or written in
+            (:func:`check_makeable`), or another run is writing to it.
     """
     path, stale = check_out(out, name, artefacts)
     path.mkdir(parents=True, exist_ok=True)

@@ -34,12 +34,13 @@ whatever `--workers` or `--scheduler`, and an instance's data the same whatever
 `--shard-size` (until 2026-12-04, shard `k`'s episodes came from one stream
 `(1, split, k)`, so they depended on the shard size and, for the random policy,
 on the other instances in the shard). `--resume` keeps the shards whose file matches its
-checksum and redoes the others (an unfinished run in `OUT` needs it; a finished one
-is left as it is), unless the run was started by other software (the manifest's
-`software`: package versions and a digest of the source; `--mixed-software`
-continues it all the same, listing in the manifest's `earlier_software` which
-shards each earlier software made); an `OUT` holding another
-run's manifest, or shards or a progress log without a manifest, or anything
+checksum and redoes the others (an unfinished run in `OUT` needs it, and so does a
+finished one with a shard missing or not matching its checksum; a finished one
+whose shards all match is left as it is), unless the run was started by other
+software (the manifest's `software`: package versions and a digest of the
+source; `--mixed-software` continues it all the same, listing in the manifest's
+`earlier_software` which shards each earlier software made); an `OUT` holding
+another run's manifest, or shards or a progress log without a manifest, or anything
 else but no manifest, is an error and nothing is overwritten. Ctrl-C exits with
 status 130 and SIGTERM (a batch system's stop) with 143, printing how many shards
 are kept and the command that resumes the run; a shard being written then is

@@ -582,8 +582,8 @@ def _adapted_to(name: str, n: int) -> Iterator[None]:
 
 def must_pickle(workers: int) -> bool:
     """Whether ``workers`` processes receive the fitted methods pickled: with
-    more than one, unless they are forked (``multiprocessing``'s default start
-    method)."""
+    more than one, unless they are forked (``multiprocessing``'s start method,
+    ``fork`` by default on Linux before Python 3.14)."""
     return workers > 1 and multiprocessing.get_start_method() != "fork"
 
 
