@@ -126,9 +126,10 @@ class TransferConfig:
 class TrialJob(NamedTuple):
     """One unit of work: ``method`` on test setting ``setting`` (params), ``trial``;
     ``seed`` is the (setting, trial) seed sequence as a value, ``(entropy,
-    spawn_key)``: the three methods' jobs share it, and ``SeedSequence.spawn``
-    mutates the object it is called on, so sharing the object itself would give
-    each method different streams when trials run in-process."""
+    spawn_key)``: every method's jobs share it (the added ones' too), and
+    ``SeedSequence.spawn`` mutates the object it is called on, so sharing the
+    object itself would give each method different streams when trials run
+    in-process."""
 
     method: str
     setting: int
