@@ -21,6 +21,20 @@ from hipmdp.planning import (
 )
 from hipmdp.sarsa import SarsaConfig, SarsaState
 
+
+def _installed_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("hipmdp")
+    except PackageNotFoundError:  # imported from a source tree not installed
+        return "0+unknown"
+
+
+#: The installed distribution's version (``pyproject.toml``): name it, and the
+#: commit, when you cite results (README, Citing).
+__version__ = _installed_version()
+
 __all__ = [
     "FILTER_WEIGHTS",
     "Belief",

@@ -141,3 +141,16 @@ def test_readmes_dataset_example_runs_on_the_default_generate_run(
     exec(compile(code, "README.md", "exec"), namespace)
     assert set(namespace["data"].instances) == {0, 3}
     assert namespace["ds"].parameters.values.shape == (4, 6)
+
+
+def test_the_version_to_cite_is_the_packages():
+    """README's Citing names the version ``pyproject.toml`` gives, which the
+    installed package reports as ``hipmdp.__version__``."""
+    import tomllib
+
+    import hipmdp
+
+    with open(ROOT / "pyproject.toml", "rb") as fh:
+        version = tomllib.load(fh)["project"]["version"]
+    assert hipmdp.__version__ == version
+    assert f"(`hipmdp` {version}, `pyproject.toml`;" in (ROOT / "README.md").read_text()
