@@ -1026,8 +1026,15 @@ def _check_scheduler_answers(address: str) -> None:
 
 def _init_worker(action: Any, owner: int) -> None:
     """A pool worker's start: Ctrl-C handled by ``action``; the worker ends when
-    the process ``owner`` is gone (:func:`tasks.experiment.exit_with`)."""
+    the process ``owner`` is gone (:func:`tasks.experiment.exit_with`); tqdm's
+    lock is a thread lock (a worker shows no bar): its default, a
+    multiprocessing lock, is a named semaphore in a forkserver's worker, which
+    a worker ended by SIGTERM left behind, and the resource tracker warned of
+    "leaked semaphore objects" after the run's stop line."""
+    from tqdm import tqdm
+
     signal.signal(signal.SIGINT, action)
+    tqdm.set_lock(threading.RLock())
     exit_with(owner)
 
 
