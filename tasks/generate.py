@@ -1206,7 +1206,7 @@ def generate(
                     pending.discard(future)
                     keep(future)
         except BaseException:  # stopped: the shards not started are not run ...
-            _cancel_waiting(pool, pending)
+            _cancel_waiting(pool, pending, owned=executor is None)
             for future in pending:  # ... and those finished meanwhile are kept
                 if future.done() and not _failed(future):
                     keep(future)
@@ -1217,14 +1217,18 @@ def generate(
     return Generated(path, manifest, tuple(todo))
 
 
-def _cancel_waiting(pool: cf.Executor, futures: set[cf.Future]) -> None:
+def _cancel_waiting(
+    pool: cf.Executor, futures: set[cf.Future], owned: bool = True
+) -> None:
     """Cancel the ``futures`` of ``pool`` that have not started. A process pool
-    cancels its own (``shutdown(wait=False, cancel_futures=True)``): a future
+    the run made (``owned``) cancels its own (``shutdown(wait=False,
+    cancel_futures=True)``; a caller's pool, ``generate(executor=...)``, is left
+    usable, and the caller's own futures in it alone): a future
     cancelled here, as the pool's manager thread failed the futures of a worker
     killed by the same stop (SIGTERM to the process group), raised
     InvalidStateError in that thread, printed as its traceback, and the pool
     skipped its clean-up (CPython gh-107219, fixed in 3.12)."""
-    if isinstance(pool, cf.ProcessPoolExecutor):
+    if owned and isinstance(pool, cf.ProcessPoolExecutor):
         pool.shutdown(wait=False, cancel_futures=True)
     else:
         for future in futures:

@@ -3,6 +3,7 @@ every policy, and bad options that stop before anything is written."""
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 import dataclasses
 import json
 import os
@@ -941,6 +942,31 @@ def test_pool_workers_make_no_named_semaphore_for_their_bars():
     by hand."""
     with generate.executor_for(2, None) as pool:
         assert pool.submit(_semaphores_of_a_bar).result() == []
+
+
+def _shard_fails(job):
+    raise ValueError(f"shard {job.index} failed")
+
+
+class _FailsShard1(cf.ProcessPoolExecutor):
+    """A caller's process pool in which shard 1 fails."""
+
+    def submit(self, fn, /, *args, **kwargs):
+        if fn is generate.run_shard and args[0].index == 1:
+            fn = _shard_fails
+        return super().submit(fn, *args, **kwargs)
+
+
+def test_a_failed_shard_leaves_a_callers_pool_usable(tmp_path):
+    """Only a pool the run made is shut down when it stops (the pool cancels
+    its own waiting shards): a pool the caller passed, ``executor=``, was left
+    shut down by a failed shard, refusing the caller's next job."""
+    argv = ["--domain", "acrobot", *TINY, "--shard-size", "1", "--no-progress"]
+    config = generate.parse_config([*argv, "--out", str(tmp_path / "run")])
+    with _FailsShard1(1) as pool:
+        with pytest.raises(ValueError, match="shard 1 failed"):
+            generate.generate(config, executor=pool)
+        assert pool.submit(int, "7").result() == 7
 
 
 def test_pool_workers_end_quietly_on_ctrl_c():
