@@ -36,6 +36,11 @@ The table is printed as Markdown; ``--out FILE`` also writes every value as JSON
 There an episode count of "never" (a median, minimum or maximum beyond the last
 episode) is ``null``, as JSON has no infinity; ``never`` says how many seeds
 never got there.
+
+Swing-up runs with a method added (``--method NAME=...``), some from before its
+``NAME - average`` pair (2026-12-05, ``tasks.compare_runs.ADDED_PAIRS``): that
+pair's rows are left out for every run, and the table says so
+(``not_in_every_run`` in the JSON).
 """
 
 from __future__ import annotations
@@ -49,7 +54,13 @@ import numpy as np
 from scipy import stats
 
 from tasks.cartpole_prediction import ratio_intervals
-from tasks.compare_runs import PRESENTATION, differences, read_run
+from tasks.compare_runs import (
+    ADDED_PAIRS,
+    PRESENTATION,
+    added_methods,
+    differences,
+    read_run,
+)
 from tasks.experiment import (
     check_out_file,
     fmt_ci,
@@ -365,14 +376,43 @@ def _older(run: str, err: Exception, label: str = "a headline number") -> str:
     )
 
 
+def _older_pairs(config: dict, metrics: list[dict]) -> tuple[list[dict], list[str]]:
+    """The swing-up runs' metrics without the pairs added since
+    (``compare_runs.ADDED_PAIRS``: ``NAME - average`` of an added method) that
+    some runs have and others, older, lack; and those pairs. Their rows would
+    otherwise be left out where the first run lacks them, and a later run
+    lacking them refused."""
+    pairs = {f"{m} - {b}" for m in added_methods(config) for b in ADDED_PAIRS}
+    held = [
+        set(m["paired_difference"]) if isinstance(m.get("paired_difference"), dict)
+        else set()
+        for m in metrics
+    ]  # fmt: skip
+    older = sorted(p for p in pairs if any(p in h for h in held) and
+                   not all(p in h for h in held))  # fmt: skip
+    if not older:
+        return metrics, []
+    return [
+        m | {"paired_difference": {k: v for k, v in m["paired_difference"].items()
+                                   if k not in older}}
+        if isinstance(m.get("paired_difference"), dict) else m
+        for m in metrics
+    ], older  # fmt: skip
+
+
 def main(runs: Sequence[str | Path], out: str | Path | None = None) -> dict[str, Any]:
     """Check the runs (:func:`read_runs`) and summarise their headline numbers;
     ``{"experiment", "seeds", "runs", "git_commits", "numbers": [{"label",
-    "scale", "per_seed", "across_seeds"}]}``. Also written as JSON to ``out``."""
+    "scale", "per_seed", "across_seeds"}]}`` (and ``"not_in_every_run"``, the
+    pairs left out as some runs are older than them, if any). Also written as
+    JSON to ``out``."""
     if out is not None:
         check_out_file(out, runs)
     runs = [str(r) for r in runs]
     name, configs, metrics, commits = read_runs(runs)
+    older: list[str] = []
+    if name == "acrobot_swingup":
+        metrics, older = _older_pairs(configs[0], metrics)
     try:
         headlines = EXPERIMENTS[name][1](metrics[0])
     except (KeyError, IndexError, TypeError) as err:
@@ -395,6 +435,8 @@ def main(runs: Sequence[str | Path], out: str | Path | None = None) -> dict[str,
         "git_commits": commits,
         "numbers": numbers,
     }
+    if older:  # some runs are older than these pairs
+        result["not_in_every_run"] = older
     if out is not None:
         write_json(out, result)
     return result
@@ -439,6 +481,12 @@ def report(result: dict[str, Any]) -> str:
             for run, c in zip(result["runs"], commits, strict=True)
         )
         code = f"Note: the runs were made at different commits ({made}).\n\n"
+    if result.get("not_in_every_run"):
+        code += (
+            "Note: left out, as some runs are older than them: "
+            + ", ".join(result["not_in_every_run"])
+            + ".\n\n"
+        )
     return (
         f"{result['experiment']}: {len(result['seeds'])} seeds "
         f"({', '.join(result['runs'])})\n\n"

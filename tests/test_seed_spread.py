@@ -522,3 +522,40 @@ def test_few_seeds_are_said_to_give_wide_intervals(tmp_path):
     assert "(Student t, 2 degrees of freedom)" in three
     five = text("five", (0.0, 1.0, 3.0, 4.0, 6.0))
     assert "5 seeds:" not in five and "Student t" not in five
+
+
+def _with_added_method(k: float, paired_with_average: bool) -> dict:
+    metrics = _acrobot_metrics(k)
+    pairs = ["hipmdp - d", "d - true"] + ["d - average"] * paired_with_average
+    for pair in pairs:
+        metrics["paired_difference"][pair] = {
+            "all_episodes": _ci(k, 4.0, 480), "by_setting": _ci(k, 9.0, 16)
+        }  # fmt: skip
+    return metrics
+
+
+@pytest.mark.parametrize("older", [0, 2])  # the first run sets the rows
+def test_runs_older_than_an_added_methods_pair_leave_it_out_named(tmp_path, older):
+    """Seeds of a run with an added method, one from before its ``NAME -
+    average`` pair: the pair's rows are left out, named, whichever run is the
+    older (they were left out silently where the first run was, and the run
+    refused as older where a later one was); its other rows stay."""
+    config = {"fit": {"n_sweeps": 60}, "methods": ["d=mine:D"]}
+    runs = _write_runs(tmp_path, [
+        ({"name": f"s{i}", "seed": i} | config, _with_added_method(i, i != older))
+        for i in range(3)
+    ])  # fmt: skip
+    result = main(runs)
+    labels = [n["label"] for n in result["numbers"]]
+    assert not [label for label in labels if "d - average" in label]
+    assert "return, d - true (trials)" in labels
+    assert result["not_in_every_run"] == ["d - average"]
+    assert "left out, as some runs are older than them: d - average." in report(result)
+    (tmp_path / "new").mkdir()  # every run paired it: its rows
+    runs = _write_runs(tmp_path / "new", [
+        ({"name": f"s{i}", "seed": i} | config, _with_added_method(i, True))
+        for i in range(3)
+    ])  # fmt: skip
+    result = main(runs)
+    assert "return, d - average (trials)" in [n["label"] for n in result["numbers"]]
+    assert "not_in_every_run" not in result
