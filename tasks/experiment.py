@@ -789,19 +789,52 @@ def pool_map(
 
 def _in_order(results, jobs: Sequence[Any], desc: str, progress: bool, label):
     """``list(results)`` (one per job, in order) behind a progress bar that names,
-    with ``label``, the job it waits for."""
+    with ``label``, the job it waits for (:func:`_name_on`)."""
     from tqdm.auto import tqdm
 
     out = []
+    timer = None
     with tqdm(total=len(jobs), desc=desc, disable=not progress) as bar:
-        for job in jobs:
-            if label is not None:
-                bar.set_postfix_str(label(job))
-            out.append(next(results))
-            bar.update()
+        try:
+            for job in jobs:
+                if label is not None:
+                    timer = _name_on(bar, label(job), timer)
+                out.append(next(results))
+                bar.update()
+        finally:
+            if timer is not None:
+                timer.cancel()
         if label is not None:
-            bar.set_postfix_str("")
+            bar.set_postfix_str("", refresh=False)  # drawn as the bar closes
     return out
+
+
+def _name_on(bar, text: str, timer: threading.Timer | None) -> threading.Timer | None:
+    """Show ``text`` on ``bar``: at once, unless the bar was drawn less than its
+    ``mininterval`` ago (``TQDM_MININTERVAL=60`` thins a bar to one update a
+    minute); then once that has passed, if no other text has replaced it (a job
+    that stops the bar is named all the same). Returns the timer that will, if
+    any (``timer``, the previous one, is cancelled)."""
+    if timer is not None:
+        timer.cancel()
+    bar.set_postfix_str(text, refresh=False)
+    if bar.disable:
+        return None
+    wait = bar.last_print_t + bar.mininterval - time.time()
+    if wait <= 0:
+        bar.refresh()
+        bar.last_print_t = time.time()
+        return None
+
+    def draw() -> None:
+        if bar.postfix == text and not bar.disable:
+            bar.refresh()
+            bar.last_print_t = time.time()
+
+    timer = threading.Timer(wait, draw)
+    timer.daemon = True
+    timer.start()
+    return timer
 
 
 def _sendable_errors(fn, job):

@@ -370,9 +370,21 @@ def test_pool_jobs_run_one_blas_thread_after_the_initializer(two_blas_threads, w
     assert got == [([1], ["models"])] * 3
 
 
-def test_the_bar_names_the_job_it_waits_for(capsys):
+def _mininterval(monkeypatch, seconds: float) -> None:
+    """Bars drawn at most every ``seconds`` (as ``TQDM_MININTERVAL``, which
+    tqdm reads as it is imported)."""
+    import tqdm.auto
+
+    bar = tqdm.auto.tqdm
+    monkeypatch.setattr(
+        tqdm.auto, "tqdm", lambda *a, **k: bar(*a, **k, mininterval=seconds)
+    )
+
+
+def test_the_bar_names_the_job_it_waits_for(capsys, monkeypatch):
     """A slow job (an added method's trial, say) stops the bar: the bar names it,
-    and names nothing once every job is done."""
+    and names nothing once every job is done (drawn at once: no mininterval)."""
+    _mininterval(monkeypatch, 0)
     shown = []
 
     def job(name: str) -> str:
@@ -393,13 +405,41 @@ def _upper(name: str) -> str:
     return name.upper()
 
 
-def test_the_bar_names_the_jobs_at_two_workers(capsys):
+def test_the_bar_names_the_jobs_at_two_workers(capsys, monkeypatch):
+    _mininterval(monkeypatch, 0)
     got = pool_map(_upper, ["a", "b", "c"], workers=2, desc="trials",
                    progress=True, label=lambda name: f"job {name}")  # fmt: skip
     err = capsys.readouterr().err
     assert got == ["A", "B", "C"]
     assert 0 <= err.index("job a") < err.index("job b") < err.index("job c")
     assert "job" not in err.rsplit("\r", 1)[-1]
+
+
+def test_naming_the_job_keeps_to_the_bars_mininterval(capsys, monkeypatch):
+    """``TQDM_MININTERVAL=60`` thins every bar to one update a minute (README):
+    naming each job redrew the bar once per job, a line each in a log file."""
+    _mininterval(monkeypatch, 60)
+    got = pool_map(_upper, list("abcdefghij" * 20), workers=1, desc="trials",
+                   progress=True, label=lambda name: f"job {name}")  # fmt: skip
+    assert len(got) == 200
+    assert capsys.readouterr().err.count("trials") <= 3  # opened, closed
+
+
+def test_a_job_that_stops_the_bar_is_named_once_its_mininterval_has_passed(
+    capsys, monkeypatch
+):
+    _mininterval(monkeypatch, 0.3)
+    shown = []
+
+    def job(name: str) -> str:
+        if name == "slow":  # the bar was drawn for "fast" just now
+            time.sleep(1.5)
+            shown.append(capsys.readouterr().err.rsplit("\r", 1)[-1])
+        return name
+
+    pool_map(job, ["fast", "slow"], workers=1, desc="trials", progress=True,
+             label=lambda name: f"job {name}")  # fmt: skip
+    assert "job slow" in shown[0]
 
 
 class TwoPartError(Exception):
