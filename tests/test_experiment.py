@@ -933,10 +933,21 @@ def test_paired_difference_takes_its_level_in_every_interval():
         assert np.all(wide["high"] - wide["low"] > d[key]["high"] - d[key]["low"])
 
 
-def _interrupt_after_the_first(iterable, **kwargs):
+class _InterruptAfterTheFirst:
     """A progress bar through which Ctrl-C arrives after the first result."""
-    for item in iterable:
-        yield item
+
+    disable = True
+
+    def __init__(self, *args, **kwargs):
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def update(self, n=1):
         raise KeyboardInterrupt
 
 
@@ -945,7 +956,7 @@ def test_an_interrupt_drops_the_queued_jobs(tmp_path, monkeypatch):
     for the running jobs (a plain ``with`` pool would run all 40, 10 s)."""
     import tqdm.auto
 
-    monkeypatch.setattr(tqdm.auto, "tqdm", _interrupt_after_the_first)
+    monkeypatch.setattr(tqdm.auto, "tqdm", _InterruptAfterTheFirst)
     marks = [("mark", str(tmp_path / f"{i}.ran")) for i in range(40)]
     with pytest.raises(KeyboardInterrupt):
         pool_map(_fail_or_mark, marks, workers=2, desc="", progress=False)
