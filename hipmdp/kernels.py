@@ -138,7 +138,9 @@ def scaled_sqdist(
     |a|² + |b|² - 2 a·b can go slightly negative by round-off). Inputs far from 0
     are first shifted by the point `centre` takes from X2 alone (as `KernelMeans`
     takes it from its inputs, so the two agree, and a query's distances do not
-    depend on the other queries), which leaves the distances as they are.
+    depend on the other queries: bit for bit in a batch of the same size; a
+    query alone can be summed in another order by BLAS), which leaves the
+    distances as they are.
     """
     E1, col = embed(X1, periodic)
     E2, _ = embed(X2, periodic)
