@@ -967,6 +967,11 @@ def executor_for(
             yield pool
 
 
+# seconds past Dask's connect timeout before a connection that Dask made, but
+# whose handshake never came, is given up (`_check_scheduler_answers`)
+_HANDSHAKE_GRACE = 1.0
+
+
 def _check_scheduler_answers(address: str) -> None:
     """Raise OSError unless a Dask scheduler at `address` answers within Dask's
     connect timeout (`distributed.comm.timeouts.connect`, 30 s by default).
@@ -978,7 +983,9 @@ def _check_scheduler_answers(address: str) -> None:
     error is Dask's own for a scheduler that cannot be reached. Without an
     answer after ``min(2 s, timeout / 2)`` (Dask retries a refused connection
     until the timeout: a scheduler may be starting), a line on stderr says what
-    the run waits for."""
+    the run waits for. The deadline over Dask's retries and the handshake is a
+    little later than Dask's own (`_HANDSHAKE_GRACE`), or it would fire first
+    and call a refused connection an accepted one."""
     import asyncio
 
     import dask
@@ -995,7 +1002,10 @@ def _check_scheduler_answers(address: str) -> None:
 
     async def handshake() -> None:
         answer = asyncio.ensure_future(
-            asyncio.wait_for(connect(address, timeout=timeout, **arguments), timeout)
+            asyncio.wait_for(
+                connect(address, timeout=timeout, **arguments),
+                timeout + _HANDSHAKE_GRACE,
+            )
         )
         done, _ = await asyncio.wait({answer}, timeout=min(2.0, timeout / 2))
         if not done:
