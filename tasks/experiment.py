@@ -463,7 +463,7 @@ def check_out(
     if stale and _run_name(path / "config.json") != name:
         raise ValueError(
             f"out: {path} holds {', '.join(f.name for f in stale)}, but no "
-            f"config.json of a {name} run; choose a new or empty folder"
+            f"config.json of a run of {name}; choose a new or empty folder"
         )
     return path, stale
 
