@@ -36,3 +36,23 @@ def _no_models_from_another_test(monkeypatch):
     monkeypatch.setattr(transfer, "_MODELS", {})
     monkeypatch.setattr(acrobot_identified, "_STATE", {})
     monkeypatch.setattr(acrobot_energy, "_STATE", {})
+
+
+@pytest.fixture(scope="session")
+def _tiny_swingup_once(tmp_path_factory):
+    from tasks.acrobot_swingup import main
+    from tests.test_acrobot_swingup import TINY
+
+    return main(TINY, out=tmp_path_factory.mktemp("tiny_swingup")).out
+
+
+@pytest.fixture(scope="module")
+def tiny_swingup_run(_tiny_swingup_once, tmp_path_factory):
+    """A finished run of ``tests.test_acrobot_swingup.TINY``: the module's own
+    copy of one made once per session (the checks that read a finished run each
+    made the same run, five times over; a run's files hold no path of its)."""
+    import shutil
+
+    out = tmp_path_factory.mktemp("swingup") / "run"
+    shutil.copytree(_tiny_swingup_once, out)
+    return out

@@ -13,14 +13,12 @@ import pytest
 import hipmdp
 from tasks import acrobot_batch_errors
 from tasks.acrobot_identified import load_run
-from tasks.acrobot_swingup import main as swingup_main
 from tests._cli import fake_main
-from tests.test_acrobot_swingup import TINY
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
-    return swingup_main(TINY, out=tmp_path_factory.mktemp("swingup")).out
+def run(tiny_swingup_run):
+    return tiny_swingup_run
 
 
 def test_errors_are_the_plain_predictions_on_each_instances_rows(run, tmp_path):

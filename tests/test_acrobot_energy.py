@@ -12,7 +12,6 @@ from scipy import stats
 
 from tasks import acrobot, acrobot_energy, agents
 from tasks.acrobot import AcrobotParams
-from tasks.acrobot_swingup import main as swingup_main
 from tasks.agents import ACROBOT, SimulatorModel
 from tests.test_acrobot_swingup import TINY
 
@@ -343,8 +342,8 @@ def test_split_asks_each_model_for_its_own_rows_only():
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
-    out = swingup_main(TINY, out=tmp_path_factory.mktemp("swingup")).out
+def run(tiny_swingup_run):
+    out = tiny_swingup_run
     options = dict(
         trials=2, models=acrobot_energy.MODELS, identify=30, noise=0.2, fast=1.0,
         n_states=50, last=1, workers=1, progress=False,

@@ -10,7 +10,6 @@ import pytest
 
 from hipmdp.planning import LearnedModel, open_loop_errors
 from tasks import acrobot_horizon
-from tasks.acrobot_swingup import main as swingup_main
 from tasks.agents import ACROBOT
 from tasks.prediction import gather_split
 from tests._cli import fake_main
@@ -18,8 +17,8 @@ from tests.test_acrobot_swingup import TINY
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
-    out = swingup_main(TINY, out=tmp_path_factory.mktemp("swingup")).out
+def run(tiny_swingup_run):
+    out = tiny_swingup_run
     return out, acrobot_horizon.main(
         out, horizons=(1, 4), identify=30, evaluate=40, progress=False
     )

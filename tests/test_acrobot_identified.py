@@ -21,8 +21,8 @@ from tests.test_acrobot_swingup import TINY
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
-    out = swingup_main(TINY, out=tmp_path_factory.mktemp("swingup")).out
+def run(tiny_swingup_run):
+    out = tiny_swingup_run
     return out, acrobot_identified.main(
         out, trials=1, episodes=2, identify=30, workers=1, progress=False
     )

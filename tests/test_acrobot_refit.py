@@ -13,13 +13,11 @@ import pytest
 
 import hipmdp
 from tasks import acrobot_identified, acrobot_refit
-from tasks.acrobot_swingup import main as swingup_main
-from tests.test_acrobot_swingup import TINY
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
-    return swingup_main(TINY, out=tmp_path_factory.mktemp("swingup")).out
+def run(tiny_swingup_run):
+    return tiny_swingup_run
 
 
 def _arrays(path):
