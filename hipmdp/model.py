@@ -36,8 +36,9 @@ calibrates two terms per (a, d) on its training instances
 
     Var[Δs_d] = σ² + F Σ_w Fᵀ + c[a,d] v_ad(s) (1 + Σ_k z (μ_k² + Σ_w[k,k])) + r0[a,d]
 
-(`interp_var_scale` c >= 1, `residual_var` r0 >= 0; c = 1, r0 = 0 when absent, as
-in models saved before they existed).
+(`interp_var_scale` c, >= 1 as `fit` calibrates it (a model made by hand may give
+any c >= 0), `residual_var` r0 >= 0; c = 1, r0 = 0 when absent, as in models saved
+before they existed).
 
 Filtering with the model error. The filter's likelihood for one (transition, dimension)
 row is N(Δ; f_1 + F w, τ²), and τ² must be the model's error given the weights, not
