@@ -133,6 +133,25 @@ def added_methods(config: dict) -> set[str]:
     return {str(spec).split("=", 1)[0] for spec in config.get("methods") or ()}
 
 
+def _missing_part(key: str, matches, other: dict) -> str | None:
+    """Walk the dotted metric ``key``, which one run has, through ``other`` (the
+    other run's metrics) to the first part that ``matches``: ``key`` up to that
+    part if ``other`` holds the dict it would be a key of, without it; None if
+    no part matches, or ``other`` parts from ``key`` before one does (a shorter
+    list, a None for a dict: a difference)."""
+    parts = key.split(".")
+    node: Any = other
+    for i, part in enumerate(parts):
+        if not isinstance(node, dict):
+            return None
+        if matches(part):
+            return ".".join(parts[: i + 1]) if part not in node else None
+        if part not in node:
+            return None
+        node = node[part]
+    return None
+
+
 def _method_entry(key: str, methods: set[str], other: dict) -> bool:
     """Whether the dotted metric ``key``, which one run has and ``other`` (the
     other run's metrics) lacks, is an entry of a method only the first run
@@ -140,20 +159,17 @@ def _method_entry(key: str, methods: set[str], other: dict) -> bool:
     y``) and ``other`` holds the dict that part would be a key of, without it.
     Anything else one run lacks (a shorter list, a None for a dict) is a
     difference."""
-    if not methods:
-        return False
-    parts = key.split(".")
-    node: Any = other
-    for part in parts:
-        if not isinstance(node, dict):
-            return False
-        named = part in methods or any(x in methods for x in part.split(" - "))
-        if named:
-            return part not in node
-        if part not in node:
-            return False
-        node = node[part]
-    return False
+
+    def named(part: str) -> bool:
+        return part in methods or any(x in methods for x in part.split(" - "))
+
+    return bool(methods) and _missing_part(key, named, other) is not None
+
+
+def added_pairs(methods) -> set[str]:
+    """The pairs (``ADDED_PAIRS``) that runs made since pair ``methods`` (added
+    ones' names) with: ``{"NAME - average", ...}``."""
+    return {f"{m} - {b}" for m in methods for b in ADDED_PAIRS}
 
 
 def _added_pair(key: str, methods: set[str], other: dict) -> str | None:
@@ -162,18 +178,7 @@ def _added_pair(key: str, methods: set[str], other: dict) -> str | None:
     ``methods`` (added by both runs), and ``other`` holds the dict that pair
     would be a key of, without it: ``key`` up to the pair
     (``"paired_difference.NAME - average"``). Else None."""
-    pairs = {f"{m} - {b}" for m in methods for b in ADDED_PAIRS}
-    parts = key.split(".")
-    node: Any = other
-    for i, part in enumerate(parts):
-        if not isinstance(node, dict):
-            return None
-        if part in pairs:
-            return ".".join(parts[: i + 1]) if part not in node else None
-        if part not in node:
-            return None
-        node = node[part]
-    return None
+    return _missing_part(key, added_pairs(methods).__contains__, other)
 
 
 def flatten(x: Any, prefix: str = "", lists: bool = True) -> dict[str, Any]:

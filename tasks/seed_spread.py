@@ -55,9 +55,9 @@ from scipy import stats
 
 from tasks.cartpole_prediction import ratio_intervals
 from tasks.compare_runs import (
-    ADDED_PAIRS,
     PRESENTATION,
     added_methods,
+    added_pairs,
     differences,
     read_run,
 )
@@ -382,7 +382,7 @@ def _older_pairs(config: dict, metrics: list[dict]) -> tuple[list[dict], list[st
     some runs have and others, older, lack; and those pairs. Their rows would
     otherwise be left out where the first run lacks them, and a later run
     lacking them refused."""
-    pairs = {f"{m} - {b}" for m in added_methods(config) for b in ADDED_PAIRS}
+    pairs = added_pairs(added_methods(config))
     held = [
         set(m["paired_difference"]) if isinstance(m.get("paired_difference"), dict)
         else set()
