@@ -30,7 +30,13 @@ from tasks.acrobot_swingup import (
 from tasks.experiment import fmt_ci, to_jsonable, trial_seeds
 from tasks.prediction import score_settings
 from tasks.recording import rrd_contents
-from tasks.transfer import METHODS, TransferConfig, TrialResult, run_trial
+from tasks.transfer import (
+    METHODS,
+    TransferConfig,
+    TrialResult,
+    run_trial,
+    trial_label,
+)
 from tests._prediction import assert_coverage_schema
 from tests._rrd import rrd_components, rrd_scalars, rrd_times
 from tests._seed_spread import assert_reads_the_run
@@ -1002,7 +1008,7 @@ def test_transfer_jobs_share_seeds_across_methods_and_trace_one_trial(monkeypatc
     seeds = trial_seeds(np.random.SeedSequence(5), 2, 3)
     assert len(jobs) == len(METHODS) * 2 * 3
     for job, label in zip(jobs, labels, strict=True):  # the bar names the trial
-        assert label == f"{job.method}, setting {job.setting}, trial {job.trial}"
+        assert label == trial_label(job)  # its text: tests/test_transfer.py
         assert job.seed == seeds[job.setting][job.trial]
         masses = job.params.link_mass_1, job.params.link_mass_2
         assert masses == pytest.approx(config.test_masses[job.setting])
