@@ -70,7 +70,7 @@ def fitted():
     return fit(_batch(), CONFIG, rng=np.random.default_rng(1))
 
 
-@pytest.mark.parametrize("seed", range(8))
+@pytest.mark.parametrize("seed", range(4))
 def test_fit_finds_the_latent_structure_up_to_splits(seed):
     """Every inferred feature acts on rows of one true latent parameter only (none
     on row (1, 1), which is mean dynamics alone, none mixing the two parameters),
@@ -83,7 +83,10 @@ def test_fit_finds_the_latent_structure_up_to_splits(seed):
     (e.g. 5,637 and 5,694 against 5,256 for an exact one): with six training
     instances, an extra feature absorbs their smoothed data's residuals. More
     sampling does not change it: 6 chains x 150 sweeps was exact for 13 of 20.
-    So the test asserts the structure, on 8 seeds, not a lucky exact one."""
+    So the test asserts the structure, not a lucky exact one, on 4 seeds (8
+    until 2026-12-05: 6.5 s each on a slower machine whose suite reached its
+    10-minute budget; seeds 0 and 2 split a feature, 1 and 3 are exact, and
+    all of 0-19 held)."""
     model = fit(_batch(), CONFIG, rng=np.random.default_rng(seed))
     true = [set(r) for r in TRUE_ROWS]
     rows = [
