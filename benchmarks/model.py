@@ -13,7 +13,7 @@ transitions per instance. Prints:
   FitConfig's default chains), each timed once;
 - filter latency: one single-transition `update`, with the paper's filter and with
   the model-error filter side by side, and followed by a single-state `predict` or
-  `predict_mean` (200 transitions in a row per measurement);
+  `predict_mean` (200 transitions in a row per measurement, 50 with --small);
 - single-state means at a fixed belief, as planning calls them: `predict_mean`
   against `mean_predictor(belief)` (the features folded into one
   `hipmdp.kernels.KernelMeans`), side by side, and the predictor's one-off build;
@@ -79,8 +79,8 @@ def timed(fn):
 
 
 # --small: every size cut so that a test runs the whole script, checks included,
-# in about a second with --sweeps 3 --chains 1 (300 transitions per instance,
-# m = 30, 1,000 batched states; about 6 s with the default sweeps and chains)
+# in seconds with --sweeps 3 --chains 1 (300 transitions per instance, m = 30,
+# 50 filter transitions, 1,000 batched states)
 SMALL = dict(n_support=30, n_hyper=100, n_candidates=200, n_smooth=100, n_residual=200)
 
 
@@ -101,7 +101,9 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error(f"--repeats must be >= 1, got {args.repeats}")
-    n_per, n_batched = (300, 1000) if args.small else (N_PER, 100_000)
+    n_per, n_filter, n_batched = (
+        (300, 50, 1000) if args.small else (N_PER, 200, 100_000)
+    )
     rng = np.random.default_rng(0)
     batch, _ = make_batch(rng, n_per)
     config = FitConfig(
@@ -113,6 +115,7 @@ def main(argv: list[str] | None = None) -> None:
     print(
         f"data: B={B} instances x {n_per} transitions, A={A}, D={D}; "
         f"m={config.n_support}, {config.n_sweeps} sweeps x {config.n_chains} chains"
+        f"; {n_filter} filter transitions"
     )
 
     deltas = batch.deltas
@@ -154,7 +157,7 @@ def main(argv: list[str] | None = None) -> None:
 
     # Filter latency: single-transition update + single-state predict.
     new = make_batch(np.random.default_rng(5), n_per)[0]
-    new = new.select(instances=[0]).head(200)
+    new = new.select(instances=[0]).head(n_filter)
     singles = [
         hipmdp.Transitions(
             new.states[i : i + 1],

@@ -241,11 +241,12 @@ SMALL = ["--small", "--sweeps", "3", "--chains", "1", "--repeats", "1"]
 
 def test_model_runs_small(capsys):
     """--small's sizes are what its comment says: 300 transitions per instance,
-    m = 30, 1,000 batched states; --sweeps and --chains are taken as given."""
+    m = 30, 50 filter transitions, 1,000 batched states; --sweeps and --chains
+    are taken as given."""
     model.main(SMALL)
     out = capsys.readouterr().out
     assert "B=7 instances x 300 transitions" in out
-    assert "m=30, 3 sweeps x 1 chains" in out
+    assert "m=30, 3 sweeps x 1 chains; 50 filter transitions" in out
     assert out.count("(1000 states, ") == 3
 
 
@@ -268,7 +269,7 @@ def test_model_full_size_is_the_papers_scale(monkeypatch, capsys):
         model.main([])
     out = capsys.readouterr().out
     assert "B=7 instances x 6000 transitions" in out
-    assert f"m=750, 250 sweeps x {FitConfig.n_chains} chains" in out
+    assert f"m=750, 250 sweeps x {FitConfig.n_chains} chains; 200 filter" in out
     assert seen == dict(n=7 * 6000, n_subsample=1000)
 
 
