@@ -1054,7 +1054,8 @@ class Transitions:
     ) -> Path:
         """Write an ``.npz`` (no pickle) atomically; optionally with the parameters.
 
-        The bytes depend only on the data (see :func:`npz_bytes`).
+        The bytes depend only on the data (see :func:`npz_bytes`). Returns the
+        path; a ``path`` not ending in ``.npz`` is refused (``ValueError``).
         """
         path = Path(path)
         if path.suffix != ".npz":

@@ -98,7 +98,8 @@ class Belief:
     def save(self, path: str | os.PathLike) -> Path:
         """Write ``h``, ``P`` and ``model`` to one .npz, atomically, no pickle (to
         go on filtering an instance in another process: :meth:`load`). The
-        bytes depend only on the belief. Returns the path."""
+        bytes depend only on the belief. Returns the path; a ``path`` not
+        ending in ``.npz`` is refused (``ValueError``)."""
         path = Path(path)
         if path.suffix != ".npz":
             raise ValueError(f"path: expected a .npz file name, got {path.name!r}")

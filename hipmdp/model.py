@@ -495,7 +495,8 @@ class HipMDP:
         """Write one .npz (arrays + a JSON metadata string), atomically, no pickle.
 
         The bytes depend only on the model (see :func:`hipmdp.data.npz_bytes`).
-        Returns the path.
+        Returns the path; a ``path`` not ending in ``.npz`` is refused
+        (``ValueError``).
         """
         path = Path(path)
         if path.suffix != ".npz":
