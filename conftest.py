@@ -49,8 +49,9 @@ def _tiny_swingup_once(tmp_path_factory):
 @pytest.fixture(scope="module")
 def tiny_swingup_run(_tiny_swingup_once, tmp_path_factory):
     """A finished run of ``tests.test_acrobot_swingup.TINY``: the module's own
-    copy of one made once per session (the checks that read a finished run each
-    made the same run, five times over; a run's files hold no path of its)."""
+    copy of one made once per session, that is once per pytest-xdist worker
+    that needs it (the checks that read a finished run each made the same run,
+    five times over; a run's files hold no path of its)."""
     import shutil
 
     out = tmp_path_factory.mktemp("swingup") / "run"
