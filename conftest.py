@@ -10,6 +10,8 @@ the suite gives the same result on every run and machine.
 """
 
 import os
+from pathlib import Path
+from typing import Any, NamedTuple
 
 import tasks  # noqa: F401
 
@@ -38,22 +40,58 @@ def _no_models_from_another_test(monkeypatch):
     monkeypatch.setattr(acrobot_energy, "_STATE", {})
 
 
+class TinySwingup(NamedTuple):
+    """One finished run of ``tests.test_acrobot_swingup.TINY``: what ``main``
+    returned, and the trial results it wrote (in its order), as
+    ``swingup_report.write_artefacts`` got them: states, predictions and beliefs
+    that the run's files do not hold."""
+
+    results: Any
+    trials: tuple
+
+
 @pytest.fixture(scope="session")
-def _tiny_swingup_once(tmp_path_factory):
+def _tiny_swingup_once(tmp_path_factory) -> TinySwingup:
+    """Made as a user calling ``main`` after ``import numpy`` would (OpenBLAS at
+    two threads): the tests of the BLAS thread limit inside ``main`` compare
+    it with a run made at one."""
+    from threadpoolctl import threadpool_limits
+
+    from tasks import swingup_report
     from tasks.acrobot_swingup import main
     from tests.test_acrobot_swingup import TINY
 
-    return main(TINY, out=tmp_path_factory.mktemp("tiny_swingup")).out
+    trials, write = [], swingup_report.write_artefacts
+
+    def keep_trials(path, config, metrics, results, hip):
+        trials.extend(results)
+        return write(path, config, metrics, results, hip)
+
+    with pytest.MonkeyPatch.context() as m, threadpool_limits(limits=2):
+        m.setattr(swingup_report, "write_artefacts", keep_trials)
+        results = main(TINY, out=tmp_path_factory.mktemp("tiny_swingup"))
+    return TinySwingup(results, tuple(trials))
 
 
 @pytest.fixture(scope="module")
-def tiny_swingup_run(_tiny_swingup_once, tmp_path_factory):
-    """A finished run of ``tests.test_acrobot_swingup.TINY``: the module's own
-    copy of one made once per session, that is once per pytest-xdist worker
-    that needs it (the checks that read a finished run each made the same run,
-    five times over; a run's files hold no path of its)."""
+def tiny_swingup(_tiny_swingup_once, tmp_path_factory) -> TinySwingup:
+    """The session's run of ``tests.test_acrobot_swingup.TINY``, the module's own
+    copy (folder and metrics) of one made once per session, that is once per
+    pytest-xdist worker that needs it (the checks that read a finished run each
+    made the same run, eight times over; a run's files hold no path of its)."""
+    import copy
     import shutil
 
+    results, trials = _tiny_swingup_once
     out = tmp_path_factory.mktemp("swingup") / "run"
-    shutil.copytree(_tiny_swingup_once, out)
-    return out
+    shutil.copytree(results.out, out)
+    metrics = copy.deepcopy(results.metrics)
+    return TinySwingup(
+        results._replace(out=out, metrics=metrics), copy.deepcopy(trials)
+    )
+
+
+@pytest.fixture(scope="module")
+def tiny_swingup_run(tiny_swingup) -> Path:
+    """The folder of the module's copy of the session's TINY run (above)."""
+    return tiny_swingup.results.out

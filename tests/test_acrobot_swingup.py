@@ -77,10 +77,10 @@ TINY = SwingupConfig(
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
-    # as a user calling main after `import numpy`: OpenBLAS at two threads
-    with threadpool_limits(limits=2):
-        return main(TINY, out=tmp_path_factory.mktemp("swingup"))
+def run(tiny_swingup):
+    # main(TINY), as a user calling main after `import numpy`: OpenBLAS at two
+    # threads (conftest.py)
+    return tiny_swingup.results
 
 
 def test_artefacts_exist(run):

@@ -779,7 +779,7 @@ def test_readmes_example_method_runs_as_written(tmp_path, monkeypatch):
 
 
 def test_the_acrobot_run_takes_added_methods_and_nothing_else_changes(
-    tmp_path, monkeypatch
+    tiny_swingup, tmp_path, monkeypatch
 ):
     """The swing-up run without an added method (one process) and with one (two
     worker processes, each trial on a fresh copy of the method): in the
@@ -792,14 +792,16 @@ def test_the_acrobot_run_takes_added_methods_and_nothing_else_changes(
     from tasks.acrobot_swingup import main as swingup
     from tests.test_acrobot_swingup import TINY as SWINGUP
 
-    traced, write = [], swingup_report.write_artefacts
+    plain = tiny_swingup.results  # SWINGUP, on one process (conftest.py)
+    assert SWINGUP.workers == 1
+    traced = [{r.method: r for r in tiny_swingup.trials}]
+    write = swingup_report.write_artefacts
 
     def keep_trials(path, config, metrics, trials, hip):
         traced.append({r.method: r for r in trials})
         return write(path, config, metrics, trials, hip)
 
     monkeypatch.setattr(swingup_report, "write_artefacts", keep_trials)
-    plain = swingup(dataclasses.replace(SWINGUP, workers=1), tmp_path / "plain")
     config = dataclasses.replace(SWINGUP, workers=2, methods=(LINEAR,))
     added = swingup(config, tmp_path / "added")
     a, b = plain.metrics, added.metrics
@@ -819,6 +821,7 @@ def test_the_acrobot_run_takes_added_methods_and_nothing_else_changes(
         for x, y in zip(result.traces, other.traces, strict=True):
             for field in ("states", "predicted", "belief_mean", "belief_std"):
                 np.testing.assert_array_equal(getattr(x, field), getattr(y, field))
+    assert set(traced[0]) == {"true", "average", "hipmdp"}
     assert set(traced[1]) == {"true", "average", "hipmdp", "linear"}
     trials = [np.load(run.out / "trials.npz") for run in (plain, added)]
     assert trials[1]["methods"].tolist() == ["true", "average", "hipmdp", "linear"]

@@ -419,7 +419,9 @@ def test_a_models_fit_and_each_trials_adapt_get_their_own_streams():
         assert expected[0] == expected[2] != expected[1]
 
 
-def test_a_swing_up_run_takes_a_policy_and_nothing_else_changes(tmp_path, monkeypatch):
+def test_a_swing_up_run_takes_a_policy_and_nothing_else_changes(
+    tiny_swingup, tmp_path, monkeypatch
+):
     """A tiny swing-up run without added methods (one process) and with a policy
     and a model (two worker processes): every other method's numbers, traced
     states and predictions the same; the policy in every control table and pair,
@@ -431,14 +433,18 @@ def test_a_swing_up_run_takes_a_policy_and_nothing_else_changes(tmp_path, monkey
     from tests.test_acrobot_swingup import TINY as SWINGUP
     from tests.test_methods import LINEAR, without
 
-    traced, write = [], swingup_report.write_artefacts
+    def by_trial(trials):
+        return {(r.method, r.setting, r.trial): r for r in trials}
+
+    plain = tiny_swingup.results  # SWINGUP, on one process (conftest.py)
+    assert SWINGUP.workers == 1
+    traced, write = [by_trial(tiny_swingup.trials)], swingup_report.write_artefacts
 
     def keep_trials(path, config, metrics, trials, hip):
-        traced.append({(r.method, r.setting, r.trial): r for r in trials})
+        traced.append(by_trial(trials))
         return write(path, config, metrics, trials, hip)
 
     monkeypatch.setattr(swingup_report, "write_artefacts", keep_trials)
-    plain = swingup(dataclasses.replace(SWINGUP, workers=1), tmp_path / "plain")
     config = dataclasses.replace(SWINGUP, workers=2, methods=(SARSA, LINEAR))
     run = swingup(config, tmp_path / "added")
     a, b = plain.metrics, run.metrics
@@ -456,6 +462,7 @@ def test_a_swing_up_run_takes_a_policy_and_nothing_else_changes(tmp_path, monkey
     for key in ("mse", "approximation_floor", "coverage", "loglik_difference"):
         assert "sarsa" not in b[key] and "sarsa" not in str(b[key]), key
     assert set(b["paired_difference"]) - set(a["paired_difference"]) == pairs
+    assert {m for m, _, _ in traced[0]} == {"true", "average", "hipmdp"}
     for key, result in traced[0].items():
         other = traced[1][key]
         np.testing.assert_array_equal(result.returns, other.returns)
