@@ -1237,9 +1237,17 @@ def _cancel_waiting(
     cancelled here, as the pool's manager thread failed the futures of a worker
     killed by the same stop (SIGTERM to the process group), raised
     InvalidStateError in that thread, printed as its traceback, and the pool
-    skipped its clean-up (CPython gh-107219, fixed in 3.12)."""
+    skipped its clean-up (CPython gh-107219, fixed in 3.12).
+
+    A pool the run made also ends its workers: their running shards' results
+    would be discarded, and this process's exit waited for them (a SIGTERM to
+    this process alone, not its group, printed the run's stop line and then
+    exited only when they were done, minutes later)."""
     if owned and isinstance(pool, cf.ProcessPoolExecutor):
+        workers = list((pool._processes or {}).values())  # shutdown drops them
         pool.shutdown(wait=False, cancel_futures=True)
+        for process in workers:
+            process.terminate()
     else:
         for future in futures:
             future.cancel()

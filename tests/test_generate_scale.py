@@ -1028,3 +1028,45 @@ def test_a_folder_another_run_writes_to_is_refused(tmp_path, capsys):
         proc.wait()
     generate.main([*RUN, "--out", str(out)])
     shards.Dataset(out).verify()
+
+
+# A generation process sent SIGTERM, by itself alone (`kill PID`, not the
+# process group), as its first shards have just been handed to the pool.
+_TERMINATE_WHILE_SHARDS_RUN = """
+import os, signal, sys
+from tasks import generate
+wait = generate.cf.wait
+def terminate_then_wait(futures, **kwargs):
+    os.kill(os.getpid(), signal.SIGTERM)
+    return wait(futures, **kwargs)
+generate.cf.wait = terminate_then_wait
+generate.main(sys.argv[1:])
+"""
+
+
+def test_sigterm_to_the_run_alone_ends_its_running_shards_with_it(tmp_path):
+    """A SIGTERM to the run's process alone (its pool's workers are not sent
+    it) printed the stop line, and then the run waited to exit until its
+    workers had finished the shards they were running, whose results it
+    discards: here two shards of 1,000 episodes each, many minutes. It ends them with
+    the run. The timeout is a guard against that wait, not a timing check: the
+    run is stopped as its shards start."""
+    argv = [
+        "--domain", "acrobot", "--instances", "2", "--shard-size", "1",
+        "--episodes-per-instance", "1000", "--policy", "random",
+        "--no-progress", "--workers", "2",
+    ]  # fmt: skip
+    out = tmp_path / "terminated"
+    run = subprocess.run(
+        [sys.executable, "-c", _TERMINATE_WHILE_SHARDS_RUN, *argv, "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert run.returncode == 143, run.stderr
+    resume = shlex.join(["python", "-m", "tasks.generate", *argv, "--out", str(out)])
+    assert run.stderr == (  # the one line: no traceback of the ended workers
+        f"python -m tasks.generate: terminated: 0 of 2 shards finished are kept in "
+        f"{out}; resume with the same command plus --resume: {resume} --resume\n"
+    )
+    assert [e["sha256"] for e in shards.read_manifest(out)["shards"]] == [None] * 2
