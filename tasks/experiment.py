@@ -778,13 +778,34 @@ def pool_map(
         initializer=_init_worker,
         initargs=(initializer, initargs, os.getpid()),
     ) as pool:
-        it = pool.map(functools.partial(_sendable_errors, fn), jobs)
+        # submitted one by one, not by pool.map, whose results cancel their
+        # futures when dropped: a future cancelled as the pool's manager thread
+        # fails it (the workers ended below) raised InvalidStateError in that
+        # thread (CPython gh-107219, fixed in 3.12)
+        futures = [pool.submit(_sendable_errors, fn, job) for job in jobs]
         try:
-            return _in_order(it, jobs, desc, progress, label)
+            results = (future.result() for future in futures)
+            return _in_order(results, jobs, desc, progress, label)
         except BaseException:
-            # a job failed (or Ctrl-C): drop the queued ones rather than run them
-            pool.shutdown(wait=True, cancel_futures=True)
+            # a job failed (or Ctrl-C, SIGTERM): drop the queued ones rather than
+            # run them, and end the running ones
+            end_workers(pool)
             raise
+
+
+def end_workers(pool) -> None:
+    """Shut the process pool ``pool`` down now: its queued jobs cancelled, its
+    workers ended, with the jobs they run. For a run that stops or fails, whose
+    running jobs' results would be discarded: waiting for them (the pool's
+    shutdown did, and so does the interpreter's exit) kept a run sent SIGTERM
+    alone, not its process group, running for minutes after it was told to
+    stop. SIGKILL, not SIGTERM: a worker forked a moment before still has
+    :func:`stops_reported`'s handler (:func:`_init_worker` puts the default
+    back), which printed its traceback; the workers hold nothing to clean up."""
+    workers = list((pool._processes or {}).values())  # shutdown drops them
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in workers:
+        process.kill()
 
 
 def _in_order(results, jobs: Sequence[Any], desc: str, progress: bool, label):

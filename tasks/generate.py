@@ -101,6 +101,7 @@ from tasks.experiment import (
     check_folder_out,
     check_integer,
     count,
+    end_workers,
     exit_with,
     one_blas_thread,
     package_versions,
@@ -1230,24 +1231,21 @@ def generate(
 def _cancel_waiting(
     pool: cf.Executor, futures: set[cf.Future], owned: bool = True
 ) -> None:
-    """Cancel the ``futures`` of ``pool`` that have not started. A process pool
-    the run made (``owned``) cancels its own (``shutdown(wait=False,
-    cancel_futures=True)``; a caller's pool, ``generate(executor=...)``, is left
-    usable, and the caller's own futures in it alone): a future
-    cancelled here, as the pool's manager thread failed the futures of a worker
-    killed by the same stop (SIGTERM to the process group), raised
-    InvalidStateError in that thread, printed as its traceback, and the pool
-    skipped its clean-up (CPython gh-107219, fixed in 3.12).
+    """Cancel the ``futures`` of ``pool`` that have not started.
 
-    A pool the run made also ends its workers: their running shards' results
+    A process pool the run made (``owned``) is shut down instead, its queue
+    cancelled and its workers ended (:func:`tasks.experiment.end_workers`); a
+    caller's pool, ``generate(executor=...)``, is left usable, and the caller's
+    own futures in it alone. Not cancelled one by one: a future cancelled
+    here, as the pool's manager thread failed the futures of a worker killed by
+    the same stop (SIGTERM to the process group), raised InvalidStateError in
+    that thread, printed as its traceback, and the pool skipped its clean-up
+    (CPython gh-107219, fixed in 3.12). Ended: the workers' running shards
     would be discarded, and this process's exit waited for them (a SIGTERM to
-    this process alone, not its group, printed the run's stop line and then
-    exited only when they were done, minutes later)."""
+    it alone, not its group, printed the run's stop line and then exited only
+    when they were done, minutes later)."""
     if owned and isinstance(pool, cf.ProcessPoolExecutor):
-        workers = list((pool._processes or {}).values())  # shutdown drops them
-        pool.shutdown(wait=False, cancel_futures=True)
-        for process in workers:
-            process.terminate()
+        end_workers(pool)
     else:
         for future in futures:
             future.cancel()

@@ -11,6 +11,8 @@ import json
 import os
 import pickle
 import re
+import subprocess
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -1721,3 +1723,77 @@ def test_a_stop_without_out_names_the_default_run_folder(tmp_path, monkeypatch, 
     assert capsys.readouterr().err.endswith(
         "it had written nothing to runs/cartpole_prediction\n"
     )
+
+
+# An experiment's process sent SIGTERM, by itself alone (`kill PID`, not the
+# process group), as its pool's jobs have just been handed out: jobs that would
+# take ten minutes each.
+_TERMINATE_WHILE_JOBS_RUN = """
+import os, signal, time
+from tasks import experiment
+
+def job(x):
+    time.sleep(600)
+
+in_order = experiment._in_order
+
+def terminate_then_wait(*args):
+    os.kill(os.getpid(), signal.SIGTERM)
+    return in_order(*args)
+
+experiment._in_order = terminate_then_wait
+with experiment.stops_reported("python -m job", "runs/none"):
+    experiment.pool_map(job, [1, 2, 3], workers=2, desc="jobs", progress=False)
+"""
+
+
+def test_sigterm_to_the_run_alone_ends_its_running_jobs_with_it(tmp_path):
+    """A SIGTERM to an experiment's process alone (its pool's workers are not
+    sent it) waited, before its stop line, until the workers had finished the
+    jobs they were running, whose results it discards (a paper-preset trial
+    takes minutes). It ends them with the run. The timeout is a guard against
+    that wait, not a timing check: the jobs sleep ten minutes."""
+    run = subprocess.run(
+        [sys.executable, "-c", _TERMINATE_WHILE_JOBS_RUN],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=60,
+    )
+    assert run.returncode == 143, run.stderr
+    assert run.stderr == (
+        "python -m job: terminated (SIGTERM) before the run ended: it had written "
+        "nothing to runs/none\n"
+    )
+
+
+_ONE_JOB_FAILS_WHILE_OTHERS_RUN = """
+import time
+from tasks import experiment
+
+def job(x):
+    if x == 0:
+        raise ValueError("job 0 failed")
+    time.sleep(600)
+
+try:
+    experiment.pool_map(job, range(10), workers=2, desc="jobs", progress=False)
+except ValueError as error:
+    print(error)
+"""
+
+
+def test_a_failed_job_ends_the_pools_running_jobs_and_nothing_else_is_printed():
+    """A job's error is raised once the pool's other running jobs are ended,
+    not finished (ten minutes each here; the timeout is a guard, not a timing
+    check), and nothing else is printed: with more jobs than the pool takes at
+    once, pool.map's results cancelled the jobs not yet taken as the error
+    passed, and the pool's manager thread, failing them as the workers ended,
+    printed its InvalidStateError traceback (CPython gh-107219)."""
+    run = subprocess.run(
+        [sys.executable, "-c", _ONE_JOB_FAILS_WHILE_OTHERS_RUN],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert (run.returncode, run.stdout, run.stderr) == (0, "job 0 failed\n", "")
