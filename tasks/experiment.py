@@ -802,7 +802,9 @@ def end_workers(pool) -> None:
     stop. SIGKILL, not SIGTERM: a worker forked a moment before still has
     :func:`stops_reported`'s handler (:func:`_init_worker` puts the default
     back), which printed its traceback; the workers hold nothing to clean up."""
-    workers = list((pool._processes or {}).values())  # shutdown drops them
+    # the pool's own dict of its processes (Python 3.11-3.14), which shutdown
+    # drops; without it the workers are left to end with this process
+    workers = list((getattr(pool, "_processes", None) or {}).values())
     pool.shutdown(wait=False, cancel_futures=True)
     for process in workers:
         process.kill()
