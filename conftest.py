@@ -13,6 +13,15 @@ import os
 from pathlib import Path
 from typing import Any, NamedTuple
 
+try:  # the test extra: without it pytest's own error is "unrecognized arguments: -n"
+    import hypothesis  # noqa: F401
+    import xdist  # noqa: F401
+except ImportError as error:
+    raise ImportError(
+        f"{error.name} is missing: the tests need the test extra, "
+        "pip install -e '.[test]' (README, Quick start)"
+    ) from None
+
 import tasks  # noqa: F401
 
 # isort: split
