@@ -17,8 +17,9 @@ try:  # the test extra: without it pytest's own error is "unrecognized arguments
     import hypothesis  # noqa: F401
     import xdist  # noqa: F401
 except ImportError as error:
+    package = {"xdist": "pytest-xdist"}.get(error.name, error.name)
     raise ImportError(
-        f"{error.name} is missing: the tests need the test extra, "
+        f"{package} is missing: the tests need the test extra, "
         "pip install -e '.[test]' (README, Quick start)"
     ) from None
 

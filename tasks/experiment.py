@@ -782,8 +782,8 @@ def pool_map(
         # futures when dropped: a future cancelled as the pool's manager thread
         # fails it (the workers ended below) raised InvalidStateError in that
         # thread (CPython gh-107219, fixed in 3.12)
-        futures = [pool.submit(_sendable_errors, fn, job) for job in jobs]
-        try:
+        try:  # (a stop while the jobs are handed out too)
+            futures = [pool.submit(_sendable_errors, fn, job) for job in jobs]
             results = (future.result() for future in futures)
             return _in_order(results, jobs, desc, progress, label)
         except BaseException:
@@ -794,20 +794,31 @@ def pool_map(
 
 
 def end_workers(pool) -> None:
-    """Shut the process pool ``pool`` down now: its queued jobs cancelled, its
-    workers ended, with the jobs they run. For a run that stops or fails, whose
-    running jobs' results would be discarded: waiting for them (the pool's
-    shutdown did, and so does the interpreter's exit) kept a run sent SIGTERM
-    alone, not its process group, running for minutes after it was told to
-    stop. SIGKILL, not SIGTERM: a worker forked a moment before still has
-    :func:`stops_reported`'s handler (:func:`_init_worker` puts the default
-    back), which printed its traceback; the workers hold nothing to clean up."""
-    # the pool's own dict of its processes (Python 3.11-3.14), which shutdown
-    # drops; without it the workers are left to end with this process
+    """Shut the process pool ``pool`` down now: its workers ended, with the jobs
+    they run, and its queued jobs never run (their futures fail with
+    BrokenProcessPool). For a run that stops or fails, whose running jobs'
+    results would be discarded: waiting for them (the pool's shutdown did, and
+    so does the interpreter's exit) kept a run sent SIGTERM alone, not its
+    process group, running for minutes after it was told to stop. SIGKILL, not
+    SIGTERM: a worker forked a moment before still has :func:`stops_reported`'s
+    handler (:func:`_init_worker` puts the default back), which printed its
+    traceback; the workers hold nothing to clean up.
+
+    A worker ended while it sends a result leaves part of it in the pipe, and
+    the pool's manager thread reads on for the rest until every write end of
+    the pipe is closed; this process holds one, so the run hung at exit for
+    ever. It is closed here: the manager thread reads the end of the pipe and
+    ends. This uses the pool's private attributes (``_processes``,
+    ``_result_queue``; Python 3.11-3.14), read with getattr: without them the
+    workers are left to end with this process, as before."""
     workers = list((getattr(pool, "_processes", None) or {}).values())
+    results = getattr(pool, "_result_queue", None)  # shutdown drops both
     pool.shutdown(wait=False, cancel_futures=True)
     for process in workers:
         process.kill()
+    writer = getattr(results, "_writer", None)
+    if writer is not None and workers:
+        writer.close()
 
 
 def _in_order(results, jobs: Sequence[Any], desc: str, progress: bool, label):

@@ -1031,34 +1031,61 @@ def test_a_folder_another_run_writes_to_is_refused(tmp_path, capsys):
 
 
 # A generation process sent SIGTERM, by itself alone (`kill PID`, not the
-# process group), as its first shards have just been handed to the pool.
-_TERMINATE_WHILE_SHARDS_RUN = """
-import os, signal, sys
+# process group): as its first shards have just been handed to the pool
+# ("running"), or as the pool's manager thread begins to read a finished
+# shard, which its worker is still sending ("sending": the manager waits a
+# second before it reads).
+_TERMINATE_THE_RUN = """
+import os, signal, sys, threading, time
+from multiprocessing import connection
 from tasks import generate
-wait = generate.cf.wait
+
+MOMENT, owner = sys.argv[1], os.getpid()
+wait, recv = generate.cf.wait, connection.Connection.recv
+
 def terminate_then_wait(futures, **kwargs):
-    os.kill(os.getpid(), signal.SIGTERM)
+    if MOMENT == "running":
+        os.kill(owner, signal.SIGTERM)
     return wait(futures, **kwargs)
+
+def terminate_then_receive(self):
+    if MOMENT == "sending" and threading.current_thread() is not (
+        threading.main_thread()
+    ):
+        os.kill(owner, signal.SIGTERM)
+        time.sleep(1)  # the run ends the workers, one of them halfway through
+    return recv(self)
+
 generate.cf.wait = terminate_then_wait
-generate.main(sys.argv[1:])
+connection.Connection.recv = terminate_then_receive
+generate.main(sys.argv[2:])
 """
 
 
-def test_sigterm_to_the_run_alone_ends_its_running_shards_with_it(tmp_path):
+@pytest.mark.parametrize(
+    "moment, episodes",
+    [("running", ["100000"]), ("sending", ["5", "--max-steps", "2000"])],
+    ids=["running", "sending"],
+)
+def test_sigterm_to_the_run_alone_ends_its_running_shards_with_it(
+    tmp_path, moment, episodes
+):
     """A SIGTERM to the run's process alone (its pool's workers are not sent
     it) printed the stop line, and then the run waited to exit until its
     workers had finished the shards they were running, whose results it
-    discards: here two shards of 1,000 episodes each, many minutes. It ends them with
-    the run. The timeout is a guard against that wait, not a timing check: the
-    run is stopped as its shards start."""
+    discards (here two shards of 100,000 episodes each, hours). It ends them
+    with the run. A worker ended while it sent its shard left part of it in the
+    pipe, and the run hung at exit for ever (a shard of 5 episodes of 2,000
+    steps here, hundreds of kB). The timeout is a guard against those waits,
+    not a timing check."""
     argv = [
         "--domain", "acrobot", "--instances", "2", "--shard-size", "1",
-        "--episodes-per-instance", "1000", "--policy", "random",
-        "--no-progress", "--workers", "2",
+        "--policy", "random", "--no-progress", "--workers", "2",
+        "--episodes-per-instance", *episodes,
     ]  # fmt: skip
     out = tmp_path / "terminated"
     run = subprocess.run(
-        [sys.executable, "-c", _TERMINATE_WHILE_SHARDS_RUN, *argv, "--out", str(out)],
+        [sys.executable, "-c", _TERMINATE_THE_RUN, moment, *argv, "--out", str(out)],
         capture_output=True,
         text=True,
         timeout=60,
