@@ -810,7 +810,7 @@ def end_workers(pool) -> None:
     ever. It is closed here: the manager thread reads the end of the pipe and
     ends. This uses the pool's private attributes (``_processes``,
     ``_result_queue``; Python 3.11-3.14), read with getattr: without them the
-    workers are left to end with this process, as before."""
+    workers are left to finish their jobs, and this process waits for them."""
     workers = list((getattr(pool, "_processes", None) or {}).values())
     results = getattr(pool, "_result_queue", None)  # shutdown drops both
     pool.shutdown(wait=False, cancel_futures=True)

@@ -1233,8 +1233,8 @@ def _cancel_waiting(
 ) -> None:
     """Cancel the ``futures`` of ``pool`` that have not started.
 
-    A process pool the run made (``owned``) is shut down instead, its queue
-    cancelled and its workers ended (:func:`tasks.experiment.end_workers`); a
+    A process pool the run made (``owned``) is shut down instead, its workers
+    ended and its queued shards never run (:func:`tasks.experiment.end_workers`); a
     caller's pool, ``generate(executor=...)``, is left usable, and the caller's
     own futures in it alone. Not cancelled one by one: a future cancelled
     here, as the pool's manager thread failed the futures of a worker killed by
