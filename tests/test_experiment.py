@@ -1759,11 +1759,11 @@ def terminate_then_wait(*args):
         terminate()
     return in_order(*args)
 
-def terminate_then_receive(self):
-    if MOMENT == "sending" and os.getpid() == owner and (
+def terminate_then_receive(self, sent=[]):
+    if MOMENT == "sending" and not sent and os.getpid() == owner and (
         threading.current_thread() is not threading.main_thread()
     ):
-        terminate()
+        sent.append(terminate())
         time.sleep(1)  # the run ends the workers, one of them halfway through
     return recv(self)
 

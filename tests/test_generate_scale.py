@@ -1048,11 +1048,11 @@ def terminate_then_wait(futures, **kwargs):
         os.kill(owner, signal.SIGTERM)
     return wait(futures, **kwargs)
 
-def terminate_then_receive(self):
-    if MOMENT == "sending" and threading.current_thread() is not (
+def terminate_then_receive(self, sent=[]):
+    if MOMENT == "sending" and not sent and threading.current_thread() is not (
         threading.main_thread()
     ):
-        os.kill(owner, signal.SIGTERM)
+        sent.append(os.kill(owner, signal.SIGTERM))
         time.sleep(1)  # the run ends the workers, one of them halfway through
     return recv(self)
 
