@@ -11,7 +11,6 @@ the suite gives the same result on every run and machine.
 
 import os
 from pathlib import Path
-from typing import Any, NamedTuple
 
 try:  # the test extra: without it pytest's own error is "unrecognized arguments: -n"
     import hypothesis  # noqa: F401
@@ -50,41 +49,22 @@ def _no_models_from_another_test(monkeypatch):
     monkeypatch.setattr(acrobot_energy, "_STATE", {})
 
 
-class TinySwingup(NamedTuple):
-    """One finished run of ``tests.test_acrobot_swingup.TINY``: what ``main``
-    returned, and the trial results it wrote (in its order), as
-    ``swingup_report.write_artefacts`` got them: states, predictions and beliefs
-    that the run's files do not hold."""
-
-    results: Any
-    trials: tuple
-
-
 @pytest.fixture(scope="session")
-def _tiny_swingup_once(tmp_path_factory) -> TinySwingup:
-    """Made as a user calling ``main`` after ``import numpy`` would (OpenBLAS at
-    two threads): the tests of the BLAS thread limit inside ``main`` compare
-    it with a run made at one."""
+def _tiny_swingup_once(tmp_path_factory):
+    """``tests._swingup.traced_main(TINY)``, made as a user calling ``main``
+    after ``import numpy`` would (OpenBLAS at two threads): the tests of the
+    BLAS thread limit inside ``main`` compare it with a run made at one."""
     from threadpoolctl import threadpool_limits
 
-    from tasks import swingup_report
-    from tasks.acrobot_swingup import main
+    from tests._swingup import traced_main
     from tests.test_acrobot_swingup import TINY
 
-    trials, write = [], swingup_report.write_artefacts
-
-    def keep_trials(path, config, metrics, results, hip):
-        trials.extend(results)
-        return write(path, config, metrics, results, hip)
-
-    with pytest.MonkeyPatch.context() as m, threadpool_limits(limits=2):
-        m.setattr(swingup_report, "write_artefacts", keep_trials)
-        results = main(TINY, out=tmp_path_factory.mktemp("tiny_swingup"))
-    return TinySwingup(results, tuple(trials))
+    with threadpool_limits(limits=2):
+        return traced_main(TINY, tmp_path_factory.mktemp("tiny_swingup"))
 
 
 @pytest.fixture(scope="module")
-def tiny_swingup(_tiny_swingup_once, tmp_path_factory) -> TinySwingup:
+def tiny_swingup(_tiny_swingup_once, tmp_path_factory):
     """The session's run of ``tests.test_acrobot_swingup.TINY``, the module's own
     copy (folder and metrics) of one made once per session, that is once per
     pytest-xdist worker that needs it (the checks that read a finished run each
@@ -96,8 +76,9 @@ def tiny_swingup(_tiny_swingup_once, tmp_path_factory) -> TinySwingup:
     out = tmp_path_factory.mktemp("swingup") / "run"
     shutil.copytree(results.out, out)
     metrics = copy.deepcopy(results.metrics)
-    return TinySwingup(
-        results._replace(out=out, metrics=metrics), copy.deepcopy(trials)
+    return _tiny_swingup_once._replace(
+        results=results._replace(out=out, metrics=metrics),
+        trials=copy.deepcopy(trials),
     )
 
 

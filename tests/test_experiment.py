@@ -594,8 +594,6 @@ def test_pool_workers_end_when_their_owner_is_killed(tmp_path, pool, reaped):
     forkserver's workers still held). The bounds of 60 s (the owner's death)
     and 30 s (the workers'), against jobs of 60 s, only wait out a loaded
     machine."""
-    import subprocess
-    import sys
 
     script, marks = tmp_path / "owner.py", tmp_path / "marks"
     script.write_text(_OWNERS[pool])
@@ -708,8 +706,6 @@ def test_run_dir_refuses_a_folder_that_is_not_its_run(tmp_path, config):
 
 def _holder(folder: Path):
     """Another process holding ``folder``'s run lock until its stdin closes."""
-    import subprocess
-    import sys
 
     code = (
         "import sys; from hipmdp.data import lock_folder; "
@@ -996,7 +992,6 @@ def test_git_commit_marks_uncommitted_changes_and_ignores_an_enclosing_checkout(
     """HEAD, with +dirty when tracked files changed; None when the code's
     folder is not the top of a checkout (an install in another project's
     .venv)."""
-    import subprocess
 
     from tasks import experiment
 
@@ -1482,7 +1477,6 @@ def test_process_stat_reads_past_a_command_name_holding_a_parenthesis(tmp_path):
     and it started after this process (start times are clock ticks since
     boot)."""
     import shutil
-    import subprocess
 
     program = tmp_path / "a) R 1 2"
     program.symlink_to(shutil.which("true"))
@@ -1532,8 +1526,6 @@ def test_a_worker_ends_when_its_owners_pid_is_another_process(tmp_path, case):
     worker ends (status 1), rather than serving a pool no one reads for
     ever. The owner here is this test's process, alive, and the worker's
     parent."""
-    import subprocess
-    import sys
 
     script = tmp_path / "worker.py"
     script.write_text(_WATCHER)
@@ -1635,8 +1627,6 @@ def test_pool_workers_outlive_the_owners_parent(tmp_path):
     """A run started from a shell that then ends (``nohup``, a closed terminal):
     the run's process lives on, and so must its pool's workers, which watch the
     run's process, not the process that started it."""
-    import subprocess
-    import sys
 
     (tmp_path / "owner.py").write_text(_ORPHANED_OWNER)
     source = str(Path(tasks.__file__).resolve().parents[1])  # as in the test above

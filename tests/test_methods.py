@@ -779,7 +779,7 @@ def test_readmes_example_method_runs_as_written(tmp_path, monkeypatch):
 
 
 def test_the_acrobot_run_takes_added_methods_and_nothing_else_changes(
-    tiny_swingup, tmp_path, monkeypatch
+    tiny_swingup, tmp_path
 ):
     """The swing-up run without an added method (one process) and with one (two
     worker processes, each trial on a fresh copy of the method): in the
@@ -788,22 +788,14 @@ def test_the_acrobot_run_takes_added_methods_and_nothing_else_changes(
     The tiny config's episodes all run to the step limit, so the returns alone
     would not show a change: the traced trial's states, one-step predictions
     and belief of every built-in method are compared too."""
-    from tasks import swingup_report
-    from tasks.acrobot_swingup import main as swingup
+    from tests._swingup import traced_main
     from tests.test_acrobot_swingup import TINY as SWINGUP
 
-    plain = tiny_swingup.results  # SWINGUP, on one process (conftest.py)
-    assert SWINGUP.workers == 1
-    traced = [{r.method: r for r in tiny_swingup.trials}]
-    write = swingup_report.write_artefacts
-
-    def keep_trials(path, config, metrics, trials, hip):
-        traced.append({r.method: r for r in trials})
-        return write(path, config, metrics, trials, hip)
-
-    monkeypatch.setattr(swingup_report, "write_artefacts", keep_trials)
+    assert SWINGUP.workers == 1  # the session's run (conftest.py): one process
     config = dataclasses.replace(SWINGUP, workers=2, methods=(LINEAR,))
-    added = swingup(config, tmp_path / "added")
+    with_linear = traced_main(config, tmp_path / "added")
+    plain, added = tiny_swingup.results, with_linear.results
+    traced = [{r.method: r for r in x.trials} for x in (tiny_swingup, with_linear)]
     a, b = plain.metrics, added.metrics
     for m in (a, b):
         del m["seconds"], m["environment"]

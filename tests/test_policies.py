@@ -419,34 +419,25 @@ def test_a_models_fit_and_each_trials_adapt_get_their_own_streams():
         assert expected[0] == expected[2] != expected[1]
 
 
-def test_a_swing_up_run_takes_a_policy_and_nothing_else_changes(
-    tiny_swingup, tmp_path, monkeypatch
-):
+def test_a_swing_up_run_takes_a_policy_and_nothing_else_changes(tiny_swingup, tmp_path):
     """A tiny swing-up run without added methods (one process) and with a policy
     and a model (two worker processes): every other method's numbers, traced
     states and predictions the same; the policy in every control table and pair,
     in no prediction table; its episodes start where the true model's do."""
-    from tasks import swingup_report
-    from tasks.acrobot_swingup import main as swingup
     from tasks.recording import rrd_contents
     from tests._seed_spread import assert_reads_the_run
+    from tests._swingup import traced_main
     from tests.test_acrobot_swingup import TINY as SWINGUP
     from tests.test_methods import LINEAR, without
 
-    def by_trial(trials):
-        return {(r.method, r.setting, r.trial): r for r in trials}
-
-    plain = tiny_swingup.results  # SWINGUP, on one process (conftest.py)
-    assert SWINGUP.workers == 1
-    traced, write = [by_trial(tiny_swingup.trials)], swingup_report.write_artefacts
-
-    def keep_trials(path, config, metrics, trials, hip):
-        traced.append(by_trial(trials))
-        return write(path, config, metrics, trials, hip)
-
-    monkeypatch.setattr(swingup_report, "write_artefacts", keep_trials)
+    assert SWINGUP.workers == 1  # the session's run (conftest.py): one process
     config = dataclasses.replace(SWINGUP, workers=2, methods=(SARSA, LINEAR))
-    run = swingup(config, tmp_path / "added")
+    added = traced_main(config, tmp_path / "added")
+    plain, run = tiny_swingup.results, added.results
+    traced = [
+        {(r.method, r.setting, r.trial): r for r in x.trials}
+        for x in (tiny_swingup, added)
+    ]
     a, b = plain.metrics, run.metrics
     assert "methods" not in a["environment"]
     assert set(b["environment"]["methods"]) == {"sarsa", "linear"}
