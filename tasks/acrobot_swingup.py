@@ -268,7 +268,7 @@ ARTEFACTS = (
 )  # fmt: skip
 
 PRESETS: dict[str, SwingupConfig] = {
-    "quick": SwingupConfig(),  # 4 settings x 12 trials: ~2 minutes on two cores
+    "quick": SwingupConfig(),  # 4 settings x 12 trials: 2-8 minutes on two cores
     "paper": SwingupConfig(
         preset="paper",
         test_masses=TEST_MASSES,
