@@ -181,7 +181,8 @@ def _filesystem(path: str) -> str:
     """The type of the filesystem holding ``path`` (Linux: from /proc/mounts),
     or "unknown"."""
     try:
-        mounts = [line.split() for line in open("/proc/mounts")]
+        with open("/proc/mounts") as fh:
+            mounts = [line.split() for line in fh]
     except OSError:
         return "unknown"
     real = os.path.realpath(path)

@@ -416,23 +416,30 @@ def load_npz(path: str | os.PathLike | io.IOBase) -> NpzArchive:
     it (a seek to an offset read from damaged bytes, but also a failing disk)
     is reported as a ``ValueError`` that names the file and keeps the error's
     text."""
-    if isinstance(path, (str, os.PathLike)):
-        with open(path, "rb") as fh:  # OSError: the file cannot be read at all
-            is_zip = zipfile.is_zipfile(fh)
-    else:
-        is_zip = zipfile.is_zipfile(path)
-        path.seek(0)
-    if not is_zip:
-        raise ValueError(
-            f"{path}: not an .npz archive (empty, cut short, or another kind of file)"
-        )
+    # a path is opened here, not by np.load: numpy leaves the file it opened
+    # open when the archive's directory cannot be read (its NpzFile raises)
+    owned = isinstance(path, (str, os.PathLike))
+    fh = open(path, "rb") if owned else path  # OSError: cannot be read at all
     try:
-        return NpzArchive(np.load(path, allow_pickle=False), path)
-    except _DAMAGED as err:
-        raise ValueError(
-            f"{path}: not a readable .npz archive ({type(err).__name__}: {err}); "
-            "is the file damaged?"
-        ) from None
+        is_zip = zipfile.is_zipfile(fh)
+        fh.seek(0)
+        if not is_zip:
+            raise ValueError(
+                f"{path}: not an .npz archive (empty, cut short, or another kind of "
+                "file)"
+            )
+        try:
+            npz = np.load(fh, allow_pickle=False)
+        except _DAMAGED as err:
+            raise ValueError(
+                f"{path}: not a readable .npz archive ({type(err).__name__}: "
+                f"{err}); is the file damaged?"
+            ) from None
+    except BaseException:
+        if owned:
+            fh.close()
+        raise
+    return NpzArchive(npz, path, fh if owned else None)
 
 
 class NpzArchive(Mapping):
@@ -441,8 +448,9 @@ class NpzArchive(Mapping):
     read without pickle) raise ``ValueError`` naming the file and the array
     instead of zipfile's or numpy's error."""
 
-    def __init__(self, npz, path) -> None:
-        self._npz, self._path = npz, path
+    def __init__(self, npz, path, file=None) -> None:
+        # file: the file this archive owns and closes, if it opened it
+        self._npz, self._path, self._file = npz, path, file
 
     @property
     def files(self) -> list[str]:
@@ -468,6 +476,8 @@ class NpzArchive(Mapping):
 
     def close(self) -> None:
         self._npz.close()
+        if self._file is not None:
+            self._file.close()
 
     def __enter__(self) -> NpzArchive:
         return self

@@ -20,6 +20,7 @@ from hipmdp.data import (
     check_queries,
     gaussian_loglik,
     is_real_number,
+    load_npz,
     wanted_instances,
     wrap_angle,
 )
@@ -685,6 +686,39 @@ def test_a_changed_byte_is_refused_naming_the_file_and_the_array(tmp_path):
                 for field in vars(same):
                     a, b = getattr(got, field), getattr(same, field)
                     assert a is b or np.array_equal(a, b), (at, field)
+
+
+def test_a_file_refused_as_damaged_is_closed(tmp_path):
+    """A damaged central directory (its first signature's byte changed) is
+    refused by every loader, naming the file, and leaves no file open:
+    ``np.load`` of a path kept the file it opened when the archive's directory
+    could not be read, until the garbage collector warned of it. So do a file
+    that is no archive at all, and a good one once read and closed: the
+    descriptors this process holds are the same after each load as before,
+    with the error still held (its context held the file numpy opened)."""
+    t = make(n=10)
+    path = t.save(tmp_path / "x.npz", table=table_for(t))
+    good = path.read_bytes()
+    cases = {
+        "Bad magic number for central directory": flipped(
+            good, good.index(b"PK\x01\x02")
+        ),
+        "not an .npz archive": b"no archive",
+        None: good,
+    }
+    for error, content in cases.items():
+        path.write_bytes(content)
+        for loader in (Transitions.load, ParameterTable.load, load_npz):
+            before = sorted(os.listdir("/proc/self/fd"))
+            if error is None:
+                held = loader(path)
+                if loader is load_npz:
+                    held.close()
+            else:  # the error held, as by a caller that reports it later
+                with pytest.raises(ValueError, match=f"^{re.escape(f'{path}: ')}.*"
+                                   f"{error}") as held:  # fmt: skip
+                    loader(path)
+            assert sorted(os.listdir("/proc/self/fd")) == before, (loader, error)
 
 
 def test_the_loaders_know_every_array_a_dataset_file_can_hold():

@@ -704,20 +704,22 @@ def test_run_dir_refuses_a_folder_that_is_not_its_run(tmp_path, config):
         run_dir(file, "exp")
 
 
-def _holder(folder: Path):
-    """Another process holding ``folder``'s run lock until its stdin closes."""
+@contextlib.contextmanager
+def holding(folder: Path):
+    """Another process holding ``folder``'s run lock for the ``with`` block
+    (until its stdin closes; ``with proc`` closes its pipes and waits for it)."""
 
     code = (
         "import sys; from hipmdp.data import lock_folder; "
         f"fd = lock_folder({str(folder)!r}); print('held', flush=True); "
         "sys.stdin.read()"
     )
-    proc = subprocess.Popen(
+    with subprocess.Popen(
         [sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
         text=True,
-    )  # fmt: skip
-    assert proc.stdout.readline().strip() == "held"
-    return proc
+    ) as proc:  # fmt: skip
+        assert proc.stdout.readline().strip() == "held"
+        yield
 
 
 def test_a_run_folder_another_run_writes_to_is_refused(tmp_path):
@@ -729,15 +731,11 @@ def test_a_run_folder_another_run_writes_to_is_refused(tmp_path):
     out.mkdir()
     write_json(out / "config.json", {"name": "exp"})
     (out / "metrics.json").write_text("the other run's")
-    proc = _holder(out)
-    try:
+    with holding(out):
         for call in (experiment.check_out, run_dir):
             with pytest.raises(ValueError, match="^out: another run is writing to"):
                 call(out, "exp", ("config.json", "metrics.json"))
         assert (out / "metrics.json").read_text() == "the other run's"
-    finally:
-        proc.stdin.close()
-        proc.wait()
 
     @releases_run_folders
     def main():
@@ -1461,13 +1459,9 @@ def test_a_main_releases_the_folders_it_took_and_no_others(tmp_path):
         os.close(lock_folder(inner, wait=False))  # the inner run's, released
 
     outer_main()
-    proc = _holder(outer)
-    try:
+    with holding(outer):
         with pytest.raises(ValueError, match="^out: another run is writing to"):
             run_dir(outer, "exp")
-    finally:
-        proc.stdin.close()
-        proc.wait()
 
 
 def test_process_stat_reads_past_a_command_name_holding_a_parenthesis(tmp_path):

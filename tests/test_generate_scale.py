@@ -1006,12 +1006,11 @@ def test_a_folder_another_run_writes_to_is_refused(tmp_path, capsys):
     then failed their checksums: while another process holds the folder's lock,
     a run is a usage error before it writes anything; once it ends, the folder
     is taken."""
-    from tests.test_experiment import _holder
+    from tests.test_experiment import holding
 
     out = tmp_path / "run"
     out.mkdir()
-    proc = _holder(out)
-    try:
+    with holding(out):
         with pytest.raises(SystemExit) as stopped:
             generate.main([*RUN, "--out", str(out)])
         assert stopped.value.code == 2
@@ -1023,9 +1022,6 @@ def test_a_folder_another_run_writes_to_is_refused(tmp_path, capsys):
         with pytest.raises(generate.BusyError):
             generate.generate(config, prepared=prepared)
         assert list(out.iterdir()) == []
-    finally:
-        proc.stdin.close()
-        proc.wait()
     generate.main([*RUN, "--out", str(out)])
     shards.Dataset(out).verify()
 
