@@ -53,6 +53,7 @@ from hipmdp.baselines import GPBaseline, batch_only
 from hipmdp.planning import LearnedModel, plan
 from hipmdp.sarsa import epsilon_greedy
 from tasks.agents import DOMAINS, LearnResult, SimulatorModel, learn
+from tasks.experiment import printable_output
 
 
 class FullPredict:
@@ -111,6 +112,7 @@ def check_same_predictions(gp: GPBaseline, models: dict, data) -> None:
 
 
 def main(argv: list[str] | None = None) -> dict[str, float]:
+    printable_output()
     parser = argparse.ArgumentParser(
         prog="python -m benchmarks.control", description=__doc__.split("\n\n")[0]
     )

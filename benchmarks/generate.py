@@ -55,6 +55,7 @@ import numpy as np
 
 from tasks import generate
 from tasks.collect import get_domain
+from tasks.experiment import printable_output
 from tasks.rollout import MODULES
 
 
@@ -195,6 +196,7 @@ def _filesystem(path: str) -> str:
 
 
 def main(argv=None) -> None:
+    printable_output()
     parser = argparse.ArgumentParser(
         prog="python -m benchmarks.generate", description=__doc__.splitlines()[0]
     )

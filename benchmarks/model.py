@@ -44,6 +44,7 @@ from benchmarks.timing import paired, ratio_text, seconds
 from hipmdp.fitting import FitConfig, smooth_onto_support
 from hipmdp.gp import fit_hyper_set
 from hipmdp.support import select_support
+from tasks.experiment import printable_output
 
 A, D, B, N_PER = 2, 4, 7, 6000
 
@@ -85,6 +86,7 @@ SMALL = dict(n_support=30, n_hyper=100, n_candidates=200, n_smooth=100, n_residu
 
 
 def main(argv: list[str] | None = None) -> None:
+    printable_output()
     parser = argparse.ArgumentParser(
         prog="python -m benchmarks.model", description=__doc__.splitlines()[0]
     )

@@ -58,6 +58,7 @@ from hipmdp.gibbs import (
 )
 from hipmdp.gibbs_dense import MeanDraws
 from hipmdp.gibbs_sweep import sweep
+from tasks.experiment import printable_output
 
 B, A, D = 7, 2, 4
 R = A * D
@@ -291,7 +292,8 @@ def main(quick: bool = False, repeats: int = 3) -> None:
         )
 
 
-if __name__ == "__main__":
+def cli(argv: list[str] | None = None) -> None:
+    printable_output()
     parser = argparse.ArgumentParser(
         prog="python -m benchmarks.sampler", description=__doc__.splitlines()[0]
     )
@@ -301,7 +303,11 @@ if __name__ == "__main__":
     parser.add_argument(
         "--repeats", type=int, default=3, help="paired repeats per figure (medians)"
     )
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error(f"--repeats must be >= 1, got {args.repeats}")
     main(args.quick, args.repeats)
+
+
+if __name__ == "__main__":
+    cli()

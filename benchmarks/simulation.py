@@ -36,6 +36,7 @@ import numpy as np
 
 from benchmarks.timing import paired
 from tasks import acrobot, cartpole
+from tasks.experiment import printable_output
 
 #: Per domain: its environment factory and its module (`ACTIONS`, `N_SUB_STEPS`).
 DOMAINS = {
@@ -115,6 +116,7 @@ def paired_rates(env, module, n_steps: int, repeats: int, rng):
 
 
 def main(argv=None) -> None:
+    printable_output()
     parser = argparse.ArgumentParser(
         prog="python -m benchmarks.simulation", description=__doc__.splitlines()[0]
     )

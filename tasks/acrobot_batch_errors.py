@@ -37,6 +37,7 @@ from tasks.experiment import (
     environment,
     inputs_checked,
     one_blas_thread,
+    printable_output,
     run_or_exit,
     run_parser,
     write_json,
@@ -107,6 +108,7 @@ def main(run: str | Path, *, fast: float = 10.0, out: str | Path | None = None):
 
 
 def cli(argv: list[str] | None = None) -> int:
+    printable_output()
     parser = run_parser("python -m tasks.acrobot_batch_errors", __doc__, progress=False)
     parser.add_argument("--fast", type=float, default=10.0, help="rad/s (default 10)")
     parser.add_argument(

@@ -87,6 +87,7 @@ from tasks.experiment import (
     mean_ci,
     one_blas_thread,
     pool_map,
+    printable_output,
     run_or_exit,
     run_parser,
     to_jsonable,
@@ -627,6 +628,7 @@ def _nanmean(x: np.ndarray) -> np.ndarray:
 
 
 def cli(argv: list[str] | None = None) -> int:
+    printable_output()
     parser = run_parser("python -m tasks.acrobot_energy", __doc__)
     parser.add_argument("--trials", type=int, default=2, help="trials per setting")
     parser.add_argument(

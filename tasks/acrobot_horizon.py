@@ -49,6 +49,7 @@ from tasks.experiment import (
     environment,
     inputs_checked,
     one_blas_thread,
+    printable_output,
     run_or_exit,
     run_parser,
     to_jsonable,
@@ -162,6 +163,7 @@ def main(
 
 
 def cli(argv: list[str] | None = None) -> int:
+    printable_output()
     parser = run_parser("python -m tasks.acrobot_horizon", __doc__)
     parser.add_argument("--horizons", type=int, nargs="+", default=[1, 5, 10, 20])
     parser.add_argument("--identify", type=int, default=1000, help="transitions")

@@ -83,6 +83,7 @@ from tasks.experiment import (
     one_blas_thread,
     paired_difference,
     pool_map,
+    printable_output,
     read_json_object,
     run_or_exit,
     run_parser,
@@ -520,6 +521,7 @@ def main(
 
 
 def cli(argv: list[str] | None = None) -> int:
+    printable_output()
     parser = run_parser("python -m tasks.acrobot_identified", __doc__)
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS))
     parser.add_argument("--trials", type=int, default=10, help="trials per setting")

@@ -43,6 +43,7 @@ from tasks.experiment import (
     environment,
     inputs_checked,
     one_blas_thread,
+    printable_output,
     run_or_exit,
     run_parser,
     with_added_fields,
@@ -132,6 +133,7 @@ def main(
 
 
 def cli(argv: list[str] | None = None) -> int:
+    printable_output()
     parser = run_parser("python -m tasks.acrobot_refit", __doc__)
     parser.add_argument("out", help="the new run folder (absent or empty)")
     parser.add_argument(

@@ -54,6 +54,7 @@ from tasks.experiment import (
     one_blas_thread,
     paired_difference,
     pool_map,
+    printable_output,
     releases_run_folders,
     run_dir,
     stops_reported,
@@ -674,6 +675,7 @@ def parse_args(argv: list[str] | None = None) -> tuple[SwingupConfig, str | None
 
 
 def cli(argv: list[str] | None = None) -> int:
+    printable_output()
     config, out = parse_args(argv)
     with stops_reported("python -m tasks.acrobot_swingup", out, config.name):
         results = main(config, out)

@@ -47,6 +47,7 @@ from tasks.experiment import (
     common_parser,
     environment,
     one_blas_thread,
+    printable_output,
     releases_run_folders,
     run_dir,
     stops_reported,
@@ -345,6 +346,7 @@ def parse_args(argv: list[str] | None = None) -> tuple[PredictionConfig, str | N
 
 
 def cli(argv: list[str] | None = None) -> int:
+    printable_output()
     config, out = parse_args(argv)
     with stops_reported("python -m tasks.cartpole_prediction", out, config.name):
         results = main(config, out)

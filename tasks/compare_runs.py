@@ -56,6 +56,7 @@ from tasks.experiment import (
     ADDED_FIT_FIELDS,
     check_out_file,
     plain_text,
+    printable_output,
     read_json_object,
     sort_blas,
     with_added_fields,
@@ -560,6 +561,7 @@ def report(result: Comparison, limit: int = 10) -> str:
 
 
 def cli(argv: list[str] | None = None) -> int:
+    printable_output()
     import argparse
 
     parser = argparse.ArgumentParser(

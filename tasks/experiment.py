@@ -11,6 +11,7 @@ spawned from one ``np.random.SeedSequence``.
 from __future__ import annotations
 
 import argparse
+import codecs
 import contextlib
 import contextvars
 import dataclasses
@@ -335,6 +336,25 @@ def _write(path: str | os.PathLike, write: Callable) -> Path:
     while writing its JSON into a run folder left one that no later run
     removed)."""
     return atomic_write(path, write, clean=True)
+
+
+def printable_output() -> None:
+    """Let stdout and stderr print any text; every command line here calls it
+    first. Where a stream's encoding is not UTF-8 (a Latin-1 locale such as
+    ``LANG=en_US`` on an older system, or ``PYTHONIOENCODING=ascii``), a
+    character it lacks (λ, σ, −) is written as an escape (``\\u03bb``): it
+    raised ``UnicodeEncodeError``, which stopped ``--help`` and a run's closing
+    summary. Streams without ``reconfigure`` (not a text file) are left."""
+    for stream in (sys.stdout, sys.stderr):
+        encoding = getattr(stream, "encoding", None)
+        if not encoding or not hasattr(stream, "reconfigure"):
+            continue
+        try:
+            utf8 = codecs.lookup(encoding).name == "utf-8"
+        except LookupError:
+            utf8 = False
+        if not utf8 and stream.errors == "strict":
+            stream.reconfigure(errors="backslashreplace")
 
 
 def write_json(path: str | os.PathLike, obj: Any) -> Path:

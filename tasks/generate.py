@@ -107,6 +107,7 @@ from tasks.experiment import (
     package_versions,
     path_argument,
     plain_text,
+    printable_output,
     seed_argument,
     stops_ignored,
 )
@@ -1290,6 +1291,7 @@ def main(argv: Sequence[str] | None = None) -> Generated:
     the run. So does any error once the run has begun, with status 1: one line
     for a worker or cluster that failed (`_cluster_failure`), the line and the
     traceback for anything else (a bug)."""
+    printable_output()
     parser = build_parser()
     argv = sys.argv[1:] if argv is None else list(argv)
     config = parse_config(argv)

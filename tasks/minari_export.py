@@ -48,7 +48,7 @@ from hipmdp import shards
 from hipmdp.data import ParameterTable, Transitions, atomic_folder
 from tasks import acrobot, agents, cartpole
 from tasks.collect import get_domain
-from tasks.experiment import check_folder_out, path_argument
+from tasks.experiment import check_folder_out, path_argument, printable_output
 
 Array = np.ndarray
 
@@ -251,6 +251,7 @@ def _write_json(path: Path, content: dict) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> Path:
+    printable_output()
     parser = argparse.ArgumentParser(
         prog="python -m tasks.minari_export",
         description=__doc__.splitlines()[0],

@@ -68,6 +68,7 @@ from tasks.experiment import (
     markdown_table,
     mean_ci,
     plain_text,
+    printable_output,
     write_json,
 )
 from tasks.prediction import best_baseline
@@ -510,6 +511,7 @@ def few_seeds(n: int) -> str:
 
 
 def cli(argv: list[str] | None = None) -> int:
+    printable_output()
     import argparse
 
     parser = argparse.ArgumentParser(

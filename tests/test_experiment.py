@@ -7,6 +7,7 @@ import contextlib
 import dataclasses
 import fnmatch
 import importlib
+import io
 import json
 import os
 import pickle
@@ -1231,6 +1232,73 @@ def test_help_gives_each_presets_default_and_plain_text(capsys):
         "a and b or c.D"
     )
     assert experiment.plain_text("`--vary NAME` (`x`)\n`y`") == "--vary NAME (x)\ny"
+
+
+#: Every command line: (module, its entry function), each run as `python -m`.
+ENTRY_POINTS = [
+    *[(f"tasks.{name}", "cli") for name in (
+        "acrobot_batch_errors", "acrobot_energy", "acrobot_horizon",
+        "acrobot_identified", "acrobot_refit", "acrobot_swingup",
+        "cartpole_prediction", "compare_runs", "seed_spread",
+    )],
+    ("tasks.generate", "main"), ("tasks.minari_export", "main"),
+    *[(f"benchmarks.{name}", "main") for name in (
+        "control", "generate", "model", "simulation",
+    )],
+    ("benchmarks.sampler", "cli"),
+]  # fmt: skip
+
+
+def test_every_command_line_is_an_entry_point():
+    """ENTRY_POINTS lists every module with a ``__main__`` block (which calls
+    the entry function)."""
+    root = Path(tasks.__file__).resolve().parents[1]
+    found = set()
+    for folder in ("tasks", "benchmarks"):
+        for path in (root / folder).glob("*.py"):
+            text = path.read_text(encoding="utf-8")
+            if 'if __name__ == "__main__":' in text:
+                found.add(f"{folder}.{path.stem}")
+    assert found == {module for module, _ in ENTRY_POINTS}
+
+
+@pytest.mark.parametrize(("module", "entry"), ENTRY_POINTS)
+def test_help_prints_where_the_terminal_cannot_show_every_character(
+    monkeypatch, module, entry
+):
+    """With an ASCII stdout (``PYTHONIOENCODING=ascii``; a Latin-1 locale lacks
+    λ, σ and − too), ``--help`` raised UnicodeEncodeError in seven of the
+    sixteen commands, and so did the closing summary of a run; every command
+    line now writes such characters as escapes (``\\u03bb``)."""
+    out, err = io.BytesIO(), io.BytesIO()
+    monkeypatch.setattr(sys, "stdout", io.TextIOWrapper(out, encoding="ascii"))
+    monkeypatch.setattr(sys, "stderr", io.TextIOWrapper(err, encoding="ascii"))
+    with pytest.raises(SystemExit) as stopped:
+        getattr(importlib.import_module(module), entry)(["--help"])
+    sys.stdout.flush()
+    assert stopped.value.code == 0
+    assert out.getvalue().decode("ascii").startswith("usage: python -m " + module)
+
+
+def test_printable_output_escapes_only_what_the_stream_cannot_encode():
+    """An ASCII stream writes λ as an escape; a UTF-8 stream, and one that is
+    not a text file (no ``reconfigure``), are left as they were."""
+    ascii_out, utf8_out = io.BytesIO(), io.BytesIO()
+    streams = (
+        io.TextIOWrapper(ascii_out, encoding="ascii"),
+        io.TextIOWrapper(utf8_out, encoding="utf-8"),
+    )
+    for stream in streams:
+        with contextlib.redirect_stdout(stream):
+            experiment.printable_output()
+            print("λ = 1", end="")
+        stream.flush()
+    assert ascii_out.getvalue() == b"\\u03bb = 1"
+    assert (utf8_out.getvalue(), streams[1].errors) == ("λ = 1".encode(), "strict")
+    plain = io.StringIO()
+    with contextlib.redirect_stdout(plain):
+        experiment.printable_output()
+    assert plain.errors is None
 
 
 def test_the_run_time_line_names_every_part_and_the_rest():
