@@ -41,6 +41,9 @@ from hipmdp.support import select_support
 Array = np.ndarray
 
 
+#: FitConfig.new_features: the paper's new-feature step, or its multiple-try form.
+NEW_FEATURES = ("paper", "multiple_try")
+
 #: The priors' documented ranges (FitConfig), ends included but α's 0.
 PRIOR_RANGES = {
     "alpha": (0.0, 100.0),
@@ -62,6 +65,7 @@ class FitConfig:
     | sigma_w        | σ_w, w[k,b] ~ N(μ_w[k], σ_w²)       | 4.0        | [1e-3, 1e4] |
     | sigma_w0       | σ_w0, μ_w[k] ~ N(0, σ_w0²)          | 4.0        | [1e-3, 1e4] |
     | n_w            | N_w draws of a new feature's w      | 1000       | >= 1        |
+    | new_features   | the new-feature step                | paper      | below       |
     | n_hyper        | transitions/action, hyperparameters | 1000       | >= 2        |
     | n_candidates   | candidates for the support points   | 3000       | >= m        |
     | n_smooth       | transitions/(instance, action)      | 1000       | >= 1        |
@@ -73,6 +77,12 @@ class FitConfig:
     `periodic`: every kernel measures an angle difference by its chord
     `2 sin(Δθ / 2)` (`hipmdp.kernels`), so states either side of `θ = ±π` are
     neighbours; without it they are `2π` apart.
+
+    `new_features`: "paper": the paper's Metropolis-Hastings step on a row's
+    singleton features, exact as N_w → ∞ only; "multiple_try": the same step with
+    the current singletons' own weights as one of their N_w draws, exact for every
+    N_w at the same cost (`hipmdp.gibbs_sweep`; a test measures both). It changes
+    the sampler's draws, so a fit with it is not the default's.
 
     `filter_weights`: the weights at which `HipMDP.update` takes the factor
     (1 + Σ_k z w_k²) of its model-error variance τ² (`hipmdp.model`, "Filtering
@@ -100,6 +110,7 @@ class FitConfig:
     periodic: bool = False
     filter_weights: str = "prior_mean"
     progress: bool = True
+    new_features: str = "paper"
 
     def __post_init__(self) -> None:
         minimum = {
@@ -149,6 +160,12 @@ class FitConfig:
                 f"{self.filter_weights!r}"
             )
         object.__setattr__(self, "filter_weights", str(self.filter_weights))
+        if self.new_features not in NEW_FEATURES:
+            raise ValueError(
+                f"FitConfig.new_features: expected one of {NEW_FEATURES}, got "
+                f"{self.new_features!r}"
+            )
+        object.__setattr__(self, "new_features", str(self.new_features))
         for name in ("periodic", "progress"):
             v = getattr(self, name)
             if not isinstance(v, bool | np.bool_):
@@ -393,7 +410,10 @@ def fit(data: Transitions, config: FitConfig, *, rng: np.random.Generator) -> Hi
     )
     noise = hyper.noise_var.reshape(A * D)
     gdata = GibbsData(Y=Y.reshape(A * D, B, m), K=Kss, noise=noise)
-    priors = GibbsPriors(config.alpha, config.sigma_w, config.sigma_w0, config.n_w)
+    priors = GibbsPriors(
+        config.alpha, config.sigma_w, config.sigma_w0, config.n_w,
+        multiple_try=config.new_features == "multiple_try",
+    )  # fmt: skip
     result = run_chains(
         gdata,
         priors,

@@ -49,13 +49,16 @@ class GibbsPriors(NamedTuple):
 
     alpha: IBP concentration α; sigma_w: w[k,b] ~ N(μ_w[k], σ_w²);
     sigma_w0: μ_w[k] ~ N(0, σ_w0²); n_w: importance draws N_w of a new feature's
-    weights.
+    weights; multiple_try: the new-feature step takes the current singletons'
+    own weights as one of their N_w draws, which makes it exact for every N_w
+    (`hipmdp.gibbs_sweep`); False: the paper's step, exact as N_w → ∞ only.
     """
 
     alpha: float
     sigma_w: float
     sigma_w0: float
     n_w: int
+    multiple_try: bool = False
 
 
 @dataclass(frozen=True)
@@ -112,6 +115,10 @@ def check_priors(priors: GibbsPriors) -> GibbsPriors:
                 f"GibbsPriors.{name}: expected a finite number > 0, got {v!r}"
             )
     check_integer("GibbsPriors.n_w", priors.n_w, 1)  # 5.0 passed, then crashed
+    if not isinstance(priors.multiple_try, bool | np.bool_):
+        raise ValueError(
+            f"GibbsPriors.multiple_try: expected a bool, got {priors.multiple_try!r}"
+        )
     return priors
 
 

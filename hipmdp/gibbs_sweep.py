@@ -34,6 +34,16 @@ conditional. A proposal of k' = k is skipped (it would only redraw the weights, 
 the w-block does). With no data every likelihood ratio is 1, every proposal is
 accepted, and the step draws the singleton count exactly from Poisson(α/N): the chain
 then targets the IBP prior, E[K+] = α H_N. With data the step is exact as N_w → ∞.
+
+`GibbsPriors(multiple_try=True)` makes it exact for every N_w, at the same cost:
+L̂(k) of the current singletons is taken over their own weights (μ_w and w) and
+N_w − 1 fresh prior draws, instead of N_w fresh ones. The move is then independent
+multiple-try Metropolis (Liu, Liang & Wong 2000; Martino & Read 2013) with the
+prior draws as tries and the likelihood ratios as their importance weights, which
+leaves p(k, w | rest) with f marginalised unchanged; f is drawn from its
+conditional after an accepted move, as above. With fresh draws both estimates
+are unbiased but their ratio is not, and the chain's law depends on N_w (a test
+measures it: `tests/test_gibbs_sampler.py`).
 """
 
 from __future__ import annotations
@@ -153,7 +163,13 @@ def new_feature_step(
     if k_new == len(single):
         return z, w, f, mu_w
     E0 = E + np.einsum("kb,km->bm", w[single], f[single, r])
-    log_old = _log_ml(alg, r, E0, len(single), priors, rng=rng)[0]
+    if priors.multiple_try and single:  # the current weights: one of the draws
+        _, W = draw_new_weights(priors.n_w - 1, E.shape[0], len(single), priors,
+                                rng=rng)  # fmt: skip
+        llr = alg.new_llr(r, E0, np.concatenate([w[single].T[None], W]))
+        log_old = logsumexp(llr) - float(np.log(priors.n_w))
+    else:
+        log_old = _log_ml(alg, r, E0, len(single), priors, rng=rng)[0]
     log_new, mu, W, llr = _log_ml(alg, r, E0, k_new, priors, rng=rng)
     if np.log(rng.random()) >= log_new - log_old:
         return z, w, f, mu_w

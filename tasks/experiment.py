@@ -1150,8 +1150,11 @@ ADDED_FIELDS = {"split": "random", "methods": []}
 
 #: The same for the fields of the config's ``fit`` (``hipmdp.FitConfig``): before
 #: ``periodic`` no kernel was periodic; before ``filter_weights`` the filter took
-#: its model-error factor at the prior mean weights.
-ADDED_FIT_FIELDS = {"periodic": False, "filter_weights": "prior_mean"}
+#: its model-error factor at the prior mean weights; before ``new_features`` the
+#: sampler took the paper's new-feature step.
+ADDED_FIT_FIELDS = {
+    "periodic": False, "filter_weights": "prior_mean", "new_features": "paper",
+}  # fmt: skip
 
 
 def read_json_object(path: Path) -> dict[str, Any]:

@@ -89,7 +89,12 @@ def test_an_older_config_reads_with_the_values_it_ran_with():
         "seed": 0,
         "split": "random",
         "methods": [],
-        "fit": {"n_sweeps": 60, "periodic": False, "filter_weights": "prior_mean"},
+        "fit": {
+            "n_sweeps": 60,
+            "periodic": False,
+            "filter_weights": "prior_mean",
+            "new_features": "paper",
+        },  # fmt: skip
     }
     new = {"seed": 0, "split": "time", "methods": ["m"], "fit": {"periodic": True}}
     assert with_added_fields(new)["fit"]["periodic"] is True  # its own kept

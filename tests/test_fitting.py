@@ -216,6 +216,30 @@ def test_check_batch_warns_of_changes_too_small_for_the_hyperparameter_bounds():
         check_batch(tiny, config)
 
 
+def test_new_features_chooses_the_samplers_new_feature_step(monkeypatch):
+    """``FitConfig.new_features`` reaches the sampler as
+    ``GibbsPriors.multiple_try`` ("paper": False, the default; "multiple_try":
+    True); another value is refused, naming the field."""
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def run_chains(data, priors, **kwargs):
+        seen.append(priors)
+        raise Stop
+
+    monkeypatch.setattr(fitting, "run_chains", run_chains)
+    data = _batch(np.random.default_rng(0))
+    small = FitConfig(n_support=9, n_hyper=12, n_candidates=50, progress=False)
+    for config in (small, dataclasses.replace(small, new_features="multiple_try")):
+        with pytest.raises(Stop):
+            fit(data, config, rng=np.random.default_rng(1))
+    assert [priors.multiple_try for priors in seen] == [False, True]
+    with pytest.raises(ValueError, match="FitConfig.new_features: expected one of"):
+        FitConfig(new_features="exact")
+
+
 def test_fit_hands_the_sampler_rows_a_d_and_takes_the_dense_weights(monkeypatch):
     """What `fit` gives the sampler and makes of its best sample, against plain
     formulas. Rows r = a·D + d: Y[r, b] the dense GP mean of all of instance b's

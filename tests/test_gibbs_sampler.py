@@ -316,7 +316,12 @@ def sweep_invariance(priors: GibbsPriors, n: int) -> tuple[np.ndarray, int]:
     return z_scores, changed
 
 
-def test_a_sweep_leaves_the_joint_law_of_the_model_unchanged():
+@pytest.mark.parametrize(
+    ("multiple_try", "n_w", "holds"),
+    [(False, 1000, True), (True, 3, True), (False, 3, False)],
+    ids=["paper step, N_w=1000", "multiple-try step, N_w=3", "paper step, N_w=3"],
+)
+def test_a_sweep_leaves_the_joint_law_of_the_model_unchanged(multiple_try, n_w, holds):
     """Geweke's joint-distribution test ("Getting it right", 2004), one sweep at
     a time: (state, Y) drawn from the model (prior, then data), one
     ``gibbs_sweep`` on Y gives a state that, with the same Y, is again a draw
@@ -328,21 +333,26 @@ def test_a_sweep_leaves_the_joint_law_of_the_model_unchanged():
     this checks the sweep that composes them (order, feature bookkeeping,
     the eigenbasis and back) on data, where the IBP-prior checks see no data.
 
-    Its power, measured by altering the sampler (largest |z| of the seven):
-    the z step's prior odds m / (N + 1 − m) 8.0; f drawn with σ² × 1.5 27
-    (the residual); w's prior σ_w × 1.3 7.8; μ_w's prior σ_w0 × 1.5 14; a born
-    feature's weights taken uniformly from the N_w draws, not by importance
-    weight, 6.0; the z step's log-odds + 0.3 7.2; N_w = 3 (the new-feature
-    step's approximation) 5.6; a sweep that returns its input fails the last
-    check. A correct sampler's largest: 1.3 here, 2.7, 1.2 and 1.5 with three
-    other seeds. Not seen: f kept, not redrawn, where z stays on (1.1); a new
-    feature's log-likelihood ratios × 1.5 (3.3). The new-feature step is exact
-    as N_w → ∞ only: at N_w = 200 a correct sampler gave Σ w² at −3.4 and −3.5
-    with two of four seeds; at 1000 (``FitConfig``'s default, used here) at
-    most ±1.1 with the same four."""
-    priors = GibbsPriors(alpha=1.0, sigma_w=1.0, sigma_w0=1.0, n_w=1000)
+    The paper's new-feature step is exact as N_w → ∞ only: at N_w = 3 it fails
+    (largest |z| 5.6 here; 7.5, 6.2 and 8.1 with three other seeds; 11.5 at
+    N_w = 1), which the third case asserts. At N_w = 200 it came within 3.4
+    and 3.5 of failing on Σ w² with two seeds of four; at 1000 (``FitConfig``'s
+    default) its largest was 1.3 here, 2.7, 1.2 and 1.5 with the other seeds.
+    The multiple-try step (``GibbsPriors(multiple_try=True)``) is exact for
+    every N_w: at N_w = 3 its largest was 2.5 here, 2.5, 1.5 and 3.1 with the
+    other seeds; at N_w = 1, 2.6 and 2.0 (two seeds).
+
+    Its power, measured by altering the sampler (paper step, N_w = 1000;
+    largest |z|): the z step's prior odds m / (N + 1 − m) 8.0; f drawn with
+    σ² × 1.5 27 (the residual); w's prior σ_w × 1.3 7.8; μ_w's prior σ_w0 × 1.5
+    14; a born feature's weights taken uniformly from the N_w draws, not by
+    importance weight, 6.0; the z step's log-odds + 0.3 7.2; a sweep that
+    returns its input fails the last check. Not seen: f kept, not redrawn,
+    where z stays on (1.1); a new feature's log-likelihood ratios × 1.5
+    (3.3)."""
+    priors = GibbsPriors(1.0, 1.0, 1.0, n_w=n_w, multiple_try=multiple_try)
     z_scores, changed = sweep_invariance(priors, n=3000)
-    assert np.all(np.abs(z_scores) < 4), z_scores
+    assert np.all(np.abs(z_scores) < 4) == holds, z_scores
     # the check is informative: the sweep moves z often (a sweep that left its
     # state as it was would pass the check above)
     assert changed > 0.2 * 3000, changed
@@ -693,6 +703,17 @@ def test_bad_run_chains_arguments_raise(kwargs, field):
         run_chains(data, priors, rng=np.random.default_rng(0), **args)
 
 
+@pytest.mark.parametrize("bad", ["yes", 1, None])
+def test_multiple_try_must_be_a_bool(bad):
+    """GibbsPriors.multiple_try chooses the new-feature step (a truthy string
+    or 1 would pass for True); anything but a bool is refused, naming it."""
+    data, _ = small_problem(13)
+    priors = GibbsPriors(1.0, 1.0, 1.0, n_w=5, multiple_try=bad)
+    with pytest.raises(ValueError, match="GibbsPriors.multiple_try: expected a bool"):
+        run_chains(data, priors, n_sweeps=1, n_chains=1, rng=np.random.default_rng(0),
+                   progress=False)  # fmt: skip
+
+
 def test_new_feature_step_without_data_draws_poisson_singletons():
     """With B = 0 every likelihood ratio is 1, so one new-feature step replaces row
     r's singletons by k' ~ Poisson(α/N) new ones whatever it started from (here 2
@@ -716,7 +737,11 @@ def test_new_feature_step_without_data_draws_poisson_singletons():
         assert abs(np.mean(counts == j) - p) < 4 * np.sqrt(p * (1 - p) / N_DRAWS)
 
 
-def test_new_feature_step_with_data_targets_the_posterior_of_k():
+@pytest.mark.parametrize(
+    ("multiple_try", "n_w"), [(False, 1000), (True, 3)],
+    ids=["paper step, N_w=1000", "multiple-try step, N_w=3"],
+)  # fmt: skip
+def test_new_feature_step_with_data_targets_the_posterior_of_k(multiple_try, n_w):
     """With data, the step is Metropolis–Hastings with the Poisson(α/N) prior as
     proposal and the ratio of N_w-draw estimates of the marginal likelihood
     ML(k) = E_W[p(E | W, k new features)] / p(E | none) as acceptance. Its
@@ -726,7 +751,10 @@ def test_new_feature_step_with_data_targets_the_posterior_of_k():
     prior mass beyond 5 is 6e-4). 10,000 steps of the step alone at N_w = 1000
     must give each k ≤ 3 its probability within 4 batch-means standard errors
     (50 batches). At N_w = 3 the same chain is 20+ standard errors off on k = 0
-    and 1 (measured): the check can tell the approximation from the target."""
+    and 1 (measured): the check can tell the approximation from the target. The
+    multiple-try step (``GibbsPriors(multiple_try=True)``), exact for every
+    N_w, must pass it at N_w = 3 (its chain starts from k = 0; ML(k) is still
+    estimated with 200,000 draws)."""
     rng = np.random.default_rng(0)
     B, m, noise = 3, 3, 0.5
     A = rng.normal(size=(m, m))
@@ -747,6 +775,7 @@ def test_new_feature_step_with_data_targets_the_posterior_of_k():
     log_post = poisson.logpmf(np.arange(6), priors.alpha) + np.array(log_ml)
     post = np.exp(log_post - logsumexp(log_post))
     assert 0.1 < post[0] < post[1] and post[2] > 0.1  # k is uncertain: informative
+    priors = priors._replace(n_w=n_w, multiple_try=multiple_try)
     z, w, f, mu = (
         np.ones((1, 1), bool),
         np.ones((1, B)),
