@@ -34,6 +34,7 @@ import re
 import shutil
 import stat
 import tempfile
+import weakref
 import zipfile
 import zlib
 from collections.abc import Iterable, Mapping, Sequence
@@ -449,8 +450,10 @@ class NpzArchive(Mapping):
     instead of zipfile's or numpy's error."""
 
     def __init__(self, npz, path, file=None) -> None:
-        # file: the file this archive owns and closes, if it opened it
-        self._npz, self._path, self._file = npz, path, file
+        self._npz, self._path = npz, path
+        # the file this archive opened (``file``) is closed with it, or when it
+        # is collected unclosed (np.load's own archive closed its file then)
+        self._close_file = None if file is None else weakref.finalize(self, file.close)
 
     @property
     def files(self) -> list[str]:
@@ -476,8 +479,8 @@ class NpzArchive(Mapping):
 
     def close(self) -> None:
         self._npz.close()
-        if self._file is not None:
-            self._file.close()
+        if self._close_file is not None:
+            self._close_file()
 
     def __enter__(self) -> NpzArchive:
         return self

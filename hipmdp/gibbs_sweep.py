@@ -36,12 +36,13 @@ accepted, and the step draws the singleton count exactly from Poisson(α/N): the
 then targets the IBP prior, E[K+] = α H_N. With data the step is exact as N_w → ∞.
 
 `GibbsPriors(multiple_try=True)` makes it exact for every N_w, at the same cost:
-L̂(k) of the current singletons is taken over their own weights (μ_w and w) and
-N_w − 1 fresh prior draws, instead of N_w fresh ones. The move is then independent
+L̂(k) of the current singletons is taken over their own weights w and N_w − 1
+fresh prior draws, instead of N_w fresh ones. The move is then independent
 multiple-try Metropolis (Liu, Liang & Wong 2000; Martino & Read 2013) with the
-prior draws as tries and the likelihood ratios as their importance weights, which
-leaves p(k, w | rest) with f marginalised unchanged; f is drawn from its
-conditional after an accepted move, as above. With fresh draws both estimates
+prior draws of (μ_w, w) as tries and the likelihood ratios (which depend on w
+alone) as their importance weights, which leaves p(k, μ_w, w | rest) with f
+marginalised unchanged, for N_w = 1 too; f is drawn from its conditional after an
+accepted move, as above, and kept after a rejected one. With fresh draws both estimates
 are unbiased but their ratio is not, and the chain's law depends on N_w (a test
 measures it: `tests/test_gibbs_sampler.py`).
 """

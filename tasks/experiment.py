@@ -344,7 +344,9 @@ def printable_output() -> None:
     ``LANG=en_US`` on an older system, or ``PYTHONIOENCODING=ascii``), a
     character it lacks (λ, σ, −) is written as an escape (``\\u03bb``): it
     raised ``UnicodeEncodeError``, which stopped ``--help`` and a run's closing
-    summary. Streams without ``reconfigure`` (not a text file) are left."""
+    summary. So did an ASCII stream with ``surrogateescape`` errors (the C locale
+    without Python's UTF-8 mode). Streams without ``reconfigure`` (not a text
+    file) are left."""
     for stream in (sys.stdout, sys.stderr):
         encoding = getattr(stream, "encoding", None)
         if not encoding or not hasattr(stream, "reconfigure"):
@@ -353,8 +355,14 @@ def printable_output() -> None:
             utf8 = codecs.lookup(encoding).name == "utf-8"
         except LookupError:
             utf8 = False
-        if not utf8 and stream.errors == "strict":
+        if not utf8 and stream.errors not in _ERRORS_THAT_PRINT:
             stream.reconfigure(errors="backslashreplace")
+
+
+#: The error handlers of a text stream that write something for any character.
+_ERRORS_THAT_PRINT = frozenset(
+    ["backslashreplace", "namereplace", "xmlcharrefreplace", "replace", "ignore"]
+)
 
 
 def write_json(path: str | os.PathLike, obj: Any) -> Path:

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import dataclasses
+import gc
 import io
 import os
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -719,6 +721,23 @@ def test_a_file_refused_as_damaged_is_closed(tmp_path):
                                    f"{error}") as held:  # fmt: skip
                     loader(path)
             assert sorted(os.listdir("/proc/self/fd")) == before, (loader, error)
+
+
+def test_an_archive_dropped_unclosed_closes_its_file_quietly(tmp_path):
+    """``load_npz`` opens the file itself (above); an archive its caller drops
+    without closing it closes that file when collected, without the
+    ResourceWarning of a file left to the garbage collector (np.load's own
+    archive did the same)."""
+    path = make(n=4).save(tmp_path / "x.npz")
+    before = sorted(os.listdir("/proc/self/fd"))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        archive = load_npz(path)
+        assert sorted(os.listdir("/proc/self/fd")) != before  # open
+        del archive
+        gc.collect()
+    assert sorted(os.listdir("/proc/self/fd")) == before
+    assert [w.category for w in caught] == []
 
 
 def test_the_loaders_know_every_array_a_dataset_file_can_hold():
