@@ -142,9 +142,16 @@ def softmax(x: Array) -> Array:
     return p / p.sum()
 
 
-def _log_ml(alg: Algebra, r: int, E: Array, k: int, priors: GibbsPriors, *, rng):
-    """log L̂(k), the N_w-draw estimate, with its draws (mu, W) and per-draw llr."""
-    mu, W = draw_new_weights(priors.n_w, E.shape[0], k, priors, rng=rng)
+def _log_ml(
+    alg: Algebra, r: int, E: Array, k: int, priors: GibbsPriors, *, rng, current=None
+):
+    """log L̂(k), the N_w-draw estimate, with its draws (mu, W) and per-draw llr.
+    ``current`` (B, k): weights taken as the first of the N_w draws, beside
+    N_w − 1 drawn (the multiple-try step; mu then holds the drawn ones' only)."""
+    drawn = priors.n_w - (current is not None)
+    mu, W = draw_new_weights(drawn, E.shape[0], k, priors, rng=rng)
+    if current is not None:
+        W = np.concatenate([current[None], W])
     llr = alg.new_llr(r, E, W) if k else np.zeros(priors.n_w)
     return logsumexp(llr) - float(np.log(priors.n_w)), mu, W, llr
 
@@ -164,13 +171,8 @@ def new_feature_step(
     if k_new == len(single):
         return z, w, f, mu_w
     E0 = E + np.einsum("kb,km->bm", w[single], f[single, r])
-    if priors.multiple_try and single:  # the current weights: one of the draws
-        _, W = draw_new_weights(priors.n_w - 1, E.shape[0], len(single), priors,
-                                rng=rng)  # fmt: skip
-        llr = alg.new_llr(r, E0, np.concatenate([w[single].T[None], W]))
-        log_old = logsumexp(llr) - float(np.log(priors.n_w))
-    else:
-        log_old = _log_ml(alg, r, E0, len(single), priors, rng=rng)[0]
+    current = w[single].T if priors.multiple_try and single else None
+    log_old = _log_ml(alg, r, E0, len(single), priors, rng=rng, current=current)[0]
     log_new, mu, W, llr = _log_ml(alg, r, E0, k_new, priors, rng=rng)
     if np.log(rng.random()) >= log_new - log_old:
         return z, w, f, mu_w
