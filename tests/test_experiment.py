@@ -1796,43 +1796,65 @@ import os, signal, sys, threading, time
 from multiprocessing import connection
 from tasks import experiment
 
-MOMENT, owner = sys.argv[1], os.getpid()
 
-def terminate():
-    os.kill(owner, signal.SIGTERM)
-
-def job(x):
-    if MOMENT == "sending":
+def job(moment_and_x):  # at the top: a worker started by forkserver imports it
+    if moment_and_x[0] == "sending":
         return b"x" * 10_000_000
     time.sleep(600)
 
-class Jobs(list):  # the third job, the first time through
-    def __iter__(self):
-        for i, x in enumerate(list.__iter__(self)):
-            if MOMENT == "handing out" and i == 2 and not hasattr(self, "sent"):
-                self.sent = terminate()
-            yield x
 
-in_order, recv = experiment._in_order, connection.Connection.recv
+def main(moment, owner):
+    def terminate():
+        os.kill(owner, signal.SIGTERM)
 
-def terminate_then_wait(*args):
-    if MOMENT == "running":
-        terminate()
-    return in_order(*args)
+    class Jobs(list):  # the third job, the first time through
+        def __iter__(self):
+            for i, x in enumerate(list.__iter__(self)):
+                if moment == "handing out" and i == 2 and not hasattr(self, "sent"):
+                    self.sent = terminate()
+                yield x
 
-def terminate_then_receive(self, sent=[]):
-    if MOMENT == "sending" and not sent and os.getpid() == owner and (
-        threading.current_thread() is not threading.main_thread()
-    ):
-        sent.append(terminate())
-        time.sleep(1)  # the run ends the workers, one of them halfway through
-    return recv(self)
+    in_order, recv = experiment._in_order, connection.Connection.recv
 
-experiment._in_order = terminate_then_wait
-connection.Connection.recv = terminate_then_receive
-with experiment.stops_reported("python -m job", "runs/none"):
-    experiment.pool_map(job, Jobs(range(4)), workers=2, desc="jobs", progress=False)
+    def terminate_then_wait(*args):
+        if moment == "running":
+            terminate()
+        return in_order(*args)
+
+    def terminate_then_receive(self, sent=[]):
+        if moment == "sending" and not sent and os.getpid() == owner and (
+            threading.current_thread() is not threading.main_thread()
+        ):
+            sent.append(terminate())
+            time.sleep(1)  # the run ends the workers, one of them halfway through
+        return recv(self)
+
+    experiment._in_order = terminate_then_wait
+    connection.Connection.recv = terminate_then_receive
+    with experiment.stops_reported("python -m job", "runs/none"):
+        jobs = Jobs((moment, x) for x in range(4))
+        experiment.pool_map(job, jobs, workers=2, desc="jobs", progress=False)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1], os.getpid())
 """
+
+
+def run_script(folder: Path, code: str, *args: str, **kwargs):
+    """``subprocess.run`` of ``code`` saved as folder/script.py (so that pool
+    workers started by forkserver or spawn, Python 3.14's default, can import
+    its jobs; from ``-c`` they cannot), on this checkout's ``tasks``: a
+    script's folder, not the current one, heads its sys.path, so it would
+    otherwise import the installed tasks (another checkout's)."""
+    (folder / "script.py").write_text(code)
+    source = str(Path(tasks.__file__).resolve().parents[1])
+    path = os.pathsep.join(filter(None, [source, os.environ.get("PYTHONPATH")]))
+    return subprocess.run(
+        [sys.executable, str(folder / "script.py"), *args],
+        env={**os.environ, "PYTHONPATH": path}, capture_output=True, text=True,
+        cwd=folder, timeout=60, **kwargs,
+    )  # fmt: skip
 
 
 @pytest.mark.parametrize("moment", ["handing out", "running", "sending"])
@@ -1844,13 +1866,7 @@ def test_sigterm_to_the_run_alone_ends_its_running_jobs_with_it(tmp_path, moment
     ends them with the run. A worker ended while it sent a result left part of
     it in the pipe, and the run hung at exit for ever, its stop line printed.
     The timeout is a guard against those waits, not a timing check."""
-    run = subprocess.run(
-        [sys.executable, "-c", _TERMINATE_THE_POOLS_OWNER, moment],
-        capture_output=True,
-        text=True,
-        cwd=tmp_path,
-        timeout=60,
-    )
+    run = run_script(tmp_path, _TERMINATE_THE_POOLS_OWNER, moment)
     assert run.returncode == 143, run.stderr
     assert run.stderr == (
         "python -m job: terminated (SIGTERM) before the run ended: it had written "
@@ -1863,28 +1879,32 @@ import sys, threading, time
 from concurrent.futures import Future
 from tasks import experiment
 
-cancel = Future.cancel
-
-def cancel_and_say(self):  # what gh-107219 needs, however the race then goes
-    if threading.current_thread() is threading.main_thread():
-        print("a future was cancelled by the caller", file=sys.stderr)
-    return cancel(self)
-
-Future.cancel = cancel_and_say
 
 def job(x):
     if x == 0:
         raise ValueError("job 0 failed")
     time.sleep(600)
 
-try:
-    experiment.pool_map(job, range(10), workers=2, desc="jobs", progress=False)
-except ValueError as error:
-    print(error)
+
+if __name__ == "__main__":
+    cancel = Future.cancel
+
+    def cancel_and_say(self):  # what gh-107219 needs, however the race then goes
+        if threading.current_thread() is threading.main_thread():
+            print("a future was cancelled by the caller", file=sys.stderr)
+        return cancel(self)
+
+    Future.cancel = cancel_and_say
+    try:
+        experiment.pool_map(job, range(10), workers=2, desc="jobs", progress=False)
+    except ValueError as error:
+        print(error)
 """
 
 
-def test_a_failed_job_ends_the_pools_running_jobs_and_nothing_else_is_printed():
+def test_a_failed_job_ends_the_pools_running_jobs_and_nothing_else_is_printed(
+    tmp_path,
+):
     """A job's error is raised once the pool's other running jobs are ended,
     not finished (ten minutes each here; the timeout is a guard, not a timing
     check), and nothing else is printed: with more jobs than the pool takes at
@@ -1893,10 +1913,5 @@ def test_a_failed_job_ends_the_pools_running_jobs_and_nothing_else_is_printed():
     printed its InvalidStateError traceback (CPython gh-107219) in about half
     the runs. A future cancelled by the caller, the race's first half, is told
     on stderr too, so the check does not depend on how the race goes."""
-    run = subprocess.run(
-        [sys.executable, "-c", _ONE_JOB_FAILS_WHILE_OTHERS_RUN],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    run = run_script(tmp_path, _ONE_JOB_FAILS_WHILE_OTHERS_RUN)
     assert (run.returncode, run.stdout, run.stderr) == (0, "job 0 failed\n", "")
