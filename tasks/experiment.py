@@ -1145,6 +1145,13 @@ def common_parser(prog: str, doc: str, presets: dict[str, Any], out_default: str
         help="the weights of the filter's model-error factor: prior_mean "
         "(default) or training (as the factor was calibrated; hipmdp.FitConfig)",
     )
+    parser.add_argument(
+        "--new-features",
+        choices=hipmdp.fitting.NEW_FEATURES,
+        default=None,
+        help="the sampler's new-feature step: paper (default; exact as N_w grows) "
+        "or multiple_try (exact at any N_w; hipmdp.FitConfig)",
+    )
     parser.add_argument("--no-record", action="store_true", help="no .rrd recording")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     return parser
@@ -1224,10 +1231,11 @@ def apply_common(
     changes["seed"] = args.seed
     if args.workers is not None:
         changes["workers"] = args.workers
-    if args.filter_weights is not None:
-        changes["fit"] = dataclasses.replace(
-            changes.get("fit", preset.fit), filter_weights=args.filter_weights
-        )
+    for field in ("filter_weights", "new_features"):
+        if getattr(args, field) is not None:
+            changes["fit"] = dataclasses.replace(
+                changes.get("fit", preset.fit), **{field: getattr(args, field)}
+            )
     if args.no_record:
         changes["record"] = False
     if args.no_progress:

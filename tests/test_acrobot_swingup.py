@@ -368,16 +368,25 @@ def test_cli_presets_and_bad_options(capsys):
     assert parse_args(["--trials", "25000"])[0].n_trials == 25000
     assert parse_args(["--split", "time"])[0].split == "time"
     assert PRESETS["quick"].split == PRESETS["paper"].split == "random"
-    # the flag changes only that field of the fit
+    # each flag changes only its field of the fit, and the two together both
     for name in ("quick", "paper"):
-        assert PRESETS[name].fit.filter_weights == "prior_mean"
+        fit = PRESETS[name].fit
+        assert (fit.filter_weights, fit.new_features) == ("prior_mean", "paper")
         config, _ = parse_args(["--preset", name, "--filter-weights", "training"])
+        assert config.fit == dataclasses.replace(fit, filter_weights="training")
+        config, _ = parse_args(["--preset", name, "--new-features", "multiple_try"])
+        assert config.fit == dataclasses.replace(fit, new_features="multiple_try")
+        config, _ = parse_args(
+            ["--preset", name, "--new-features", "multiple_try",
+             "--filter-weights", "training"]
+        )  # fmt: skip
         assert config.fit == dataclasses.replace(
-            PRESETS[name].fit, filter_weights="training"
+            fit, new_features="multiple_try", filter_weights="training"
         )
-    with pytest.raises(SystemExit):
-        parse_args(["--filter-weights", "mean"])
-    assert "--filter-weights: invalid choice: 'mean'" in capsys.readouterr().err
+    for flag, bad in [("--filter-weights", "mean"), ("--new-features", "exact")]:
+        with pytest.raises(SystemExit):
+            parse_args([flag, bad])
+        assert f"{flag}: invalid choice: '{bad}'" in capsys.readouterr().err
     with pytest.raises(ValueError, match="split: expected one of"):
         SwingupConfig(split="episodes")
 

@@ -1715,14 +1715,17 @@ def test_pool_workers_outlive_the_owners_parent(tmp_path):
 def test_the_common_flags_reach_the_config_and_a_bad_out_is_named_by_its_flag(
     tmp_path, monkeypatch, capsys
 ):
-    """``--no-record`` and ``--no-progress`` turn off what the preset turns on;
-    an ``--out`` that cannot be a run folder is a usage error that names the
-    flag, as every other bad flag's is."""
+    """``--no-record`` and ``--no-progress`` turn off what the preset turns on,
+    ``--new-features`` sets the fit's step; an ``--out`` that cannot be a run
+    folder is a usage error that names the flag, as every other bad flag's is."""
     monkeypatch.chdir(tmp_path)  # the default --out, runs/cartpole_prediction, here
     config, _ = cartpole_prediction.parse_args([])
     assert config.record and config.progress
     config, _ = cartpole_prediction.parse_args(["--no-record", "--no-progress"])
     assert not config.record and not config.progress
+    default = cartpole_prediction.PRESETS["quick"].fit
+    config, _ = cartpole_prediction.parse_args(["--new-features", "multiple_try"])
+    assert config.fit == dataclasses.replace(default, new_features="multiple_try")
     (tmp_path / "file").write_text("mine")
     with pytest.raises(SystemExit) as stopped:
         cartpole_prediction.parse_args(["--out", "file", "--no-record"])
