@@ -535,6 +535,23 @@ def added_text(methods: Sequence[str], policies: Collection[str] = ()) -> str:
     )
 
 
+def fit_options_text(fit) -> str:
+    """A sentence per choice of the fit (``hipmdp.FitConfig``) that a run's
+    flags changed from the default ("" if none), for its report."""
+    out = []
+    if fit.filter_weights == "training":
+        out.append(
+            "The filter takes its model-error factor at the squared training "
+            "weights' average, not at the prior mean (`--filter-weights training`)."
+        )
+    if fit.new_features == "multiple_try":
+        out.append(
+            "The sampler took the multiple-try new-feature step, exact at any "
+            "N_w, not the paper's (`--new-features multiple_try`)."
+        )
+    return " ".join(out)
+
+
 def best_baseline(mse: dict[str, Any], dimension: str) -> str:
     """The paper's baseline (one of ``PREDICTION_METHODS`` other than the HiP-MDP)
     with the lowest mean MSE on ``dimension`` (``mse[method][dim]`` intervals, as

@@ -26,6 +26,7 @@ from tasks.prediction import (
     best_baseline,
     coverage_text,
     entity,
+    fit_options_text,
     mse_table,
     ratio_text,
     unseen_section,
@@ -172,11 +173,14 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
     title = f"Cartpole one-step prediction ({config.preset} preset, seed {config.seed})"
     settings = count(len(config.test_settings), "test setting")
     fits = count(config.n_runs, "time")
+    fit_options = fit_options_text(config.fit)
+    fit_options = f"\n{fit_options}" if fit_options else ""
+    n_train = len(config.train_settings)
     text = f"""# {title}
 
 {settings} × {config.n_train} train / {config.n_test}
 test transitions ({config.split} split); HiP-MDP fitted {fits} on
-{n_batch} batch transitions from {len(config.train_settings)} training settings.
+{n_batch} batch transitions from {n_train} training settings.{fit_options}
 
 ## MSE of Δs (mean over test settings [95% interval])
 

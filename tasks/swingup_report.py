@@ -23,6 +23,7 @@ from tasks.experiment import (
 from tasks.prediction import (
     added_text,
     coverage_text,
+    fit_options_text,
     mse_table,
     ratio_text,
     unseen_section,
@@ -278,6 +279,8 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
         if config.book_inertia
         else "Each link's moment of inertia follows its mass (I = m l²)."
     )
+    fit_options = fit_options_text(config.fit)
+    fit_options = f" {fit_options}" if fit_options else ""
     targets = "\n".join(f"- {line}" for line in target_lines(metrics))
     n_test = len(config.test_masses)
     these_settings = "this setting" if n_test == 1 else f"these {n_test} settings"
@@ -286,7 +289,7 @@ def write_report(path: Path, config, metrics: dict[str, Any]) -> None:
 {count(n_test, "test mass setting")} × {count(config.n_trials, "trial")} per method;
 HiP-MDP fitted on {metrics["n_batch_transitions"]} batch transitions from
 {len(config.train_masses)} training settings; {metrics["n_latent_features"]} latent
-features inferred. {inertia}
+features inferred. {inertia}{fit_options}
 
 ## Against the targets
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 from tasks.prediction import COVERAGE_LEVELS, PREDICTION_METHODS
 
 
@@ -19,3 +21,41 @@ def assert_coverage_schema(metrics: dict, dims, report: str) -> None:
         for d in dims:  # each setting's 95% share is at least its 50% share
             assert by_level["0.95"][d]["mean"] >= by_level["0.5"][d]["mean"]
     assert "central 50% / 95% Gaussian" in report
+
+
+def assert_names_fit_choices(default_report: str, write, config, folder) -> None:
+    """A run made with ``--filter-weights training`` or ``--new-features
+    multiple_try`` says so in its report.md, each choice in its sentence (both,
+    in that order); ``default_report``, a run's at the defaults, names neither.
+    ``write(config, folder)`` writes the report of ``config`` (the run's with
+    the fit changed) in ``folder``."""
+    factor = "at the squared training weights' average, not at the prior mean"
+    step = "took the multiple-try new-feature step, exact at any N_w, not the paper's"
+    assert factor not in default_report and step not in default_report
+    for changes, said in [
+        ({"new_features": "multiple_try"}, [step]),
+        ({"filter_weights": "training"}, [factor]),
+        (
+            {"new_features": "multiple_try", "filter_weights": "training"},
+            [factor, step],
+        ),
+    ]:
+        fit = dataclasses.replace(config.fit, **changes)
+        write(dataclasses.replace(config, fit=fit), folder)
+        text = (folder / "report.md").read_text()
+        assert [s for s in (factor, step) if s in text] == said, changes
+        flags = [f"`--{k.replace('_', '-')} {v}`" for k, v in changes.items()]
+        assert all(flag in text for flag in flags), (flags, changes)
+        if len(said) == 2:
+            assert text.index(factor) < text.index(step)
+
+
+def in_memory(metrics):
+    """A run's metrics as ``main`` held them before writing metrics.json: JSON's
+    nulls back to NaN (an interval over one setting), so that a report can be
+    written from them again."""
+    if isinstance(metrics, dict):
+        return {k: in_memory(v) for k, v in metrics.items()}
+    if isinstance(metrics, list):
+        return [in_memory(v) for v in metrics]
+    return float("nan") if metrics is None else metrics

@@ -37,7 +37,11 @@ from tasks.transfer import (
     run_trial,
     trial_label,
 )
-from tests._prediction import assert_coverage_schema
+from tests._prediction import (
+    assert_coverage_schema,
+    assert_names_fit_choices,
+    in_memory,
+)
 from tests._rrd import rrd_components, rrd_scalars, rrd_times
 from tests._seed_spread import assert_reads_the_run
 
@@ -1285,3 +1289,16 @@ def test_cli_prints_where_it_wrote_and_the_summary(tmp_path, monkeypatch, capsys
     assert out[0] == f"wrote {tmp_path}/ (report.md, metrics.json, figures, recording)"
     assert out[1:-1] == swingup_report.summary_lines(metrics)
     assert out[-1] == f"tables and plain-language results: {tmp_path / 'report.md'}"
+
+
+def test_the_report_names_the_fit_choices_the_flags_changed(run, tmp_path):
+    """As the cart-pole's: ``--filter-weights`` and ``--new-features``, when
+    changed, are named in report.md."""
+    assert_names_fit_choices(
+        (run.out / "report.md").read_text(),
+        lambda config, folder: swingup_report.write_report(
+            folder, config, in_memory(run.metrics)
+        ),
+        TINY,
+        tmp_path,
+    )

@@ -24,7 +24,11 @@ from tasks.cartpole_prediction import (
 )
 from tasks.prediction import PREDICTION_METHODS, best_baseline, entity, mse_table
 from tasks.recording import rrd_contents
-from tests._prediction import assert_coverage_schema
+from tests._prediction import (
+    assert_coverage_schema,
+    assert_names_fit_choices,
+    in_memory,
+)
 from tests._rrd import rrd_components, rrd_scalars, rrd_times
 from tests._seed_spread import assert_reads_the_run
 
@@ -1217,3 +1221,19 @@ def test_cli_runs_the_parsed_config_and_prints_the_ratios(
     (tmp_path / "cartpole.rrd").unlink()
     assert cp.cli(["--out", str(tmp_path)]) == 0
     assert capsys.readouterr().out.splitlines()[-2].endswith(": dtheta n/a, dx 2.4e+02")
+
+
+def test_the_report_names_the_fit_choices_the_flags_changed(run, tmp_path):
+    """A run made with ``--filter-weights training`` or ``--new-features
+    multiple_try`` says so in its report.md (its config.json records it too);
+    a run at the defaults says nothing of them."""
+    from tasks import prediction_report
+
+    assert_names_fit_choices(
+        (run.out / "report.md").read_text(),
+        lambda config, folder: prediction_report.write_report(
+            folder, config, in_memory(run.metrics)
+        ),
+        TINY,
+        tmp_path,
+    )
