@@ -6,7 +6,7 @@ any simulator.
 
 from hipmdp.data import Transitions
 from hipmdp.filter import Belief
-from hipmdp.fitting import FitConfig, fit
+from hipmdp.fitting import NEW_FEATURES, FitConfig, fit
 from hipmdp.fourier import FourierBasis
 from hipmdp.gibbs import GibbsData, GibbsPriors, GibbsState, run_chains
 from hipmdp.model import FILTER_WEIGHTS, HipMDP, load
@@ -37,6 +37,7 @@ __version__ = _installed_version()
 
 __all__ = [
     "FILTER_WEIGHTS",
+    "NEW_FEATURES",
     "Belief",
     "DynamicsModel",
     "FitConfig",

@@ -1114,7 +1114,7 @@ def by_preset(presets: dict[str, Any], field: str) -> str:
 
 def common_parser(prog: str, doc: str, presets: dict[str, Any], out_default: str):
     """The options every experiment has: --preset, --seed, --out, --workers,
-    --filter-weights, --no-record, --no-progress."""
+    --filter-weights, --new-features, --no-record, --no-progress."""
     parser = argparse.ArgumentParser(
         prog=prog,
         description=doc.split("\n\n")[0],
@@ -1147,10 +1147,11 @@ def common_parser(prog: str, doc: str, presets: dict[str, Any], out_default: str
     )
     parser.add_argument(
         "--new-features",
-        choices=hipmdp.fitting.NEW_FEATURES,
+        choices=hipmdp.NEW_FEATURES,
         default=None,
-        help="the sampler's new-feature step: paper (default; exact as N_w grows) "
-        "or multiple_try (exact at any N_w; hipmdp.FitConfig)",
+        help="the sampler's new-feature step: paper (default; exact only as its "
+        "N_w weight draws grow without bound) or multiple_try (exact at any N_w; "
+        "hipmdp.FitConfig)",
     )
     parser.add_argument("--no-record", action="store_true", help="no .rrd recording")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")

@@ -546,8 +546,9 @@ def fit_options_text(fit) -> str:
         )
     if fit.new_features == "multiple_try":
         out.append(
-            "The sampler took the multiple-try new-feature step, exact at any "
-            "N_w, not the paper's (`--new-features multiple_try`)."
+            "The sampler takes the multiple-try new-feature step, exact at any "
+            "number N_w of weight draws, not the paper's "
+            "(`--new-features multiple_try`)."
         )
     return " ".join(out)
 

@@ -23,15 +23,17 @@ def assert_coverage_schema(metrics: dict, dims, report: str) -> None:
     assert "central 50% / 95% Gaussian" in report
 
 
-def assert_names_fit_choices(default_report: str, write, config, folder) -> None:
+def assert_names_fit_choices(default_report: str, write, config, folder, sep) -> None:
     """A run made with ``--filter-weights training`` or ``--new-features
     multiple_try`` says so in its report.md, each choice in its sentence (both,
-    in that order); ``default_report``, a run's at the defaults, names neither.
-    ``write(config, folder)`` writes the report of ``config`` (the run's with
-    the fit changed) in ``folder``."""
-    factor = "at the squared training weights' average, not at the prior mean"
-    step = "took the multiple-try new-feature step, exact at any N_w, not the paper's"
+    in that order), after ``sep``, and is otherwise the report at the defaults,
+    ``default_report``, which names neither. ``write(config, folder)`` writes
+    the report of ``config`` (the run's with the fit changed) in ``folder``."""
+    factor = "The filter takes its model-error factor at the squared training"
+    step = "The sampler takes the multiple-try new-feature step, exact at any"
     assert factor not in default_report and step not in default_report
+    write(config, folder)  # the run's own report again, from its metrics
+    assert (folder / "report.md").read_text() == default_report
     for changes, said in [
         ({"new_features": "multiple_try"}, [step]),
         ({"filter_weights": "training"}, [factor]),
@@ -48,14 +50,21 @@ def assert_names_fit_choices(default_report: str, write, config, folder) -> None
         assert all(flag in text for flag in flags), (flags, changes)
         if len(said) == 2:
             assert text.index(factor) < text.index(step)
+        start = text.index(said[0]) - len(sep)  # where the sentences begin
+        assert text[start:].startswith(sep), changes
+        end = text.index(").", text.index(said[-1])) + 2  # where they end
+        assert text[:start] + text[end:] == default_report, changes
 
 
 def in_memory(metrics):
-    """A run's metrics as ``main`` held them before writing metrics.json: JSON's
-    nulls back to NaN (an interval over one setting), so that a report can be
-    written from them again."""
+    """A run's metrics as ``main`` held them before writing metrics.json, as
+    far as its report reads them: an interval's JSON null bounds back to NaN
+    (an interval over one setting has none)."""
     if isinstance(metrics, dict):
-        return {k: in_memory(v) for k, v in metrics.items()}
+        return {
+            k: float("nan") if v is None and k in ("low", "high") else in_memory(v)
+            for k, v in metrics.items()
+        }
     if isinstance(metrics, list):
         return [in_memory(v) for v in metrics]
-    return float("nan") if metrics is None else metrics
+    return metrics

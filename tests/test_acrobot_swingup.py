@@ -1301,4 +1301,5 @@ def test_the_report_names_the_fit_choices_the_flags_changed(run, tmp_path):
         ),
         TINY,
         tmp_path,
+        sep=" ",
     )

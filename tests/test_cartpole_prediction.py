@@ -1225,8 +1225,8 @@ def test_cli_runs_the_parsed_config_and_prints_the_ratios(
 
 def test_the_report_names_the_fit_choices_the_flags_changed(run, tmp_path):
     """A run made with ``--filter-weights training`` or ``--new-features
-    multiple_try`` says so in its report.md (its config.json records it too);
-    a run at the defaults says nothing of them."""
+    multiple_try`` says so in its report.md; a run at the defaults says
+    nothing of them."""
     from tasks import prediction_report
 
     assert_names_fit_choices(
@@ -1236,4 +1236,5 @@ def test_the_report_names_the_fit_choices_the_flags_changed(run, tmp_path):
         ),
         TINY,
         tmp_path,
+        sep="\n",
     )

@@ -69,6 +69,13 @@ def test_an_experiment_older_than_a_field_counts_as_its_old_behaviour(tmp_path):
     assert main(a, d).config == {}
     e = _run(tmp_path / "e", config=old | {"fit": fit | {"filter_weights": "training"}})
     assert main(a, e).config == {"fit.filter_weights": ["prior_mean", "training"]}
+    # before new_features the sampler took the paper's step
+    f = _run(tmp_path / "f", config=old | {"fit": fit | {"new_features": "paper"}})
+    assert main(a, f).config == {}
+    g = _run(
+        tmp_path / "g", config=old | {"fit": fit | {"new_features": "multiple_try"}}
+    )
+    assert main(a, g).config == {"fit.new_features": ["paper", "multiple_try"]}
 
 
 def test_a_model_from_before_the_data_digest_is_compared_without_it():

@@ -1800,7 +1800,8 @@ from multiprocessing import connection
 from tasks import experiment
 
 
-def job(moment_and_x):  # at the top: a worker started by forkserver imports it
+# at the top level, where a worker started by forkserver or spawn finds it
+def job(moment_and_x):
     if moment_and_x[0] == "sending":
         return b"x" * 10_000_000
     time.sleep(600)
@@ -1844,19 +1845,19 @@ if __name__ == "__main__":
 """
 
 
-def run_script(folder: Path, code: str, *args: str, **kwargs):
+def run_script(folder: Path, code: str, *args: str):
     """``subprocess.run`` of ``code`` saved as folder/script.py (so that pool
-    workers started by forkserver or spawn, Python 3.14's default, can import
-    its jobs; from ``-c`` they cannot), on this checkout's ``tasks``: a
-    script's folder, not the current one, heads its sys.path, so it would
-    otherwise import the installed tasks (another checkout's)."""
+    workers started by forkserver, Python 3.14's default on Linux, or spawn,
+    macOS's, can import its jobs; from ``-c`` they cannot), on this checkout's
+    ``tasks``: a script's folder, not the current one, heads its sys.path, so
+    it would otherwise import the installed tasks (another checkout's)."""
     (folder / "script.py").write_text(code)
     source = str(Path(tasks.__file__).resolve().parents[1])
     path = os.pathsep.join(filter(None, [source, os.environ.get("PYTHONPATH")]))
     return subprocess.run(
         [sys.executable, str(folder / "script.py"), *args],
         env={**os.environ, "PYTHONPATH": path}, capture_output=True, text=True,
-        cwd=folder, timeout=60, **kwargs,
+        cwd=folder, timeout=60,
     )  # fmt: skip
 
 

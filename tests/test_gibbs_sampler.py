@@ -353,13 +353,14 @@ def test_a_sweep_leaves_the_joint_law_of_the_model_unchanged(multiple_try, n_w, 
     Not seen: a new feature's log-likelihood ratios × 1.5 (3.3); f kept where
     z stays on (1.1) is a valid sampler too. Nor a multiple-try step that draws
     N_w weights beside the current ones (N_w + 1 in all, divided by N_w): 1.3
-    over 10,000 draws at N_w = 3 (3.8 at N_w = 1); so its normalisation is
-    checked exactly, in
+    at N_w = 3 over 10,000 draws, more than this test's 3,000 (3.8 at
+    N_w = 1); so its normalisation is checked exactly, in
     :func:`test_multiple_try_weighs_the_current_weights_as_one_of_n_w_draws`.
     Ten sweeps per draw instead of one, on the same Y, let a bias add up (the
     paper step at N_w = 3: 6.5 against 3.4, 1,000 draws each) but cost seven
     times as much, where 3.7 times the draws should match it (z grows as √n);
-    and they did not catch that step either (2.2 at 10 sweeps, 1.4 at 30)."""
+    and they did not catch that multiple-try step either (N_w = 3, 1,000 draws:
+    2.2 at 10 sweeps, 1.4 at 30)."""
     priors = GibbsPriors(1.0, 1.0, 1.0, n_w=n_w, multiple_try=multiple_try)
     z_scores, changed = sweep_invariance(priors, n=3000)
     assert np.isfinite(z_scores).all(), z_scores  # 0 / 0: a statistic never moved
