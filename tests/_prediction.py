@@ -23,12 +23,18 @@ def assert_coverage_schema(metrics: dict, dims, report: str) -> None:
     assert "central 50% / 95% Gaussian" in report
 
 
-def assert_names_fit_choices(default_report: str, write, config, folder, sep) -> None:
+def assert_names_fit_choices(run, write_report, config, folder, sep: str) -> None:
     """A run made with ``--filter-weights training`` or ``--new-features
     multiple_try`` says so in its report.md, each choice in its sentence (both,
-    in that order), after ``sep``, and is otherwise the report at the defaults,
-    ``default_report``, which names neither. ``write(config, folder)`` writes
-    the report of ``config`` (the run's with the fit changed) in ``folder``."""
+    in that order), after ``sep``, and is otherwise the report at the defaults:
+    ``run``'s (``main``'s results at ``config``), which names neither.
+    ``write_report(folder, config, metrics)`` is the experiment's; the reports
+    are written in ``folder`` from ``run``'s metrics."""
+    default_report = (run.out / "report.md").read_text()
+
+    def write(config, folder):
+        write_report(folder, config, in_memory(run.metrics))
+
     factor = "The filter takes its model-error factor at the squared training"
     step = "The sampler takes the multiple-try new-feature step, exact at any"
     assert factor not in default_report and step not in default_report

@@ -37,11 +37,7 @@ from tasks.transfer import (
     run_trial,
     trial_label,
 )
-from tests._prediction import (
-    assert_coverage_schema,
-    assert_names_fit_choices,
-    in_memory,
-)
+from tests._prediction import assert_coverage_schema, assert_names_fit_choices
 from tests._rrd import rrd_components, rrd_scalars, rrd_times
 from tests._seed_spread import assert_reads_the_run
 
@@ -1294,12 +1290,4 @@ def test_cli_prints_where_it_wrote_and_the_summary(tmp_path, monkeypatch, capsys
 def test_the_report_names_the_fit_choices_the_flags_changed(run, tmp_path):
     """As the cart-pole's: ``--filter-weights`` and ``--new-features``, when
     changed, are named in report.md."""
-    assert_names_fit_choices(
-        (run.out / "report.md").read_text(),
-        lambda config, folder: swingup_report.write_report(
-            folder, config, in_memory(run.metrics)
-        ),
-        TINY,
-        tmp_path,
-        sep=" ",
-    )
+    assert_names_fit_choices(run, swingup_report.write_report, TINY, tmp_path, " ")

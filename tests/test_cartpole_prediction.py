@@ -24,11 +24,7 @@ from tasks.cartpole_prediction import (
 )
 from tasks.prediction import PREDICTION_METHODS, best_baseline, entity, mse_table
 from tasks.recording import rrd_contents
-from tests._prediction import (
-    assert_coverage_schema,
-    assert_names_fit_choices,
-    in_memory,
-)
+from tests._prediction import assert_coverage_schema, assert_names_fit_choices
 from tests._rrd import rrd_components, rrd_scalars, rrd_times
 from tests._seed_spread import assert_reads_the_run
 
@@ -1229,12 +1225,4 @@ def test_the_report_names_the_fit_choices_the_flags_changed(run, tmp_path):
     nothing of them."""
     from tasks import prediction_report
 
-    assert_names_fit_choices(
-        (run.out / "report.md").read_text(),
-        lambda config, folder: prediction_report.write_report(
-            folder, config, in_memory(run.metrics)
-        ),
-        TINY,
-        tmp_path,
-        sep="\n",
-    )
+    assert_names_fit_choices(run, prediction_report.write_report, TINY, tmp_path, "\n")
