@@ -523,6 +523,16 @@ def test_a_failed_job_stops_the_pool_without_running_the_queued_ones(tmp_path, w
         assert ran == 0
 
 
+def checkout_env() -> dict[str, str]:
+    """The environment for a script run in a subprocess, with this checkout's
+    ``tasks`` and ``hipmdp`` first on its path: a script's folder, not the
+    current one, heads its sys.path, so without this it imports the installed
+    ones (another checkout's)."""
+    source = str(Path(tasks.__file__).resolve().parents[1])
+    path = os.pathsep.join(filter(None, [source, os.environ.get("PYTHONPATH")]))
+    return {**os.environ, "PYTHONPATH": path}
+
+
 _OWNERS = {
     "pool_map": """
 import os, signal, sys, threading, time
@@ -604,13 +614,8 @@ def test_pool_workers_end_when_their_owner_is_killed(tmp_path, pool, reaped):
     script, marks = tmp_path / "owner.py", tmp_path / "marks"
     script.write_text(_OWNERS[pool])
     marks.mkdir()
-    # the code under test: a script's folder, not the current one, heads its
-    # sys.path, so without this it imports the installed tasks (another checkout)
-    source = str(Path(tasks.__file__).resolve().parents[1])
-    path = os.pathsep.join(filter(None, [source, os.environ.get("PYTHONPATH")]))
     owner = subprocess.Popen(
-        [sys.executable, str(script), str(marks)],
-        env={**os.environ, "PYTHONPATH": path},
+        [sys.executable, str(script), str(marks)], env=checkout_env()
     )
     try:  # the workers marked are killed whatever happens, a timeout too
         if reaped:
@@ -1600,11 +1605,9 @@ def test_a_worker_ends_when_its_owners_pid_is_another_process(tmp_path, case):
 
     script = tmp_path / "worker.py"
     script.write_text(_WATCHER)
-    source = str(Path(tasks.__file__).resolve().parents[1])  # as in the test above
-    path = os.pathsep.join(filter(None, [source, os.environ.get("PYTHONPATH")]))
     worker = subprocess.run(
         [sys.executable, str(script), str(os.getpid()), case],
-        env={**os.environ, "PYTHONPATH": path}, timeout=60,
+        env=checkout_env(), timeout=60,
     )  # fmt: skip
     assert worker.returncode == 1
 
@@ -1700,11 +1703,9 @@ def test_pool_workers_outlive_the_owners_parent(tmp_path):
     run's process, not the process that started it."""
 
     (tmp_path / "owner.py").write_text(_ORPHANED_OWNER)
-    source = str(Path(tasks.__file__).resolve().parents[1])  # as in the test above
-    path = os.pathsep.join(filter(None, [source, os.environ.get("PYTHONPATH")]))
     subprocess.run(
         [sys.executable, "-c", _LAUNCHER, str(tmp_path / "owner.py"), str(tmp_path)],
-        env={**os.environ, "PYTHONPATH": path}, timeout=60, check=True,
+        env=checkout_env(), timeout=60, check=True,
     )  # fmt: skip
     deadline = time.monotonic() + 60  # the owner is no child of ours to wait for
     while not (tmp_path / "result").exists() and time.monotonic() < deadline:
@@ -1849,15 +1850,11 @@ def run_script(folder: Path, code: str, *args: str):
     """``subprocess.run`` of ``code`` saved as folder/script.py (so that pool
     workers started by forkserver, Python 3.14's default on Linux, or spawn,
     macOS's, can import its jobs; from ``-c`` they cannot), on this checkout's
-    ``tasks``: a script's folder, not the current one, heads its sys.path, so
-    it would otherwise import the installed tasks (another checkout's)."""
+    ``tasks`` (:func:`checkout_env`)."""
     (folder / "script.py").write_text(code)
-    source = str(Path(tasks.__file__).resolve().parents[1])
-    path = os.pathsep.join(filter(None, [source, os.environ.get("PYTHONPATH")]))
     return subprocess.run(
         [sys.executable, str(folder / "script.py"), *args],
-        env={**os.environ, "PYTHONPATH": path}, capture_output=True, text=True,
-        cwd=folder, timeout=60,
+        env=checkout_env(), capture_output=True, text=True, cwd=folder, timeout=60,
     )  # fmt: skip
 
 
